@@ -1,0 +1,69 @@
+//! manifest.json of bundle v1, as written in ../shared/spec/bundle.md. Unknown fields are accepted
+//! (the contract lets new optional fields appear); known fields are typed.
+
+use crate::optics::{Optics, ViewPose};
+use crate::thread::Family;
+use serde::{Deserialize, Serialize};
+
+pub const FORMAT_V1: &str = "crestscan.focal-stack/1";
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Manifest {
+    pub format: String,
+    pub part: PartManifest,
+    pub optics: Optics,
+    pub views: Vec<ViewManifest>,
+}
+
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct PartManifest {
+    #[serde(default)]
+    pub serial: Option<String>,
+    #[serde(default)]
+    pub connection: Option<String>,
+    #[serde(default)]
+    pub thread: Option<CustomThread>,
+}
+
+/// A custom thread form, or overrides of the connection table's values. The contract's fields plus
+/// optional profile details (flank angles, crest width, root truncation).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct CustomThread {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub family: Option<Family>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pitch_mm: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub thread_height_mm: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub height_tolerance_mm: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub taper_on_diameter: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pipe_od_mm: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lc_mm: Option<f64>,
+    /// Buttress-family profile details (defaults 3°, 10°, equal crest and root flats).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub load_flank_deg: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stab_flank_deg: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub crest_width_mm: Option<f64>,
+    /// Round-family detail (default: half the truncation of the sharp V).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub root_truncation_mm: Option<f64>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ViewManifest {
+    pub id: String,
+    pub pose: ViewPose,
+    pub frames: Vec<FrameEntry>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FrameEntry {
+    pub file: String,
+    pub offset_mm: f64,
+}

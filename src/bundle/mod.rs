@@ -1,0 +1,504 @@
+//! Bundle v1 reader (../shared/spec/bundle.md): a directory, `.zip` or `.tar` holding manifest.json
+//! and focal-stack frames. [`Bundle::open`] validates everything it can before any work starts
+//! (manifest, optics, offsets, paths, every frame's header, size caps) and names the field or file in
+//! every error; frames are then decoded one at a time with [`Bundle::read_frame`].
+
+mod manifest;
+mod source;
+
+pub use manifest::{CustomThread, FORMAT_V1, FrameEntry, Manifest, PartManifest, ViewManifest};
+pub use source::{Limits, Source, check_relative_path};
+
+use crate::optics::{Optics, ViewPose};
+use crate::thread::{ConnectionTable, Family, FormError, GaugePlane, ProfileShape, ThreadForm};
+use image::ImageDecoder;
+use std::collections::HashSet;
+use std::io::Cursor;
+use std::path::Path;
+
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum BundleError {
+    #[error("manifest.json: format: unsupported format version {found:?}; this reader takes \"{FORMAT_V1}\"")]
+    FormatVersion { found: String },
+    #[error("manifest.json: {field}: {message}")]
+    Manifest { field: String, message: String },
+    #[error("manifest.json: optics.{field}: {message}")]
+    Optics { field: String, message: String },
+    #[error("manifest.json: part.connection: unknown connection {designation:?}; see `crestscan connections` (tubing and premium threads need part.thread)")]
+    UnknownConnection { designation: String },
+    #[error("manifest.json: part.thread.{field}: {message}")]
+    Thread { field: String, message: String },
+    #[error("manifest.json: {field}: {count} frame(s); a focal stack needs at least {MIN_FRAMES}")]
+    TooFewFrames { field: String, count: usize },
+    #[error("manifest.json: {field}: {message}")]
+    Offsets { field: String, message: String },
+    #[error("{path}: file not found in the bundle")]
+    MissingFile { path: String },
+    #[error("{path}: unreadable frame: {message}")]
+    UnreadableFrame { path: String, message: String },
+    #[error("{path}: {message}")]
+    InconsistentFrames { path: String, message: String },
+    #[error("{path}: unsafe path: {message}")]
+    UnsafePath { path: String, message: String },
+    #[error("bundle too large: {message}")]
+    Limit { message: String },
+    #[error("{message}")]
+    Archive { message: String },
+    #[error("{path}: {message}")]
+    Io { path: String, message: String },
+}
+
+impl BundleError {
+    /// Stable machine code (HTTP problem `code`, CLI exit messages).
+    pub fn code(&self) -> &'static str {
+        match self {
+            BundleError::FormatVersion { .. } => "unsupported_format_version",
+            BundleError::Manifest { .. } => "invalid_manifest",
+            BundleError::Optics { .. } => "invalid_optics",
+            BundleError::UnknownConnection { .. } => "unknown_connection",
+            BundleError::Thread { .. } => "invalid_thread",
+            BundleError::TooFewFrames { .. } => "too_few_frames",
+            BundleError::Offsets { .. } => "invalid_offsets",
+            BundleError::MissingFile { .. } => "missing_file",
+            BundleError::UnreadableFrame { .. } => "unreadable_frame",
+            BundleError::InconsistentFrames { .. } => "inconsistent_frames",
+            BundleError::UnsafePath { .. } => "unsafe_path",
+            BundleError::Limit { .. } => "bundle_too_large",
+            BundleError::Archive { .. } => "invalid_archive",
+            BundleError::Io { .. } => "io_error",
+        }
+    }
+}
+
+pub const MIN_FRAMES: usize = 3;
+
+/// The inspected part, resolved from the connection table and/or the custom thread form.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct Part {
+    pub serial: Option<String>,
+    /// The designation as given (a table row's canonical name when it was found there).
+    pub connection: Option<String>,
+    pub form: ThreadForm,
+    pub pipe_od_mm: f64,
+    pub lc_mm: f64,
+    /// Where the thread cone sits, when the table knows it.
+    pub gauge: Option<GaugePlane>,
+}
+
+impl Part {
+    pub fn family(&self) -> Family {
+        self.form.family
+    }
+    pub fn circumference_mm(&self) -> f64 {
+        std::f64::consts::PI * self.pipe_od_mm
+    }
+}
+
+/// Pixel layout shared by every frame of a view.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+pub struct FrameFormat {
+    pub width: u32,
+    pub height: u32,
+    /// 1 (gray) or 3 (RGB).
+    pub channels: u8,
+    /// 8 or 16.
+    pub bit_depth: u8,
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct View {
+    pub id: String,
+    pub pose: ViewPose,
+    pub frames: Vec<FrameEntry>,
+    pub format: FrameFormat,
+}
+
+/// A decoded frame: interleaved samples scaled to [0, 1].
+#[derive(Clone, Debug, PartialEq)]
+pub struct Frame {
+    pub width: u32,
+    pub height: u32,
+    pub channels: u8,
+    pub pixels: Vec<f32>,
+}
+
+impl Frame {
+    /// Luminance (Rec. 709 weights for RGB).
+    pub fn gray(&self) -> Vec<f32> {
+        match self.channels {
+            1 => self.pixels.clone(),
+            _ => self.pixels.chunks_exact(3).map(|p| 0.2126 * p[0] + 0.7152 * p[1] + 0.0722 * p[2]).collect(),
+        }
+    }
+}
+
+/// How thoroughly [`Bundle::open`] checks the frames.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum FrameCheck {
+    /// Read every frame's header (size, bit depth, colour type). Corrupt pixel data after a good
+    /// header is reported, by file name, when the frame is decoded.
+    #[default]
+    Headers,
+    /// Decode every frame completely.
+    Decode,
+}
+
+#[derive(Clone, Copy, Debug, Default)]
+pub struct OpenOptions {
+    pub limits: Limits,
+    pub frame_check: FrameCheck,
+}
+
+pub struct Bundle {
+    pub manifest: Manifest,
+    pub part: Part,
+    pub optics: Optics,
+    pub views: Vec<View>,
+    source: Source,
+}
+
+impl std::fmt::Debug for Bundle {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Bundle").field("source", &self.source.describe()).field("views", &self.views.len()).finish()
+    }
+}
+
+impl Bundle {
+    pub fn open(path: &Path, table: &ConnectionTable, options: OpenOptions) -> Result<Self, BundleError> {
+        let source = Source::open(path, options.limits)?;
+        source.check_dir_limits()?;
+        let manifest_bytes = source.read("manifest.json")?;
+        let manifest = parse_manifest(&manifest_bytes)?;
+        let part = resolve_part(&manifest.part, table)?;
+        manifest
+            .optics
+            .validate()
+            .map_err(|(field, message)| BundleError::Optics { field: field.into(), message })?;
+        let views = validate_views(&manifest, &source, options.frame_check)?;
+        let optics = manifest.optics.clone();
+        Ok(Self { manifest, part, optics, views, source })
+    }
+
+    pub fn frame_count(&self) -> usize {
+        self.views.iter().map(|v| v.frames.len()).sum()
+    }
+
+    /// Decodes one frame, checking it still matches its view's format.
+    pub fn read_frame(&self, view: usize, frame: usize) -> Result<Frame, BundleError> {
+        let v = &self.views[view];
+        let entry = &v.frames[frame];
+        let bytes = self.source.read(&entry.file)?;
+        let decoded = decode(&entry.file, &bytes)?;
+        if (decoded.width, decoded.height, decoded.channels) != (v.format.width, v.format.height, v.format.channels) {
+            return Err(BundleError::InconsistentFrames {
+                path: entry.file.clone(),
+                message: "frame changed since the bundle was validated".into(),
+            });
+        }
+        Ok(decoded)
+    }
+
+    /// Raw bytes of a bundle file (used to copy bundles and to hash uploads).
+    pub fn read_file(&self, path: &str) -> Result<Vec<u8>, BundleError> {
+        check_relative_path(path).map_err(|message| BundleError::UnsafePath { path: path.into(), message })?;
+        self.source.read(path)
+    }
+}
+
+pub fn parse_manifest(bytes: &[u8]) -> Result<Manifest, BundleError> {
+    // The version decides the shape, so it is checked before the typed parse.
+    let value: serde_json::Value = serde_json::from_slice(bytes).map_err(|e| BundleError::Manifest {
+        field: format!("line {} column {}", e.line(), e.column()),
+        message: format!("not valid JSON: {e}"),
+    })?;
+    match value.get("format") {
+        Some(serde_json::Value::String(s)) if s == FORMAT_V1 => {}
+        Some(serde_json::Value::String(s)) => return Err(BundleError::FormatVersion { found: s.clone() }),
+        Some(other) => return Err(BundleError::FormatVersion { found: other.to_string() }),
+        None => {
+            return Err(BundleError::Manifest { field: "format".into(), message: "is missing".into() });
+        }
+    }
+    serde_path_to_error::deserialize::<_, Manifest>(value).map_err(|e| {
+        let path = e.path().to_string();
+        let message = e.into_inner().to_string();
+        if let Some(field) = path.strip_prefix("optics.") {
+            BundleError::Optics { field: field.into(), message }
+        } else {
+            BundleError::Manifest { field: path, message }
+        }
+    })
+}
+
+fn thread_err(field: &str, message: impl Into<String>) -> BundleError {
+    BundleError::Thread { field: field.into(), message: message.into() }
+}
+
+/// Connection table row, overridden field by field by `part.thread`.
+pub fn resolve_part(part: &PartManifest, table: &ConnectionTable) -> Result<Part, BundleError> {
+    let custom = part.thread.clone().unwrap_or_default();
+    let row = match (&part.connection, &part.thread) {
+        (Some(designation), _) => match table.get(designation) {
+            Some(row) => Some(row),
+            None if part.thread.is_some() => None,
+            None => return Err(BundleError::UnknownConnection { designation: designation.clone() }),
+        },
+        (None, Some(_)) => None,
+        (None, None) => {
+            return Err(BundleError::Manifest {
+                field: "part".into(),
+                message: "needs a connection designation or a custom thread form".into(),
+            });
+        }
+    };
+    let need = |value: Option<f64>, from_row: Option<f64>, field: &'static str| {
+        value.or(from_row).ok_or_else(|| {
+            thread_err(field, "is required when part.connection is not in the connection table")
+        })
+    };
+    let family = custom
+        .family
+        .or(row.map(|r| r.family))
+        .ok_or_else(|| thread_err("family", "is required when part.connection is not in the connection table"))?;
+    let pitch_mm = need(custom.pitch_mm, row.map(|r| r.pitch_mm), "pitch_mm")?;
+    let height_mm = need(custom.thread_height_mm, row.map(|r| r.thread_height_mm), "thread_height_mm")?;
+    let tolerance_mm = need(custom.height_tolerance_mm, row.map(|r| r.height_tolerance_mm), "height_tolerance_mm")?;
+    let taper = need(custom.taper_on_diameter, row.map(|r| r.taper_on_diameter), "taper_on_diameter")?;
+    let pipe_od_mm = need(custom.pipe_od_mm, row.map(|r| r.pipe_od_mm), "pipe_od_mm")?;
+    let lc_mm = need(custom.lc_mm, row.map(|r| r.lc_mm), "lc_mm")?;
+    for (field, value) in [("pipe_od_mm", pipe_od_mm), ("lc_mm", lc_mm)] {
+        if !(value.is_finite() && value > 0.0) {
+            return Err(thread_err(field, format!("must be a finite number > 0, got {value}")));
+        }
+    }
+    let form_fields_given = custom.family.is_some()
+        || custom.pitch_mm.is_some()
+        || custom.thread_height_mm.is_some()
+        || custom.height_tolerance_mm.is_some()
+        || custom.taper_on_diameter.is_some()
+        || custom.load_flank_deg.is_some()
+        || custom.stab_flank_deg.is_some()
+        || custom.crest_width_mm.is_some()
+        || custom.root_truncation_mm.is_some();
+    let form = match row {
+        Some(r) if !form_fields_given => r.form().clone(),
+        _ => build_form(family, pitch_mm, height_mm, tolerance_mm, taper, &custom)
+            .map_err(|e| form_error_to_bundle(&e))?,
+    };
+    Ok(Part {
+        serial: part.serial.clone(),
+        connection: row.map(|r| r.designation.clone()).or_else(|| part.connection.clone()),
+        form,
+        pipe_od_mm,
+        lc_mm,
+        gauge: row.map(|r| r.gauge),
+    })
+}
+
+fn build_form(
+    family: Family,
+    pitch_mm: f64,
+    height_mm: f64,
+    tolerance_mm: f64,
+    taper: f64,
+    custom: &CustomThread,
+) -> Result<ThreadForm, FormError> {
+    match family {
+        Family::Round => ThreadForm::api_round(pitch_mm, height_mm, tolerance_mm, taper, custom.root_truncation_mm),
+        Family::Buttress => {
+            let load = custom.load_flank_deg.unwrap_or(3.0);
+            let stab = custom.stab_flank_deg.unwrap_or(10.0);
+            let flanks = height_mm * (load.to_radians().tan() + stab.to_radians().tan());
+            let crest_width_mm = custom.crest_width_mm.unwrap_or((pitch_mm - flanks) / 2.0);
+            ThreadForm::new(
+                family,
+                pitch_mm,
+                height_mm,
+                tolerance_mm,
+                taper,
+                ProfileShape::Trapezoid { load_flank_deg: load, stab_flank_deg: stab, crest_width_mm },
+            )
+        }
+    }
+}
+
+fn form_error_to_bundle(e: &FormError) -> BundleError {
+    let field = match e {
+        FormError::NotPositive { field, .. } | FormError::Negative { field, .. } | FormError::OutOfRange { field, .. } => {
+            field.to_string()
+        }
+        FormError::DoesNotFit(_) => "thread_height_mm".to_string(),
+    };
+    thread_err(&field, e.to_string())
+}
+
+fn validate_views(manifest: &Manifest, source: &Source, check: FrameCheck) -> Result<Vec<View>, BundleError> {
+    if manifest.views.is_empty() {
+        return Err(BundleError::Manifest { field: "views".into(), message: "is empty".into() });
+    }
+    let mut ids = HashSet::new();
+    let mut files = HashSet::new();
+    let mut views = Vec::with_capacity(manifest.views.len());
+    for (i, view) in manifest.views.iter().enumerate() {
+        let at = |rest: &str| format!("views[{i}]{rest}");
+        if view.id.is_empty() || view.id.contains(['/', '\\']) || view.id == "." || view.id == ".." {
+            return Err(BundleError::Manifest {
+                field: at(".id"),
+                message: format!("{:?} must be a non-empty name without '/' or '\\'", view.id),
+            });
+        }
+        if !ids.insert(view.id.as_str()) {
+            return Err(BundleError::Manifest { field: at(".id"), message: format!("{:?} is used twice", view.id) });
+        }
+        let pose = &view.pose;
+        for (name, value) in [("angle_deg", pose.angle_deg), ("axial_mm", pose.axial_mm), ("lens_radius_mm", pose.lens_radius_mm)] {
+            if !value.is_finite() {
+                return Err(BundleError::Manifest { field: at(&format!(".pose.{name}")), message: format!("must be finite, got {value}") });
+            }
+        }
+        if pose.lens_radius_mm <= 0.0 {
+            return Err(BundleError::Manifest {
+                field: at(".pose.lens_radius_mm"),
+                message: format!("must be > 0, got {}", pose.lens_radius_mm),
+            });
+        }
+        if view.frames.len() < MIN_FRAMES {
+            return Err(BundleError::TooFewFrames { field: at(".frames"), count: view.frames.len() });
+        }
+        for (k, frame) in view.frames.iter().enumerate() {
+            let field = at(&format!(".frames[{k}].offset_mm"));
+            if !frame.offset_mm.is_finite() {
+                return Err(BundleError::Offsets { field, message: format!("must be finite, got {}", frame.offset_mm) });
+            }
+            if k > 0 {
+                let prev = view.frames[k - 1].offset_mm;
+                if frame.offset_mm == prev {
+                    return Err(BundleError::Offsets { field, message: format!("duplicates the previous offset {prev} mm") });
+                }
+                if frame.offset_mm < prev {
+                    return Err(BundleError::Offsets {
+                        field,
+                        message: format!("{} mm after {prev} mm: offsets must grow from near to far", frame.offset_mm),
+                    });
+                }
+            }
+            check_relative_path(&frame.file)
+                .map_err(|message| BundleError::UnsafePath { path: frame.file.clone(), message })?;
+            let lower = frame.file.to_ascii_lowercase();
+            if !(lower.ends_with(".png") || lower.ends_with(".tif") || lower.ends_with(".tiff")) {
+                return Err(BundleError::UnreadableFrame {
+                    path: frame.file.clone(),
+                    message: "frames must be .png, .tif or .tiff".into(),
+                });
+            }
+            if lower.starts_with("truth/") {
+                return Err(BundleError::UnsafePath {
+                    path: frame.file.clone(),
+                    message: "truth/ is ground truth and never read by inspection".into(),
+                });
+            }
+            if !files.insert(frame.file.as_str()) {
+                return Err(BundleError::Manifest {
+                    field: at(&format!(".frames[{k}].file")),
+                    message: format!("{:?} is listed twice", frame.file),
+                });
+            }
+        }
+        // Frame formats: every frame readable, one size, bit depth and colour type per view.
+        let mut format: Option<(FrameFormat, &str)> = None;
+        for frame in &view.frames {
+            let bytes = source.read(&frame.file)?;
+            let this = match check {
+                FrameCheck::Headers => probe(&frame.file, &bytes)?,
+                FrameCheck::Decode => {
+                    let (probed, decoded) = (probe(&frame.file, &bytes)?, decode(&frame.file, &bytes)?);
+                    debug_assert_eq!(decoded.width, probed.width);
+                    probed
+                }
+            };
+            match format {
+                None => format = Some((this, frame.file.as_str())),
+                Some((first, first_file)) if first != this => {
+                    return Err(BundleError::InconsistentFrames {
+                        path: frame.file.clone(),
+                        message: format!(
+                            "{}×{} {}-bit {} differs from {first_file} ({}×{} {}-bit {}) in view {:?}",
+                            this.width,
+                            this.height,
+                            this.bit_depth,
+                            channels_name(this.channels),
+                            first.width,
+                            first.height,
+                            first.bit_depth,
+                            channels_name(first.channels),
+                            view.id
+                        ),
+                    });
+                }
+                Some(_) => {}
+            }
+        }
+        let (format, _) = format.expect("at least MIN_FRAMES frames");
+        views.push(View { id: view.id.clone(), pose: view.pose, frames: view.frames.clone(), format });
+    }
+    Ok(views)
+}
+
+fn channels_name(channels: u8) -> &'static str {
+    if channels == 1 { "gray" } else { "RGB" }
+}
+
+fn is_tiff(path: &str) -> bool {
+    let lower = path.to_ascii_lowercase();
+    lower.ends_with(".tif") || lower.ends_with(".tiff")
+}
+
+fn format_of(path: &str, color: image::ColorType) -> Result<FrameFormat, BundleError> {
+    use image::ColorType::*;
+    let (channels, bit_depth) = match color {
+        L8 => (1, 8),
+        L16 => (1, 16),
+        Rgb8 => (3, 8),
+        Rgb16 => (3, 16),
+        other => {
+            return Err(BundleError::UnreadableFrame {
+                path: path.into(),
+                message: format!("colour type {other:?}: frames must be 8- or 16-bit gray or RGB"),
+            });
+        }
+    };
+    Ok(FrameFormat { width: 0, height: 0, channels, bit_depth })
+}
+
+/// Reads a frame's header only.
+fn probe(path: &str, bytes: &[u8]) -> Result<FrameFormat, BundleError> {
+    let unreadable = |e: image::ImageError| BundleError::UnreadableFrame { path: path.into(), message: e.to_string() };
+    let ((width, height), color) = if is_tiff(path) {
+        let d = image::codecs::tiff::TiffDecoder::new(Cursor::new(bytes)).map_err(unreadable)?;
+        (d.dimensions(), d.color_type())
+    } else {
+        let d = image::codecs::png::PngDecoder::new(Cursor::new(bytes)).map_err(unreadable)?;
+        (d.dimensions(), d.color_type())
+    };
+    if width == 0 || height == 0 {
+        return Err(BundleError::UnreadableFrame { path: path.into(), message: "has no pixels".into() });
+    }
+    Ok(FrameFormat { width, height, ..format_of(path, color)? })
+}
+
+/// Decodes a frame to samples in [0, 1].
+pub fn decode(path: &str, bytes: &[u8]) -> Result<Frame, BundleError> {
+    let unreadable = |e: image::ImageError| BundleError::UnreadableFrame { path: path.into(), message: e.to_string() };
+    let format = if is_tiff(path) { image::ImageFormat::Tiff } else { image::ImageFormat::Png };
+    let image = image::load_from_memory_with_format(bytes, format).map_err(unreadable)?;
+    let f = format_of(path, image.color())?;
+    let (width, height) = (image.width(), image.height());
+    let pixels: Vec<f32> = match image {
+        image::DynamicImage::ImageLuma8(img) => img.into_raw().into_iter().map(|v| v as f32 / 255.0).collect(),
+        image::DynamicImage::ImageRgb8(img) => img.into_raw().into_iter().map(|v| v as f32 / 255.0).collect(),
+        image::DynamicImage::ImageLuma16(img) => img.into_raw().into_iter().map(|v| v as f32 / 65535.0).collect(),
+        image::DynamicImage::ImageRgb16(img) => img.into_raw().into_iter().map(|v| v as f32 / 65535.0).collect(),
+        _ => unreachable!("format_of refused other colour types"),
+    };
+    Ok(Frame { width, height, channels: f.channels, pixels })
+}

@@ -1,0 +1,327 @@
+//! Where a bundle's files come from: a directory, a `.zip` or a `.tar`. Archives are indexed once
+//! (names, sizes, types) and read lazily, so frames can be streamed; every read is capped.
+
+use super::BundleError;
+use std::collections::HashMap;
+use std::fs::File;
+use std::io::{Read, Seek, SeekFrom};
+use std::path::{Component, Path, PathBuf};
+use std::sync::Mutex;
+
+/// Caps that keep a hostile or broken upload from exhausting memory or disk.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Limits {
+    /// Total uncompressed bytes of all files in the bundle.
+    pub max_total_bytes: u64,
+    /// Files (archive entries) in the bundle.
+    pub max_files: usize,
+    /// Bytes of one file.
+    pub max_file_bytes: u64,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Self { max_total_bytes: 16 << 30, max_files: 200_000, max_file_bytes: 512 << 20 }
+    }
+}
+
+/// Checks a manifest path: relative, `/`-separated, no `..`, `.` or empty parts, no backslash.
+pub fn check_relative_path(path: &str) -> Result<(), String> {
+    if path.is_empty() {
+        return Err("is empty".into());
+    }
+    if path.starts_with('/') || path.contains('\\') || path.contains(':') {
+        return Err(format!("'{path}' is not a relative '/'-separated path inside the bundle"));
+    }
+    for part in path.split('/') {
+        match part {
+            "" | "." => return Err(format!("'{path}' has an empty or '.' component")),
+            ".." => return Err(format!("'{path}' escapes the bundle ('..')")),
+            _ => {}
+        }
+    }
+    Ok(())
+}
+
+enum Kind {
+    Dir(PathBuf),
+    Zip { archive: Mutex<zip::ZipArchive<File>>, index: HashMap<String, (usize, u64)> },
+    Tar { file: Mutex<File>, index: HashMap<String, TarEntry> },
+}
+
+#[derive(Clone, Copy)]
+struct TarEntry {
+    data_offset: u64,
+    size: u64,
+    regular: bool,
+}
+
+/// An opened bundle container. Paths given to it are bundle-relative (already checked).
+pub struct Source {
+    kind: Kind,
+    /// Folder inside an archive that holds the bundle ("" at the root, else "name/").
+    prefix: String,
+    limits: Limits,
+    display: String,
+}
+
+fn io_err(path: &str, e: impl std::fmt::Display) -> BundleError {
+    BundleError::Io { path: path.to_string(), message: e.to_string() }
+}
+
+impl Source {
+    /// Opens a directory, or an archive recognised by its magic bytes (zip) or ustar header (tar).
+    pub fn open(path: &Path, limits: Limits) -> Result<Self, BundleError> {
+        let display = path.display().to_string();
+        let meta = std::fs::metadata(path).map_err(|e| io_err(&display, e))?;
+        if meta.is_dir() {
+            return Ok(Self { kind: Kind::Dir(path.to_path_buf()), prefix: String::new(), limits, display });
+        }
+        let mut file = File::open(path).map_err(|e| io_err(&display, e))?;
+        let mut head = [0u8; 512];
+        let n = read_up_to(&mut file, &mut head).map_err(|e| io_err(&display, e))?;
+        file.seek(SeekFrom::Start(0)).map_err(|e| io_err(&display, e))?;
+        if n >= 4 && &head[..4] == b"PK\x03\x04" || n >= 4 && &head[..4] == b"PK\x05\x06" {
+            Self::open_zip(file, limits, display)
+        } else if n >= 262 && &head[257..262] == b"ustar" {
+            Self::open_tar(file, limits, display)
+        } else {
+            Err(BundleError::Archive {
+                message: format!("{display}: neither a directory, a zip nor a tar archive"),
+            })
+        }
+    }
+
+    fn open_zip(file: File, limits: Limits, display: String) -> Result<Self, BundleError> {
+        let mut archive = zip::ZipArchive::new(file)
+            .map_err(|e| BundleError::Archive { message: format!("{display}: not a readable zip: {e}") })?;
+        if archive.len() > limits.max_files {
+            return Err(too_many_files(archive.len(), limits));
+        }
+        let mut index = HashMap::new();
+        let mut total = 0u64;
+        for i in 0..archive.len() {
+            let entry = archive
+                .by_index_raw(i)
+                .map_err(|e| BundleError::Archive { message: format!("{display}: entry {i}: {e}") })?;
+            let name = entry
+                .name()
+                .map_err(|e| BundleError::Archive { message: format!("{display}: entry {i}: {e}") })?
+                .to_string();
+            if entry.is_symlink() {
+                return Err(BundleError::UnsafePath { path: name, message: "is a symbolic link".into() });
+            }
+            if entry.is_dir() {
+                continue;
+            }
+            total = total.saturating_add(entry.size());
+            if entry.size() > limits.max_file_bytes {
+                return Err(file_too_large(&name, entry.size(), limits));
+            }
+            if total > limits.max_total_bytes {
+                return Err(too_many_bytes(total, limits));
+            }
+            index.insert(name, (i, entry.size()));
+        }
+        let prefix = bundle_prefix(index.keys().map(String::as_str))?;
+        Ok(Self { kind: Kind::Zip { archive: Mutex::new(archive), index }, prefix, limits, display })
+    }
+
+    fn open_tar(file: File, limits: Limits, display: String) -> Result<Self, BundleError> {
+        let mut archive = tar::Archive::new(file);
+        let mut index = HashMap::new();
+        let mut total = 0u64;
+        let entries = archive
+            .entries()
+            .map_err(|e| BundleError::Archive { message: format!("{display}: not a readable tar: {e}") })?;
+        for (i, entry) in entries.enumerate() {
+            let entry =
+                entry.map_err(|e| BundleError::Archive { message: format!("{display}: entry {i}: {e}") })?;
+            if index.len() >= limits.max_files {
+                return Err(too_many_files(index.len() + 1, limits));
+            }
+            let name = entry
+                .path()
+                .map_err(|e| BundleError::Archive { message: format!("{display}: entry {i}: {e}") })?
+                .to_string_lossy()
+                .into_owned();
+            let kind = entry.header().entry_type();
+            if kind.is_symlink() || kind.is_hard_link() {
+                return Err(BundleError::UnsafePath { path: name, message: "is a link".into() });
+            }
+            if kind.is_dir() || kind.is_pax_global_extensions() {
+                continue;
+            }
+            let size = entry.size();
+            if size > limits.max_file_bytes {
+                return Err(file_too_large(&name, size, limits));
+            }
+            total = total.saturating_add(size);
+            if total > limits.max_total_bytes {
+                return Err(too_many_bytes(total, limits));
+            }
+            let name = name.trim_start_matches("./").to_string();
+            index.insert(name, TarEntry { data_offset: entry.raw_file_position(), size, regular: kind.is_file() });
+        }
+        let prefix = bundle_prefix(index.keys().map(String::as_str))?;
+        let file = archive.into_inner();
+        Ok(Self { kind: Kind::Tar { file: Mutex::new(file), index }, prefix, limits, display })
+    }
+
+    pub fn describe(&self) -> &str {
+        &self.display
+    }
+
+    /// Reads a whole bundle file (path relative to the bundle root, already checked).
+    pub fn read(&self, path: &str) -> Result<Vec<u8>, BundleError> {
+        let full = format!("{}{}", self.prefix, path);
+        let max = self.limits.max_file_bytes;
+        match &self.kind {
+            Kind::Dir(root) => {
+                let file_path = self.dir_path(root, path)?;
+                let mut file = File::open(&file_path).map_err(|e| missing_or_io(path, e))?;
+                read_capped(&mut file, max, path)
+            }
+            Kind::Zip { archive, index } => {
+                let &(i, _) = index.get(&full).ok_or_else(|| BundleError::MissingFile { path: path.into() })?;
+                let mut archive = archive.lock().unwrap_or_else(|p| p.into_inner());
+                let mut entry = archive.by_index(i).map_err(|e| io_err(path, e))?;
+                read_capped(&mut entry, max, path)
+            }
+            Kind::Tar { file, index } => {
+                let entry = index.get(&full).ok_or_else(|| BundleError::MissingFile { path: path.into() })?;
+                if !entry.regular {
+                    return Err(BundleError::UnsafePath { path: path.into(), message: "is not a regular file".into() });
+                }
+                let mut file = file.lock().unwrap_or_else(|p| p.into_inner());
+                file.seek(SeekFrom::Start(entry.data_offset)).map_err(|e| io_err(path, e))?;
+                let mut bytes = vec![0u8; entry.size as usize];
+                file.read_exact(&mut bytes).map_err(|e| io_err(path, e))?;
+                Ok(bytes)
+            }
+        }
+    }
+
+    /// Whether a bundle file exists (without reading it).
+    pub fn exists(&self, path: &str) -> bool {
+        let full = format!("{}{}", self.prefix, path);
+        match &self.kind {
+            Kind::Dir(root) => self.dir_path(root, path).map(|p| p.is_file()).unwrap_or(false),
+            Kind::Zip { index, .. } => index.contains_key(&full),
+            Kind::Tar { index, .. } => index.contains_key(&full),
+        }
+    }
+
+    /// Resolves a path inside a directory bundle, refusing symbolic links at any level so that
+    /// nothing outside the bundle can be reached.
+    fn dir_path(&self, root: &Path, path: &str) -> Result<PathBuf, BundleError> {
+        let mut current = root.to_path_buf();
+        for component in Path::new(path).components() {
+            let Component::Normal(part) = component else {
+                return Err(BundleError::UnsafePath { path: path.into(), message: "is not a plain relative path".into() });
+            };
+            current.push(part);
+            match std::fs::symlink_metadata(&current) {
+                Ok(meta) if meta.file_type().is_symlink() => {
+                    return Err(BundleError::UnsafePath {
+                        path: path.into(),
+                        message: "is or passes through a symbolic link".into(),
+                    });
+                }
+                Ok(_) => {}
+                Err(e) => return Err(missing_or_io(path, e)),
+            }
+        }
+        Ok(current)
+    }
+
+    /// Files in a directory bundle are counted and sized up front, like an archive's entries.
+    pub fn check_dir_limits(&self) -> Result<(), BundleError> {
+        let Kind::Dir(root) = &self.kind else { return Ok(()) };
+        let (mut files, mut total) = (0usize, 0u64);
+        let mut stack = vec![root.clone()];
+        while let Some(dir) = stack.pop() {
+            let entries = std::fs::read_dir(&dir).map_err(|e| io_err(&dir.display().to_string(), e))?;
+            for entry in entries {
+                let entry = entry.map_err(|e| io_err(&dir.display().to_string(), e))?;
+                let meta = entry.metadata().map_err(|e| io_err(&entry.path().display().to_string(), e))?;
+                if meta.is_dir() {
+                    stack.push(entry.path());
+                } else {
+                    files += 1;
+                    total = total.saturating_add(meta.len());
+                    if files > self.limits.max_files {
+                        return Err(too_many_files(files, self.limits));
+                    }
+                    if total > self.limits.max_total_bytes {
+                        return Err(too_many_bytes(total, self.limits));
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+fn missing_or_io(path: &str, e: std::io::Error) -> BundleError {
+    if e.kind() == std::io::ErrorKind::NotFound {
+        BundleError::MissingFile { path: path.into() }
+    } else {
+        io_err(path, e)
+    }
+}
+
+fn read_up_to(file: &mut File, buf: &mut [u8]) -> std::io::Result<usize> {
+    let mut n = 0;
+    while n < buf.len() {
+        match file.read(&mut buf[n..])? {
+            0 => break,
+            k => n += k,
+        }
+    }
+    Ok(n)
+}
+
+/// Reads at most `max` bytes; more means the declared size lied (a bomb) or the cap is too small.
+fn read_capped(reader: &mut impl Read, max: u64, path: &str) -> Result<Vec<u8>, BundleError> {
+    let mut bytes = Vec::new();
+    reader.take(max + 1).read_to_end(&mut bytes).map_err(|e| io_err(path, e))?;
+    if bytes.len() as u64 > max {
+        return Err(BundleError::Limit {
+            message: format!("{path}: larger than the per-file cap of {max} bytes"),
+        });
+    }
+    Ok(bytes)
+}
+
+fn too_many_files(n: usize, limits: Limits) -> BundleError {
+    BundleError::Limit { message: format!("archive holds more than {} files ({n} seen)", limits.max_files) }
+}
+
+fn too_many_bytes(total: u64, limits: Limits) -> BundleError {
+    BundleError::Limit {
+        message: format!("uncompressed size exceeds the cap of {} bytes ({total} seen)", limits.max_total_bytes),
+    }
+}
+
+fn file_too_large(name: &str, size: u64, limits: Limits) -> BundleError {
+    BundleError::Limit {
+        message: format!("{name}: uncompressed size {size} exceeds the per-file cap of {} bytes", limits.max_file_bytes),
+    }
+}
+
+/// The bundle sits at the archive root, or inside exactly one top-level folder.
+fn bundle_prefix<'a>(names: impl Iterator<Item = &'a str>) -> Result<String, BundleError> {
+    let names: Vec<&str> = names.map(|n| n.trim_start_matches("./")).collect();
+    if names.contains(&"manifest.json") {
+        return Ok(String::new());
+    }
+    let mut tops = names.iter().filter_map(|n| n.split_once('/').map(|(top, _)| top));
+    if let Some(first) = tops.next()
+        && names.iter().all(|n| n.split_once('/').map(|(t, _)| t) == Some(first))
+        && names.iter().any(|n| *n == format!("{first}/manifest.json"))
+    {
+        return Ok(format!("{first}/"));
+    }
+    Err(BundleError::MissingFile { path: "manifest.json".into() })
+}
