@@ -106,6 +106,8 @@ impl ThreadForm {
         height_tolerance_mm: f64,
         taper_on_diameter: f64,
     ) -> Result<Self, FormError> {
+        positive("pitch_mm", pitch_mm)?;
+        positive("thread_height_mm", height_mm)?;
         let (load, stab) = (3.0_f64, 10.0_f64);
         let flanks_mm = height_mm * (load.to_radians().tan() + stab.to_radians().tan());
         if flanks_mm >= pitch_mm {
