@@ -246,6 +246,17 @@ impl ThreadForm {
         }
     }
 
+    /// Height of the pitch line above the root: the middle of the sharp V for round threads, the
+    /// middle of the thread height for buttress (where API 5B's pitch diameters E1 and E7 sit).
+    pub fn pitch_line_height_mm(&self) -> f64 {
+        match self.profile {
+            ProfileShape::Rounded { flank_deg, root_truncation_mm, .. } => {
+                self.pitch_mm / (4.0 * flank_deg.to_radians().tan()) - root_truncation_mm
+            }
+            ProfileShape::Trapezoid { .. } => self.height_mm / 2.0,
+        }
+    }
+
     /// Largest |d height / d z| of the profile: a Lipschitz bound for ray marching.
     pub fn max_slope(&self) -> f64 {
         match self.profile {

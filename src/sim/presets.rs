@@ -1,0 +1,277 @@
+//! Named simulation presets. Optics are chosen so that depth from focus is physically sound: the
+//! depth of field (blur circle ≤ 1 pixel) is a fraction of the thread height, and the frame step a
+//! fraction of the depth of field. `ci*` presets are small enough for tests.
+
+use super::appearance::Appearance;
+use super::part::{MillSurface, PartModel, PolishedPatch};
+use super::render::Sensor;
+use super::{PoseJitter, SimSpec, ViewPlan};
+use crate::bundle::PartManifest;
+use crate::optics::{Optics, Projection, ViewPose};
+use crate::thread::ConnectionTable;
+
+pub struct PresetInfo {
+    pub name: &'static str,
+    pub description: &'static str,
+}
+
+pub const PRESETS: &[PresetInfo] = &[
+    PresetInfo { name: "ci", description: "BC 4-1/2, 3 views over 13° near Lc, 18 frames of 384×160 RGB; a black crest within Lc across threads 6–7 (accept)" },
+    PresetInfo { name: "ci-telecentric", description: "LC 5-1/2 through a 0.25× telecentric lens, 3 views, 16-bit; full crests within Lc (accept)" },
+    PresetInfo { name: "standard", description: "BC 4-1/2 pin end, whole circumference (45 views × 16 frames, 864×240 RGB), z 0–35 mm; black crests only beyond Lc (accept)" },
+    PresetInfo { name: "bc-black-1", description: "standard optics; 0.1 mm eccentric thread: one black-crested thread within Lc (accept)" },
+    PresetInfo { name: "bc-black-2", description: "standard optics; undersize pipe: two black-crested threads within Lc, each under 25% (accept)" },
+    PresetInfo { name: "bc-black-3", description: "standard optics; undersize, eccentric pipe: three black-crested threads within Lc (reject)" },
+    PresetInfo { name: "bc-arc-over-25", description: "standard optics; a thread black over more than 25% of the circumference within Lc (reject)" },
+    PresetInfo { name: "lc-round-black", description: "LC 4-1/2 round thread, oval pipe: a small black arc within Lc (reject)" },
+    PresetInfo { name: "bc-polished", description: "standard optics; a black crest within Lc polished to look machined (found only by height)" },
+    PresetInfo { name: "lc-accept", description: "LC 4-1/2 round thread, nominal pipe: black crests only beyond Lc (accept)" },
+];
+
+/// The standard camera: 50 mm f/1.4 focused at 220 mm (magnification 0.29), 12 µm pixels (a 6 µm
+/// sensor binned 2×2): 41 µm per pixel on the part, depth of field ≈ 0.5 mm (a third of the buttress
+/// thread height).
+fn standard_optics() -> Optics {
+    Optics {
+        projection: Projection::Perspective,
+        focal_length_mm: 50.0,
+        f_number: 1.4,
+        focus_distance_mm: 220.0,
+        pixel_pitch_um: 12.0,
+        principal_point_px: None,
+        magnification: None,
+    }
+}
+
+fn nominal_mill(od_mm: f64) -> MillSurface {
+    MillSurface {
+        nominal_radius_mm: od_mm / 2.0,
+        undersize_mm: 0.0,
+        ovality_mm: 0.0,
+        ovality_angle_deg: 0.0,
+        eccentricity_mm: 0.0,
+        eccentricity_angle_deg: 0.0,
+    }
+}
+
+/// A table connection's part with its cone placed by the gauge plane (E7 at L7, E1 at L1).
+fn connection_part(designation: &str, mill: impl FnOnce(&mut MillSurface), helix_z_h_mm: f64) -> (PartManifest, PartModel) {
+    let table = ConnectionTable::api5b();
+    let conn = table.get(designation).expect("preset designations are in the table");
+    let form = conn.form().clone();
+    let root_at_end = conn.gauge.pitch_diameter_mm / 2.0 - form.pitch_line_height_mm() - conn.gauge.z_mm * form.radius_slope();
+    let mut mill_surface = nominal_mill(conn.pipe_od_mm);
+    mill(&mut mill_surface);
+    let part = PartModel {
+        chamfer_radius_at_end_mm: root_at_end - 0.4,
+        chamfer_angle_deg: 65.0,
+        root_radius_at_end_mm: root_at_end,
+        form,
+        helix_z_h_mm,
+        mill: mill_surface,
+        polished: vec![],
+        pipe_od_mm: conn.pipe_od_mm,
+        lc_mm: conn.lc_mm,
+    };
+    let manifest = PartManifest { serial: None, connection: Some(conn.designation.clone()), thread: None };
+    (manifest, part)
+}
+
+/// A mill surface `undersize_mm` under nominal radius (negative: oversize) whose centre is
+/// `eccentricity_mm` off the thread axis; the mill surface is lowest, and crests go black first, at
+/// `low_side_deg`.
+fn eccentric(undersize_mm: f64, eccentricity_mm: f64, low_side_deg: f64) -> impl FnOnce(&mut MillSurface) {
+    move |m| {
+        m.undersize_mm = undersize_mm;
+        m.eccentricity_mm = eccentricity_mm;
+        m.eccentricity_angle_deg = low_side_deg + 180.0;
+    }
+}
+
+struct Layout {
+    width: u32,
+    height: u32,
+    first_angle_deg: f64,
+    angle_step_deg: f64,
+    angles: usize,
+    axials_mm: Vec<f64>,
+    frame_step_mm: f64,
+}
+
+/// Views and frame offsets: each view's lens radius puts the middle of its expected depth range in
+/// focus at offset 0; the offsets cover the deepest root to the highest crest in any view, plus the
+/// encoder error and a margin of one depth of field.
+fn plan(part: &PartModel, optics: &Optics, layout: &Layout, jitter: &PoseJitter) -> (Vec<ViewPlan>, Vec<f64>) {
+    let pixel = optics.object_pixel_mm(optics.focus_distance_mm);
+    let half_axial = layout.width as f64 * pixel / 2.0;
+    let half_arc = layout.height as f64 * pixel / 2.0;
+    let margin = optics.depth_of_field_mm(1.0) + jitter.lens_radius_mm;
+    let (mut lo, mut hi) = (f64::MAX, f64::MIN);
+    let mut views = Vec::new();
+    for (j, &axial) in layout.axials_mm.iter().enumerate() {
+        let z_lo = (axial - half_axial).max(0.0);
+        let z_hi = axial + half_axial;
+        let r_lo = part.root_cone_radius(z_lo).min(part.chamfer_radius_at_end_mm.max(part.root_cone_radius(0.0) - 0.5));
+        let r_hi = part.mill.max_radius().min(part.root_cone_radius(z_hi) + part.form.height_mm);
+        let r_mid = 0.5 * (r_lo + r_hi);
+        let sag = r_mid - (r_mid * r_mid - half_arc * half_arc).sqrt();
+        // In focus at offset o when lens_radius + o − r = F, i.e. o = r − r_mid.
+        lo = lo.min(r_lo - r_mid - sag - margin);
+        hi = hi.max(r_hi - r_mid + margin);
+        for i in 0..layout.angles {
+            let angle = layout.first_angle_deg + i as f64 * layout.angle_step_deg;
+            views.push(ViewPlan {
+                id: format!("a{i:03}-z{j:02}"),
+                pose: ViewPose { angle_deg: angle, axial_mm: axial, lens_radius_mm: optics.focus_distance_mm + r_mid },
+            });
+        }
+    }
+    let n = ((hi - lo) / layout.frame_step_mm).ceil() as usize + 1;
+    let start = 0.5 * (lo + hi) - 0.5 * (n - 1) as f64 * layout.frame_step_mm;
+    let offsets = (0..n).map(|k| round_um(start + k as f64 * layout.frame_step_mm)).collect();
+    (views, offsets)
+}
+
+fn round_um(mm: f64) -> f64 {
+    (mm * 1000.0).round() / 1000.0
+}
+
+const ENCODER_JITTER: PoseJitter = PoseJitter { angle_deg: 1.0, axial_mm: 0.3, lens_radius_mm: 0.05 };
+
+fn spec(
+    name: &str,
+    part_manifest: PartManifest,
+    part: PartModel,
+    optics: Optics,
+    layout: Layout,
+    truth_z_end_mm: f64,
+    sensor: Sensor,
+) -> SimSpec {
+    let (views, offsets_mm) = plan(&part, &optics, &layout, &ENCODER_JITTER);
+    let description = PRESETS.iter().find(|p| p.name == name).map(|p| p.description).unwrap_or_default();
+    SimSpec {
+        name: name.to_string(),
+        description: description.to_string(),
+        part_manifest,
+        part,
+        optics,
+        width: layout.width,
+        height: layout.height,
+        views,
+        offsets_mm,
+        jitter: ENCODER_JITTER,
+        truth_z_end_mm,
+        appearance: Appearance::default(),
+        sensor,
+    }
+}
+
+/// The whole circumference of the pin end from the chamfer to a little past Lc.
+fn ring_layout() -> Layout {
+    Layout {
+        width: 864,
+        height: 240,
+        first_angle_deg: 0.0,
+        angle_step_deg: 8.0,
+        angles: 45,
+        axials_mm: vec![17.3],
+        frame_step_mm: 0.25,
+    }
+}
+
+pub fn preset(name: &str) -> Option<SimSpec> {
+    let sensor = Sensor::default();
+    Some(match name {
+        "ci" => {
+            let (pm, part) = connection_part("BC 4-1/2", eccentric(-0.259, 0.4, 5.0), 0.8);
+            let layout = Layout {
+                width: 384,
+                height: 160,
+                first_angle_deg: 0.0,
+                angle_step_deg: 5.0,
+                angles: 3,
+                axials_mm: vec![26.0],
+                frame_step_mm: 0.25,
+            };
+            spec(name, pm, part, standard_optics(), layout, 33.8, sensor)
+        }
+        "ci-telecentric" => {
+            let (pm, part) = connection_part("LC 5-1/2", |_| {}, 2.0);
+            let optics = Optics {
+                projection: Projection::Telecentric,
+                focal_length_mm: 120.0,
+                f_number: 2.0,
+                focus_distance_mm: 110.0,
+                pixel_pitch_um: 5.86,
+                principal_point_px: None,
+                magnification: Some(0.25),
+            };
+            let layout = Layout {
+                width: 320,
+                height: 128,
+                first_angle_deg: 90.0,
+                angle_step_deg: 4.0,
+                angles: 3,
+                axials_mm: vec![20.0],
+                frame_step_mm: 0.25,
+            };
+            spec(name, pm, part, optics, layout, 29.0, Sensor { bit_depth: 16, ..sensor })
+        }
+        "standard" => {
+            let (pm, part) = connection_part(
+                "BC 4-1/2",
+                |m| {
+                    m.ovality_mm = 0.2;
+                    m.ovality_angle_deg = 30.0;
+                },
+                1.7,
+            );
+            spec(name, pm, part, standard_optics(), ring_layout(), 34.5, sensor)
+        }
+        "bc-black-1" => {
+            let (pm, part) = connection_part("BC 4-1/2", eccentric(-0.028, 0.2, 265.0), 1.7);
+            spec(name, pm, part, standard_optics(), ring_layout(), 34.5, sensor)
+        }
+        "bc-black-2" => {
+            let (pm, part) = connection_part("BC 4-1/2", eccentric(-0.003, 0.3, 330.0), 1.7);
+            spec(name, pm, part, standard_optics(), ring_layout(), 34.5, sensor)
+        }
+        "bc-black-3" => {
+            let (pm, part) = connection_part("BC 4-1/2", eccentric(-0.247, 0.7, 330.0), 1.7);
+            spec(name, pm, part, standard_optics(), ring_layout(), 34.5, sensor)
+        }
+        "bc-arc-over-25" => {
+            let (pm, part) = connection_part("BC 4-1/2", eccentric(0.166, 0.1, 300.0), 1.7);
+            spec(name, pm, part, standard_optics(), ring_layout(), 34.5, sensor)
+        }
+        "bc-polished" => {
+            let (pm, mut part) = connection_part("BC 4-1/2", eccentric(-0.028, 0.2, 265.0), 1.7);
+            part.polished = vec![PolishedPatch { from_deg: 0.0, to_deg: 360.0, z_from_mm: 0.0, z_to_mm: 200.0 }];
+            spec(name, pm, part, standard_optics(), ring_layout(), 34.5, sensor)
+        }
+        "lc-round-black" | "lc-accept" => {
+            let black = name == "lc-round-black";
+            let mill = if black { eccentric(0.109, 0.3, 200.0) } else { eccentric(0.0, 0.0, 0.0) };
+            let (pm, part) = connection_part("LC 4-1/2", mill, 1.1);
+            let layout = Layout { axials_mm: vec![25.0], width: 1280, ..ring_layout() };
+            spec(name, pm, part, standard_optics(), layout, 50.0, sensor)
+        }
+        _ => return None,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_listed_preset_builds_and_names_match() {
+        for info in PRESETS {
+            let spec = preset(info.name).unwrap_or_else(|| panic!("{}", info.name));
+            assert_eq!(spec.name, info.name);
+            assert!(spec.offsets_mm.len() >= 3);
+            assert!(spec.offsets_mm.windows(2).all(|w| w[1] > w[0]));
+        }
+        assert!(preset("nope").is_none());
+    }
+}
