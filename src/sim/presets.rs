@@ -245,7 +245,8 @@ pub fn preset(name: &str) -> Option<SimSpec> {
             spec(name, pm, part, standard_optics(), ring_layout(), 34.5, sensor)
         }
         "bc-polished" => {
-            let (pm, mut part) = connection_part("BC 4-1/2", eccentric(-0.028, 0.2, 265.0), 1.7);
+            // Deep enough that the crest is cut short by more than the height tolerance.
+            let (pm, mut part) = connection_part("BC 4-1/2", eccentric(-0.15, 0.4, 265.0), 1.7);
             part.polished = vec![PolishedPatch { from_deg: 0.0, to_deg: 360.0, z_from_mm: 0.0, z_to_mm: 200.0 }];
             spec(name, pm, part, standard_optics(), ring_layout(), 34.5, sensor)
         }

@@ -1,0 +1,73 @@
+use crestscan::sim;
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+pub const CI_SEED: u64 = 7;
+
+/// The `ci` preset rendered once per test run (seed 7), shared read-only by the tests.
+pub fn ci_bundle() -> &'static Path {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let dir = tempfile::Builder::new().prefix("crestscan-ci-").tempdir().unwrap().keep();
+        let spec = sim::preset("ci").unwrap();
+        sim::simulate(&spec, CI_SEED, &dir).unwrap();
+        dir
+    })
+}
+
+/// A private copy of the ci bundle (without truth/) whose manifest a test may edit.
+pub struct Scratch {
+    pub dir: tempfile::TempDir,
+}
+
+impl Scratch {
+    pub fn new() -> Self {
+        let dir = tempfile::tempdir().unwrap();
+        copy_tree(ci_bundle(), dir.path(), &|p| !p.starts_with("truth"));
+        Self { dir }
+    }
+
+    pub fn path(&self) -> &Path {
+        self.dir.path()
+    }
+
+    pub fn manifest(&self) -> serde_json::Value {
+        serde_json::from_slice(&std::fs::read(self.path().join("manifest.json")).unwrap()).unwrap()
+    }
+
+    pub fn set_manifest(&self, value: &serde_json::Value) {
+        std::fs::write(self.path().join("manifest.json"), serde_json::to_vec_pretty(value).unwrap()).unwrap();
+    }
+
+    pub fn edit(&self, f: impl FnOnce(&mut serde_json::Value)) {
+        let mut m = self.manifest();
+        f(&mut m);
+        self.set_manifest(&m);
+    }
+}
+
+pub fn copy_tree(from: &Path, to: &Path, keep: &dyn Fn(&Path) -> bool) {
+    for entry in walk(from) {
+        let rel = entry.strip_prefix(from).unwrap();
+        if !keep(rel) {
+            continue;
+        }
+        let target = to.join(rel);
+        std::fs::create_dir_all(target.parent().unwrap()).unwrap();
+        std::fs::copy(&entry, &target).unwrap();
+    }
+}
+
+/// Every file under `dir`, sorted.
+pub fn walk(dir: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() { stack.push(p) } else { out.push(p) }
+        }
+    }
+    out.sort();
+    out
+}

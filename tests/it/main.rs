@@ -1,0 +1,5 @@
+//! The integration-test binary: real files, real archives, real rendered focal stacks.
+
+mod bundle_reader;
+mod common;
+mod simulator;
