@@ -1,3 +1,357 @@
-use crate::common::Scratch;
+//! One test per class of bad bundle, each asserting the stable code and that the message names the
+//! culprit (field or file); plus the good paths: directory, zip, tar, nested folder, PNG and TIFF
+//! in 8 and 16 bits, gray and RGB.
+
+use crate::common::{Scratch, ci_bundle, walk};
+use crestscan::bundle::{Bundle, BundleError, FrameCheck, Limits, OpenOptions};
+use crestscan::thread::ConnectionTable;
+use serde_json::json;
+use std::io::Write;
+use std::path::Path;
+
+fn open(path: &Path) -> Result<Bundle, BundleError> {
+    Bundle::open(path, &ConnectionTable::api5b(), OpenOptions::default())
+}
+
+fn open_with(path: &Path, limits: Limits) -> Result<Bundle, BundleError> {
+    Bundle::open(path, &ConnectionTable::api5b(), OpenOptions { limits, frame_check: FrameCheck::Headers })
+}
+
+/// Opens, expects an error with `code`, and checks the message names every `culprit`.
+fn expect_error(result: Result<Bundle, BundleError>, code: &str, culprits: &[&str]) -> String {
+    let err = result.expect_err("bundle should be refused");
+    let message = err.to_string();
+    assert_eq!(err.code(), code, "{message}");
+    for culprit in culprits {
+        assert!(message.contains(culprit), "message {message:?} does not name {culprit:?}");
+    }
+    message
+}
+
+fn first_frame(s: &Scratch) -> String {
+    s.manifest()["views"][0]["frames"][0]["file"].as_str().unwrap().to_string()
+}
+
 #[test]
-fn placeholder_compiles() { let _ = Scratch::new(); }
+fn the_ci_bundle_opens_as_a_directory_and_decodes() {
+    let bundle = open(ci_bundle()).unwrap();
+    assert_eq!(bundle.views.len(), 3);
+    assert_eq!(bundle.part.connection.as_deref(), Some("BC 4-1/2"));
+    assert!((bundle.part.lc_mm - 31.839).abs() < 1e-3);
+    let frame = bundle.read_frame(0, 0).unwrap();
+    assert_eq!((frame.width, frame.height, frame.channels), (384, 160, 3));
+    assert!(frame.pixels.iter().all(|v| (0.0..=1.0).contains(v)));
+    let full = Bundle::open(ci_bundle(), &ConnectionTable::api5b(), OpenOptions { frame_check: FrameCheck::Decode, ..Default::default() });
+    assert!(full.is_ok());
+}
+
+#[test]
+fn unknown_format_version() {
+    let s = Scratch::new();
+    s.edit(|m| m["format"] = json!("crestscan.focal-stack/2"));
+    expect_error(open(s.path()), "unsupported_format_version", &["format", "crestscan.focal-stack/2"]);
+}
+
+#[test]
+fn malformed_field_is_named_by_its_path() {
+    let s = Scratch::new();
+    s.edit(|m| m["views"][1]["pose"]["angle_deg"] = json!("north"));
+    expect_error(open(s.path()), "invalid_manifest", &["views[1].pose.angle_deg"]);
+    std::fs::write(s.path().join("manifest.json"), b"{\"format\": \"crestscan.focal-stack/1\", ").unwrap();
+    expect_error(open(s.path()), "invalid_manifest", &["manifest.json", "line 1"]);
+}
+
+#[test]
+fn missing_frame() {
+    let s = Scratch::new();
+    let file = first_frame(&s);
+    std::fs::remove_file(s.path().join(&file)).unwrap();
+    expect_error(open(s.path()), "missing_file", &[&file]);
+}
+
+#[test]
+fn unreadable_frame() {
+    let s = Scratch::new();
+    let file = first_frame(&s);
+    std::fs::write(s.path().join(&file), b"\x89PNG\r\n\x1a\n not really a png").unwrap();
+    expect_error(open(s.path()), "unreadable_frame", &[&file]);
+    // A frame whose header is fine but whose data is cut off is found when decoded, by name.
+    let s = Scratch::new();
+    let bytes = std::fs::read(s.path().join(&file)).unwrap();
+    std::fs::write(s.path().join(&file), &bytes[..bytes.len() / 2]).unwrap();
+    let bundle = open(s.path()).expect("header still reads");
+    let err = bundle.read_frame(0, 0).unwrap_err();
+    assert_eq!(err.code(), "unreadable_frame");
+    assert!(err.to_string().contains(&file));
+    let full = Bundle::open(s.path(), &ConnectionTable::api5b(), OpenOptions { frame_check: FrameCheck::Decode, ..Default::default() });
+    expect_error(full, "unreadable_frame", &[&file]);
+}
+
+fn write_png(path: &Path, width: u32, height: u32, sixteen: bool, gray: bool) {
+    let channels = if gray { 1 } else { 3 };
+    let n = (width * height * channels) as usize;
+    let image: image::DynamicImage = match (sixteen, gray) {
+        (false, false) => image::RgbImage::from_raw(width, height, (0..n).map(|i| (i % 251) as u8).collect()).unwrap().into(),
+        (false, true) => image::GrayImage::from_raw(width, height, (0..n).map(|i| (i % 251) as u8).collect()).unwrap().into(),
+        (true, false) => image::ImageBuffer::<image::Rgb<u16>, _>::from_raw(width, height, (0..n).map(|i| (i * 97 % 65521) as u16).collect()).unwrap().into(),
+        (true, true) => image::ImageBuffer::<image::Luma<u16>, _>::from_raw(width, height, (0..n).map(|i| (i * 97 % 65521) as u16).collect()).unwrap().into(),
+    };
+    image.save(path).unwrap();
+}
+
+#[test]
+fn mixed_sizes_within_a_view() {
+    let s = Scratch::new();
+    let file = s.manifest()["views"][0]["frames"][4]["file"].as_str().unwrap().to_string();
+    write_png(&s.path().join(&file), 200, 160, false, false);
+    let message = expect_error(open(s.path()), "inconsistent_frames", &[&file, "200×160"]);
+    assert!(message.contains("384×160"), "{message}");
+}
+
+#[test]
+fn mixed_bit_depths_within_a_view() {
+    let s = Scratch::new();
+    let file = s.manifest()["views"][2]["frames"][3]["file"].as_str().unwrap().to_string();
+    write_png(&s.path().join(&file), 384, 160, true, false);
+    expect_error(open(s.path()), "inconsistent_frames", &[&file, "16-bit"]);
+}
+
+#[test]
+fn non_monotonic_offsets() {
+    let s = Scratch::new();
+    s.edit(|m| m["views"][1]["frames"][5]["offset_mm"] = json!(-5.0));
+    expect_error(open(s.path()), "invalid_offsets", &["views[1].frames[5].offset_mm", "grow"]);
+}
+
+#[test]
+fn duplicate_offsets() {
+    let s = Scratch::new();
+    s.edit(|m| {
+        let previous = m["views"][0]["frames"][2]["offset_mm"].clone();
+        m["views"][0]["frames"][3]["offset_mm"] = previous;
+    });
+    expect_error(open(s.path()), "invalid_offsets", &["views[0].frames[3].offset_mm", "duplicates"]);
+}
+
+#[test]
+fn fewer_than_three_frames() {
+    let s = Scratch::new();
+    s.edit(|m| m["views"][2]["frames"].as_array_mut().unwrap().truncate(2));
+    expect_error(open(s.path()), "too_few_frames", &["views[2].frames", "at least 3"]);
+}
+
+#[test]
+fn paths_that_escape_the_bundle() {
+    for evil in ["../outside.png", "/etc/passwd.png", "a000-z00/../../x.png", "C:\\frames\\x.png"] {
+        let s = Scratch::new();
+        s.edit(|m| m["views"][0]["frames"][0]["file"] = json!(evil));
+        expect_error(open(s.path()), "unsafe_path", &[evil]);
+    }
+}
+
+#[cfg(unix)]
+#[test]
+fn symlinks_are_refused() {
+    let outside = tempfile::tempdir().unwrap();
+    let s = Scratch::new();
+    let file = first_frame(&s);
+    let target = outside.path().join("elsewhere.png");
+    std::fs::copy(s.path().join(&file), &target).unwrap();
+    std::fs::remove_file(s.path().join(&file)).unwrap();
+    std::os::unix::fs::symlink(&target, s.path().join(&file)).unwrap();
+    expect_error(open(s.path()), "unsafe_path", &[&file, "symbolic link"]);
+    // A symlinked folder is refused too.
+    let s = Scratch::new();
+    let folder = file.split('/').next().unwrap().to_string();
+    let moved = outside.path().join("moved");
+    std::fs::rename(s.path().join(&folder), &moved).unwrap();
+    std::os::unix::fs::symlink(&moved, s.path().join(&folder)).unwrap();
+    expect_error(open(s.path()), "unsafe_path", &[&folder]);
+}
+
+#[test]
+fn bad_optics_name_the_field() {
+    let cases = [
+        ("f_number", json!(-2.8), "optics.f_number"),
+        ("focus_distance_mm", json!(40.0), "optics.focus_distance_mm"),
+        ("pixel_pitch_um", json!(0.0), "optics.pixel_pitch_um"),
+        ("f_number", json!("NaN"), "optics.f_number"),
+        ("projection", json!("fisheye"), "optics.projection"),
+    ];
+    for (field, value, culprit) in cases {
+        let s = Scratch::new();
+        s.edit(|m| m["optics"][field] = value.clone());
+        expect_error(open(s.path()), "invalid_optics", &[culprit]);
+    }
+    // Inconsistent: a lens cannot focus closer than its focal length.
+    let s = Scratch::new();
+    s.edit(|m| {
+        m["optics"]["focal_length_mm"] = json!(300.0);
+    });
+    expect_error(open(s.path()), "invalid_optics", &["focus_distance_mm", "focal_length_mm"]);
+    // Telecentric needs a magnification.
+    let s = Scratch::new();
+    s.edit(|m| m["optics"]["projection"] = json!("telecentric"));
+    expect_error(open(s.path()), "invalid_optics", &["optics.magnification"]);
+}
+
+#[test]
+fn unknown_connection_and_custom_threads() {
+    let s = Scratch::new();
+    s.edit(|m| m["part"]["connection"] = json!("EUE 2-7/8"));
+    expect_error(open(s.path()), "unknown_connection", &["part.connection", "EUE 2-7/8"]);
+    // With a complete custom form the designation is only a label.
+    s.edit(|m| {
+        m["part"]["thread"] = json!({ "family": "round", "pitch_mm": 3.175, "thread_height_mm": 1.81,
+            "height_tolerance_mm": 0.051, "taper_on_diameter": 0.0625, "pipe_od_mm": 88.9, "lc_mm": 40.0 })
+    });
+    let bundle = open(s.path()).unwrap();
+    assert_eq!(bundle.part.connection.as_deref(), Some("EUE 2-7/8"));
+    assert_eq!(bundle.part.lc_mm, 40.0);
+    // An incomplete one names the missing field.
+    s.edit(|m| m["part"]["thread"].as_object_mut().unwrap().remove("lc_mm").map(|_| ()).unwrap());
+    expect_error(open(s.path()), "invalid_thread", &["part.thread.lc_mm"]);
+    // Overrides on a table connection (the seed's premium form on a BC 4-1/2 pipe).
+    s.edit(|m| {
+        m["part"]["connection"] = json!("BC 4-1/2");
+        m["part"]["thread"] = json!({ "thread_height_mm": 1.0, "height_tolerance_mm": 0.03, "lc_mm": 35.8 });
+    });
+    let bundle = open(s.path()).unwrap();
+    assert_eq!(bundle.part.form.height_mm, 1.0);
+    assert_eq!(bundle.part.lc_mm, 35.8);
+    assert_eq!(bundle.part.form.pitch_mm, 5.08);
+    // A form that cannot exist.
+    s.edit(|m| m["part"]["thread"] = json!({ "thread_height_mm": 30.0 }));
+    expect_error(open(s.path()), "invalid_thread", &["part.thread"]);
+}
+
+fn zip_dir(dir: &Path, zip_path: &Path, folder: Option<&str>) {
+    let file = std::fs::File::create(zip_path).unwrap();
+    let mut zip = zip::ZipWriter::new(file);
+    let options = zip::write::SimpleFileOptions::default().compression_method(zip::CompressionMethod::Stored);
+    for path in walk(dir) {
+        let rel = path.strip_prefix(dir).unwrap().to_string_lossy().replace('\\', "/");
+        let name = match folder {
+            Some(f) => format!("{f}/{rel}"),
+            None => rel,
+        };
+        zip.start_file(name, options).unwrap();
+        zip.write_all(&std::fs::read(&path).unwrap()).unwrap();
+    }
+    zip.finish().unwrap();
+}
+
+fn tar_dir(dir: &Path, tar_path: &Path, folder: Option<&str>) {
+    let mut builder = tar::Builder::new(std::fs::File::create(tar_path).unwrap());
+    for path in walk(dir) {
+        let rel = path.strip_prefix(dir).unwrap();
+        let name = match folder {
+            Some(f) => Path::new(f).join(rel),
+            None => rel.to_path_buf(),
+        };
+        builder.append_path_with_name(&path, name).unwrap();
+    }
+    builder.finish().unwrap();
+}
+
+#[test]
+fn zip_and_tar_archives_at_the_root_or_in_one_folder() {
+    let s = Scratch::new();
+    let out = tempfile::tempdir().unwrap();
+    for folder in [None, Some("P-000123")] {
+        let zip_path = out.path().join("b.zip");
+        zip_dir(s.path(), &zip_path, folder);
+        let bundle = open(&zip_path).unwrap();
+        assert_eq!(bundle.views.len(), 3);
+        let from_zip = bundle.read_frame(2, 7).unwrap();
+        let tar_path = out.path().join("b.tar");
+        tar_dir(s.path(), &tar_path, folder);
+        let bundle = open(&tar_path).unwrap();
+        assert_eq!(from_zip, bundle.read_frame(2, 7).unwrap());
+    }
+    // Two top-level folders: no bundle root.
+    let zip_path = out.path().join("two.zip");
+    let mut zip = zip::ZipWriter::new(std::fs::File::create(&zip_path).unwrap());
+    let options = zip::write::SimpleFileOptions::default();
+    for name in ["a/manifest.json", "b/other.txt"] {
+        zip.start_file(name, options).unwrap();
+        zip.write_all(b"{}").unwrap();
+    }
+    zip.finish().unwrap();
+    expect_error(open(&zip_path), "missing_file", &["manifest.json"]);
+    // Not an archive at all.
+    let junk = out.path().join("junk.bin");
+    std::fs::write(&junk, vec![7u8; 4096]).unwrap();
+    expect_error(open(&junk), "invalid_archive", &["junk.bin"]);
+}
+
+#[test]
+fn archive_bombs_hit_the_caps() {
+    let s = Scratch::new();
+    let out = tempfile::tempdir().unwrap();
+    let zip_path = out.path().join("b.zip");
+    zip_dir(s.path(), &zip_path, None);
+    let caps = Limits { max_total_bytes: 1_000_000, ..Limits::default() };
+    expect_error(open_with(&zip_path, caps), "bundle_too_large", &["1000000"]);
+    let caps = Limits { max_files: 10, ..Limits::default() };
+    expect_error(open_with(&zip_path, caps), "bundle_too_large", &["10 files"]);
+    // A highly compressible entry that inflates past the per-file cap.
+    let bomb = out.path().join("bomb.zip");
+    let mut zip = zip::ZipWriter::new(std::fs::File::create(&bomb).unwrap());
+    let options = zip::write::SimpleFileOptions::default().compression_method(zip::CompressionMethod::Deflated);
+    zip.start_file("manifest.json", options).unwrap();
+    zip.write_all(&vec![b' '; 3_000_000]).unwrap();
+    zip.finish().unwrap();
+    assert!(std::fs::metadata(&bomb).unwrap().len() < 100_000);
+    let caps = Limits { max_file_bytes: 1_000_000, ..Limits::default() };
+    expect_error(open_with(&bomb, caps), "bundle_too_large", &["manifest.json"]);
+    // The same caps hold for a directory.
+    let caps = Limits { max_files: 10, ..Limits::default() };
+    expect_error(open_with(s.path(), caps), "bundle_too_large", &["10 files"]);
+}
+
+#[test]
+fn tar_links_are_refused() {
+    let s = Scratch::new();
+    let out = tempfile::tempdir().unwrap();
+    let tar_path = out.path().join("link.tar");
+    let mut builder = tar::Builder::new(std::fs::File::create(&tar_path).unwrap());
+    builder.append_path_with_name(s.path().join("manifest.json"), "manifest.json").unwrap();
+    let mut header = tar::Header::new_gnu();
+    header.set_entry_type(tar::EntryType::Symlink);
+    header.set_size(0);
+    builder.append_link(&mut header, "a000-z00/000.png", "/etc/passwd").unwrap();
+    builder.finish().unwrap();
+    expect_error(open(&tar_path), "unsafe_path", &["a000-z00/000.png", "link"]);
+}
+
+#[test]
+fn gray_rgb_png_and_tiff_in_8_and_16_bits() {
+    let s = Scratch::new();
+    let m = s.manifest();
+    let formats = [("png", false, true), ("png", true, true), ("tif", true, false), ("tiff", false, false)];
+    let mut manifest = m.clone();
+    for (v, (ext, sixteen, gray)) in formats.iter().enumerate().take(3) {
+        let frames = manifest["views"][v]["frames"].as_array_mut().unwrap();
+        for (k, frame) in frames.iter_mut().enumerate() {
+            let name = format!("custom{v}/{k:03}.{ext}");
+            std::fs::create_dir_all(s.path().join(format!("custom{v}"))).unwrap();
+            write_png(&s.path().join(&name), 64, 48, *sixteen, *gray);
+            frame["file"] = json!(name);
+        }
+    }
+    s.set_manifest(&manifest);
+    let bundle = open(s.path()).unwrap();
+    let f0 = bundle.read_frame(0, 1).unwrap();
+    assert_eq!((f0.channels, f0.width), (1, 64));
+    assert_eq!(f0.pixels[5], 5.0 / 255.0);
+    let f1 = bundle.read_frame(1, 1).unwrap();
+    assert_eq!(bundle.views[1].format.bit_depth, 16);
+    assert_eq!(f1.pixels[3], (3 * 97) as f32 / 65535.0);
+    let f2 = bundle.read_frame(2, 0).unwrap();
+    assert_eq!((f2.channels, bundle.views[2].format.bit_depth), (3, 16));
+    // Other colour types are refused by name.
+    let name = manifest["views"][0]["frames"][0]["file"].as_str().unwrap().to_string();
+    image::RgbaImage::new(64, 48).save(s.path().join(&name)).unwrap();
+    expect_error(open(s.path()), "unreadable_frame", &[&name, "gray or RGB"]);
+}

@@ -2,4 +2,5 @@
 
 mod bundle_reader;
 mod common;
+mod reader_props;
 mod simulator;
