@@ -224,19 +224,27 @@ pub fn simulate(spec: &SimSpec, seed: u64, out: &Path) -> Result<SimSummary, Sim
 
     let tracer = Tracer::new(&spec.part);
     let poses = spec.true_poses(seed);
-    let cameras: Vec<Camera> = poses
-        .iter()
-        .map(|pose| Camera { optics: &spec.optics, pose: pose.camera_to_pipe(), width: spec.width, height: spec.height })
-        .collect();
-
     // Truth depth per view.
-    cameras.par_iter().zip(&spec.views).try_for_each(|(camera, view)| {
-        let depth = camera.depth_map(&tracer);
-        let path = out.join("truth").join(format!("{}.depth.pfm", view.id));
-        let mut bytes = Vec::new();
-        pfm::write(&mut bytes, spec.width as usize, spec.height as usize, &depth).map_err(io(&path))?;
-        std::fs::write(&path, bytes).map_err(io(&path))
-    })?;
+    let cameras: Vec<Camera> = poses
+        .par_iter()
+        .zip(&spec.views)
+        .map(|(pose, view)| {
+            let mut camera = Camera {
+                optics: &spec.optics,
+                pose: pose.camera_to_pipe(),
+                width: spec.width,
+                height: spec.height,
+                depth_map_cached: Vec::new(),
+            };
+            let depth = camera.depth_map(&tracer);
+            let path = out.join("truth").join(format!("{}.depth.pfm", view.id));
+            let mut bytes = Vec::new();
+            pfm::write(&mut bytes, spec.width as usize, spec.height as usize, &depth).map_err(io(&path))?;
+            std::fs::write(&path, bytes).map_err(io(&path))?;
+            camera.depth_map_cached = depth;
+            Ok(camera)
+        })
+        .collect::<Result<_, SimError>>()?;
 
     // Frames, each independent (own noise stream), so parallel order cannot change a byte.
     for view in &spec.views {

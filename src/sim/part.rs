@@ -4,7 +4,7 @@
 //! the unthreaded body remains.
 
 use crate::rules::{self, CrestBin, RuleInput, ThreadObservation};
-use crate::thread::ThreadForm;
+use crate::thread::{ProfileKernel, ThreadForm};
 use serde::{Deserialize, Serialize};
 use std::f64::consts::{PI, TAU};
 
@@ -24,11 +24,8 @@ pub struct MillSurface {
 
 impl MillSurface {
     pub fn radius_at(&self, theta_rad: f64) -> f64 {
-        let base = self.nominal_radius_mm - self.undersize_mm
-            + self.ovality_mm / 4.0 * (2.0 * (theta_rad - self.ovality_angle_deg.to_radians())).cos();
-        let phi = theta_rad - self.eccentricity_angle_deg.to_radians();
-        let e = self.eccentricity_mm;
-        e * phi.cos() + (base * base - e * e * phi.sin().powi(2)).sqrt()
+        let (sin, cos) = theta_rad.sin_cos();
+        MillKernel::new(self).radius(cos, sin)
     }
 
     pub fn max_radius(&self) -> f64 {
@@ -64,6 +61,82 @@ impl Material {
     }
 }
 
+/// The mill surface with its angles resolved, evaluated from the direction (cos θ, sin θ).
+#[derive(Clone, Copy, Debug)]
+struct MillKernel {
+    base: f64,
+    quarter_ovality: f64,
+    ovality_cos2: f64,
+    ovality_sin2: f64,
+    eccentricity: f64,
+    ecc_cos: f64,
+    ecc_sin: f64,
+}
+
+impl MillKernel {
+    fn new(m: &MillSurface) -> Self {
+        let (ovality_sin2, ovality_cos2) = (2.0 * m.ovality_angle_deg.to_radians()).sin_cos();
+        let (ecc_sin, ecc_cos) = m.eccentricity_angle_deg.to_radians().sin_cos();
+        Self {
+            base: m.nominal_radius_mm - m.undersize_mm,
+            quarter_ovality: m.ovality_mm / 4.0,
+            ovality_cos2,
+            ovality_sin2,
+            eccentricity: m.eccentricity_mm,
+            ecc_cos,
+            ecc_sin,
+        }
+    }
+
+    /// Distance from the thread axis to the mill surface in direction θ: an oval of diameters
+    /// differing by the ovality, whose centre is `eccentricity` off the axis.
+    #[inline]
+    fn radius(&self, cos: f64, sin: f64) -> f64 {
+        let (cos2, sin2) = (cos * cos - sin * sin, 2.0 * sin * cos);
+        let base = self.base + self.quarter_ovality * (cos2 * self.ovality_cos2 + sin2 * self.ovality_sin2);
+        let along = cos * self.ecc_cos + sin * self.ecc_sin; // cos(θ − φ)
+        let across = sin * self.ecc_cos - cos * self.ecc_sin; // sin(θ − φ)
+        let e = self.eccentricity;
+        e * along + (base * base - e * e * across * across).sqrt()
+    }
+}
+
+/// A [`PartModel`] ready for evaluating many points (the ray tracer's inner loop).
+#[derive(Clone, Copy, Debug)]
+pub struct SurfaceKernel<'a> {
+    part: &'a PartModel,
+    profile: ProfileKernel,
+    mill: MillKernel,
+    radius_slope: f64,
+    chamfer_slope: f64,
+    pitch_per_rad: f64,
+}
+
+impl SurfaceKernel<'_> {
+    /// Surface radius and material at z ≥ 0 in direction θ, given also as (cos θ, sin θ).
+    #[inline]
+    pub fn surface(&self, z_mm: f64, theta_rad: f64, cos: f64, sin: f64) -> (f64, Material) {
+        let part = self.part;
+        let offset = z_mm - part.helix_z_h_mm - self.pitch_per_rad * theta_rad;
+        let form = part.root_radius_at_end_mm + z_mm * self.radius_slope + self.profile.height_at(offset);
+        let mill = self.mill.radius(cos, sin);
+        let chamfer = part.chamfer_radius_at_end_mm + z_mm * self.chamfer_slope;
+        if mill < form && mill < chamfer {
+            (mill, if part.is_polished(z_mm, theta_rad) { Material::Polished } else { Material::MillScale })
+        } else {
+            (form.min(chamfer), Material::Machined)
+        }
+    }
+
+    /// Surface radius and material under the pipe-frame point (x, y, z), and the point's radius.
+    #[inline]
+    pub fn surface_under(&self, x: f64, y: f64, z_mm: f64) -> (f64, Material, f64) {
+        let r = (x * x + y * y).sqrt();
+        let (radius, material) = self.surface(z_mm, y.atan2(x), x / r, y / r);
+        (radius, material, r)
+    }
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PartModel {
     pub form: ThreadForm,
@@ -94,16 +167,21 @@ impl PartModel {
         self.chamfer_radius_at_end_mm + z_mm * self.chamfer_angle_deg.to_radians().tan()
     }
 
+    pub fn kernel(&self) -> SurfaceKernel<'_> {
+        SurfaceKernel {
+            part: self,
+            profile: self.form.kernel(),
+            mill: MillKernel::new(&self.mill),
+            radius_slope: self.form.radius_slope(),
+            chamfer_slope: self.chamfer_angle_deg.to_radians().tan(),
+            pitch_per_rad: self.form.pitch_mm / TAU,
+        }
+    }
+
     /// Surface radius and material at (z ≥ 0, θ).
     pub fn surface(&self, z_mm: f64, theta_rad: f64) -> (f64, Material) {
-        let form = self.root_cone_radius(z_mm) + self.form.height_at(self.helix_offset(z_mm, theta_rad));
-        let mill = self.mill.radius_at(theta_rad);
-        let chamfer = self.chamfer_radius(z_mm);
-        if mill < form && mill < chamfer {
-            (mill, if self.is_polished(z_mm, theta_rad) { Material::Polished } else { Material::MillScale })
-        } else {
-            (form.min(chamfer), Material::Machined)
-        }
+        let (sin, cos) = theta_rad.sin_cos();
+        self.kernel().surface(z_mm, theta_rad, cos, sin)
     }
 
     pub fn radius(&self, z_mm: f64, theta_rad: f64) -> f64 {

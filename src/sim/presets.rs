@@ -17,7 +17,7 @@ pub struct PresetInfo {
 
 pub const PRESETS: &[PresetInfo] = &[
     PresetInfo { name: "ci", description: "BC 4-1/2, 3 views over 13° near Lc, 18 frames of 384×160 RGB; a black crest within Lc across threads 6–7 (accept)" },
-    PresetInfo { name: "ci-telecentric", description: "LC 5-1/2 through a 0.25× telecentric lens, 3 views, 16-bit; full crests within Lc (accept)" },
+    PresetInfo { name: "ci-telecentric", description: "LC 5-1/2 through a 0.25× telecentric lens, 3 views of 256×112, 16-bit RGB; full crests within Lc (accept)" },
     PresetInfo { name: "standard", description: "BC 4-1/2 pin end, whole circumference (45 views × 16 frames, 864×240 RGB), z 0–35 mm; black crests only beyond Lc (accept)" },
     PresetInfo { name: "bc-black-1", description: "standard optics; 0.1 mm eccentric thread: one black-crested thread within Lc (accept)" },
     PresetInfo { name: "bc-black-2", description: "standard optics; undersize pipe: two black-crested threads within Lc, each under 25% (accept)" },
@@ -207,8 +207,8 @@ pub fn preset(name: &str) -> Option<SimSpec> {
                 magnification: Some(0.25),
             };
             let layout = Layout {
-                width: 320,
-                height: 128,
+                width: 256,
+                height: 112,
                 first_angle_deg: 90.0,
                 angle_step_deg: 4.0,
                 angles: 3,

@@ -4,7 +4,7 @@
 //! quantisation.
 
 use super::appearance::{self, Appearance, TexCoords};
-use super::part::{Material, PartModel};
+use super::part::{Material, PartModel, SurfaceKernel};
 use crate::optics::{Optics, Projection};
 use nalgebra::{Isometry3, Point3, Vector3};
 use rand::SeedableRng;
@@ -24,6 +24,7 @@ pub struct Hit {
 /// no step can cross the surface.
 pub struct Tracer<'a> {
     part: &'a PartModel,
+    kernel: SurfaceKernel<'a>,
     outer_radius_mm: f64,
     inner_radius_mm: f64,
     slope_z: f64,
@@ -32,6 +33,8 @@ pub struct Tracer<'a> {
 
 const CONVERGED_MM: f64 = 1e-7;
 const MAX_STEPS: usize = 4000;
+/// Below this gap the march takes secant steps.
+const SECANT_BELOW_MM: f64 = 0.02;
 
 impl<'a> Tracer<'a> {
     pub fn new(part: &'a PartModel) -> Self {
@@ -39,6 +42,7 @@ impl<'a> Tracer<'a> {
         let inner = part.root_cone_radius(0.0).min(part.chamfer_radius_at_end_mm) - 0.5;
         Self {
             part,
+            kernel: part.kernel(),
             outer_radius_mm: outer,
             inner_radius_mm: inner,
             slope_z: part.max_axial_slope(),
@@ -48,6 +52,12 @@ impl<'a> Tracer<'a> {
 
     /// First hit of `origin + t·direction` (pipe frame) with t ≥ 0.
     pub fn intersect(&self, origin: &Point3<f64>, direction: &Vector3<f64>) -> Option<Hit> {
+        self.intersect_from(origin, direction, 0.0)
+    }
+
+    /// As [`Tracer::intersect`], starting the march at `t_hint` when the ray is still outside the
+    /// part there (a depth known to lie before the hit); falls back to the full march otherwise.
+    pub fn intersect_from(&self, origin: &Point3<f64>, direction: &Vector3<f64>, t_hint: f64) -> Option<Hit> {
         let (ox, oy, dx, dy) = (origin.x, origin.y, direction.x, direction.y);
         let a = dx * dx + dy * dy;
         if a < 1e-18 {
@@ -59,13 +69,26 @@ impl<'a> Tracer<'a> {
         if disc < 0.0 {
             return None;
         }
-        let mut t = ((-b - disc.sqrt()) / (2.0 * a)).max(0.0);
+        let t_enter = ((-b - disc.sqrt()) / (2.0 * a)).max(0.0);
+        let mut t = t_enter;
+        if t_hint > t_enter {
+            let p = origin + direction * t_hint;
+            if p.z >= 0.0 && {
+                let (surface_r, _, r) = self.kernel.surface_under(p.x, p.y, p.z);
+                r > surface_r
+            } {
+                t = t_hint;
+            }
+        }
         let c_in = ox * ox + oy * oy - self.inner_radius_mm.powi(2);
         let disc_in = b * b - 4.0 * a * c_in;
         let t_limit = if disc_in >= 0.0 { (-b - disc_in.sqrt()) / (2.0 * a) } else { (-b) / (2.0 * a) };
         let speed_xy = a.sqrt();
         let lipschitz =
             speed_xy * (1.0 + self.slope_theta / self.inner_radius_mm) + self.slope_z * direction.z.abs() + 1e-9;
+        // Last point known outside the part: sphere steps keep it; near the surface the march
+        // switches to secant steps, and an overshoot is bracketed and refined by false position.
+        let mut outside: Option<(f64, f64)> = None;
         for _ in 0..MAX_STEPS {
             let p = origin + direction * t;
             if p.z < 0.0 {
@@ -78,27 +101,68 @@ impl<'a> Tracer<'a> {
                     return None;
                 }
                 let q = origin + direction * t;
-                let r = q.x.hypot(q.y);
-                if r <= self.part.radius(0.0, q.y.atan2(q.x)) {
+                let (surface_r, _, r) = self.kernel.surface_under(q.x, q.y, 0.0);
+                if r <= surface_r {
                     return Some(Hit { depth_mm: t, point: q, material: Material::EndFace });
                 }
                 t += 1e-9;
+                outside = None;
                 continue;
             }
-            let r = p.x.hypot(p.y);
-            let (surface_r, material) = self.part.surface(p.z, p.y.atan2(p.x));
+            let (surface_r, material, r) = self.kernel.surface_under(p.x, p.y, p.z);
             let gap = r - surface_r;
-            if gap < CONVERGED_MM {
+            if gap.abs() < CONVERGED_MM {
                 return Some(Hit { depth_mm: t, point: p, material });
             }
-            t += gap / lipschitz;
+            if gap < 0.0 {
+                let (t_out, gap_out) = outside.expect("only a secant step can overshoot");
+                return Some(self.refine(origin, direction, (t_out, gap_out), (t, gap)));
+            }
+            let sphere = gap / lipschitz;
+            let step = match outside {
+                Some((t_prev, gap_prev)) if gap < SECANT_BELOW_MM && gap_prev > gap => {
+                    (gap * (t - t_prev) / (gap_prev - gap)).clamp(sphere, 50.0 * sphere)
+                }
+                _ => sphere,
+            };
+            outside = Some((t, gap));
+            t += step;
             if t > t_limit {
                 return None;
             }
         }
         let p = origin + direction * t;
-        let material = self.part.surface(p.z.max(0.0), p.y.atan2(p.x)).1;
+        let material = self.kernel.surface_under(p.x, p.y, p.z.max(0.0)).1;
         Some(Hit { depth_mm: t, point: p, material })
+    }
+
+    /// False position (Illinois) between a point outside and one inside the part.
+    fn refine(&self, origin: &Point3<f64>, direction: &Vector3<f64>, mut a: (f64, f64), mut b: (f64, f64)) -> Hit {
+        let mut side = 0i8;
+        for _ in 0..100 {
+            let t = (a.0 * b.1 - b.0 * a.1) / (b.1 - a.1);
+            let p = origin + direction * t;
+            let (surface_r, material, r) = self.kernel.surface_under(p.x, p.y, p.z.max(0.0));
+            let gap = r - surface_r;
+            if gap.abs() < CONVERGED_MM || (b.0 - a.0).abs() < 1e-9 {
+                return Hit { depth_mm: t, point: p, material };
+            }
+            if gap > 0.0 {
+                a = (t, gap);
+                if side == 1 {
+                    b.1 /= 2.0;
+                }
+                side = 1;
+            } else {
+                b = (t, gap);
+                if side == -1 {
+                    a.1 /= 2.0;
+                }
+                side = -1;
+            }
+        }
+        let p = origin + direction * a.0;
+        Hit { depth_mm: a.0, point: p, material: self.kernel.surface_under(p.x, p.y, p.z.max(0.0)).1 }
     }
 
     /// Outward unit normal of the surface at a hit (central differences of r(z, θ)).
@@ -107,14 +171,18 @@ impl<'a> Tracer<'a> {
             return -Vector3::z();
         }
         let p = hit.point;
-        let (r, theta) = (p.x.hypot(p.y), p.y.atan2(p.x));
+        let (r, theta) = ((p.x * p.x + p.y * p.y).sqrt(), p.y.atan2(p.x));
+        let (s, c) = (p.y / r, p.x / r);
         let h = 2e-4;
         let z = p.z.max(h);
-        let dr_dz = (self.part.radius(z + h, theta) - self.part.radius(z - h, theta)) / (2.0 * h);
+        let radius = |z: f64, dtheta: f64| {
+            // cos/sin of θ ± dθ by the angle-sum rule (dθ is tiny).
+            let (ds, dc) = dtheta.sin_cos();
+            self.kernel.surface(z, theta + dtheta, c * dc - s * ds, s * dc + c * ds).0
+        };
+        let dr_dz = (radius(z + h, 0.0) - radius(z - h, 0.0)) / (2.0 * h);
         let dtheta = h / r;
-        let dr_ds =
-            (self.part.radius(z, theta + dtheta) - self.part.radius(z, theta - dtheta)) / (2.0 * h);
-        let (s, c) = theta.sin_cos();
+        let dr_ds = (radius(z, dtheta) - radius(z, -dtheta)) / (2.0 * h);
         let radial = Vector3::new(c, s, 0.0);
         let tangential = Vector3::new(-s, c, 0.0);
         (radial - Vector3::z() * dr_dz - tangential * dr_ds).normalize()
@@ -146,6 +214,41 @@ pub struct Camera<'a> {
     pub pose: Isometry3<f64>,
     pub width: u32,
     pub height: u32,
+    /// The truth depth map once computed (a warm start for every frame's ray march).
+    pub depth_map_cached: Vec<f32>,
+}
+
+/// Bound on how far focus breathing moves a point through the stack, in pixels: the image scale
+/// changes by |offset| / depth, about 1% in the presets, so ≤ 5 px at the image corners.
+const BREATHING_REACH_PX: usize = 7;
+
+/// Minimum of the finite depths within `reach` pixels (separable min filter); NaN where none.
+fn near_depth(depth: &[f32], w: usize, h: usize, reach: usize) -> Vec<f32> {
+    if depth.is_empty() {
+        return vec![f32::NAN; w * h];
+    }
+    let fmin = |a: f32, b: f32| if a.is_nan() { b } else if b.is_nan() { a } else { a.min(b) };
+    let mut rows = vec![f32::NAN; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let mut m = f32::NAN;
+            for xx in x.saturating_sub(reach)..(x + reach + 1).min(w) {
+                m = fmin(m, depth[y * w + xx]);
+            }
+            rows[y * w + x] = m;
+        }
+    }
+    let mut out = vec![f32::NAN; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let mut m = f32::NAN;
+            for yy in y.saturating_sub(reach)..(y + reach + 1).min(h) {
+                m = fmin(m, rows[yy * w + x]);
+            }
+            out[y * w + x] = m;
+        }
+    }
+    out
 }
 
 impl Camera<'_> {
@@ -186,6 +289,9 @@ pub fn render_frame(
 ) -> Vec<u16> {
     let (w, h) = (camera.width as usize, camera.height as usize);
     let optics = camera.optics;
+    // Start each ray's march just before the nearest surface seen around it at offset 0, moved by
+    // this frame's offset (focus breathing shifts the image by a few pixels at most).
+    let start = near_depth(&camera.depth_map_cached, w, h, BREATHING_REACH_PX);
     let mut radiance = vec![0f32; w * h * 3];
     let mut radius_px = vec![0f32; w * h];
     let footprint = optics.object_pixel_mm(optics.focus_distance_mm);
@@ -195,7 +301,9 @@ pub fn render_frame(
     for v in 0..h {
         for u in 0..w {
             let (origin, direction) = camera.ray(u as u32, v as u32, offset_mm);
-            let Some(hit) = tracer.intersect(&origin, &direction) else { continue };
+            let hint = start[v * w + u];
+            let hint = if hint.is_finite() { hint as f64 + offset_mm - 0.05 } else { 0.0 };
+            let Some(hit) = tracer.intersect_from(&origin, &direction, hint) else { continue };
             let normal = tracer.normal(&hit);
             let to_camera = -direction.normalize();
             let theta = hit.point.y.atan2(hit.point.x);
@@ -225,24 +333,42 @@ fn disc_weight(d: f32, r: f32) -> f32 {
     (r + 0.5 - d).clamp(0.0, 1.0)
 }
 
+const NORM_STEPS_PER_PX: f32 = 256.0;
+
+fn disc_norm_exact(r: f32) -> f32 {
+    let k = (r + 0.5).ceil() as i64;
+    let mut sum = 0.0;
+    for dy in -k..=k {
+        for dx in -k..=k {
+            sum += disc_weight(((dx * dx + dy * dy) as f32).sqrt(), r);
+        }
+    }
+    sum
+}
+
+fn disc_norm_table() -> &'static [f32] {
+    static TABLE: std::sync::OnceLock<Vec<f32>> = std::sync::OnceLock::new();
+    TABLE.get_or_init(|| {
+        let n = (MAX_BLUR_RADIUS_PX * NORM_STEPS_PER_PX) as usize + 2;
+        (0..n).map(|i| disc_norm_exact(i as f32 / NORM_STEPS_PER_PX)).collect()
+    })
+}
+
+/// The disc's weight sum, interpolated in the table (relative error < 1e-4).
+fn disc_norm(table: &[f32], r: f32) -> f32 {
+    let x = r * NORM_STEPS_PER_PX;
+    let i = (x as usize).min(table.len() - 2);
+    let f = x - i as f32;
+    table[i] + (table[i + 1] - table[i]) * f
+}
+
 /// Scatter each source pixel over its own disc (energy preserving), computed as a gather.
 pub fn disc_blur(radiance: &[f32], radius_px: &[f32], w: usize, h: usize) -> Vec<f32> {
     let max_r = radius_px.iter().cloned().fold(0.0f32, f32::max);
     let reach = (max_r + 0.5).ceil() as i64;
-    // Normalisation of each disc: the sum of its weights over the integer grid.
-    let norms: Vec<f32> = radius_px
-        .iter()
-        .map(|&r| {
-            let k = (r + 0.5).ceil() as i64;
-            let mut sum = 0.0;
-            for dy in -k..=k {
-                for dx in -k..=k {
-                    sum += disc_weight(((dx * dx + dy * dy) as f32).sqrt(), r);
-                }
-            }
-            sum
-        })
-        .collect();
+    // Normalisation of each disc: the sum of its weights over the integer grid, tabulated.
+    let table = disc_norm_table();
+    let norms: Vec<f32> = radius_px.iter().map(|&r| disc_norm(&table, r)).collect();
     let mut out = vec![0f32; radiance.len()];
     for y in 0..h as i64 {
         for x in 0..w as i64 {

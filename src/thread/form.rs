@@ -201,35 +201,29 @@ impl ThreadForm {
     /// Height above the root cone at axial offset `x_mm` from the nearest crest centre
     /// (any real x; the profile repeats every pitch).
     pub fn height_at(&self, x_mm: f64) -> f64 {
-        let p = self.pitch_mm;
-        let h = self.height_mm;
-        let x = x_mm - p * (x_mm / p).round(); // in [−p/2, p/2]
-        match self.profile {
+        self.kernel().height_at(x_mm)
+    }
+
+    /// The profile with its trigonometry done once, for evaluating many points.
+    pub fn kernel(&self) -> ProfileKernel {
+        let shape = match self.profile {
             ProfileShape::Rounded { flank_deg, crest_truncation_mm, root_truncation_mm } => {
                 let (sin, cos) = flank_deg.to_radians().sin_cos();
-                let cot = cos / sin;
-                let ax = x.abs();
-                let rho_crest = crest_truncation_mm * sin / (1.0 - sin);
-                if ax <= rho_crest * cos {
-                    return h - rho_crest + (rho_crest * rho_crest - ax * ax).sqrt();
+                KernelShape::Rounded {
+                    cos,
+                    cot: cos / sin,
+                    rho_crest: crest_truncation_mm * sin / (1.0 - sin),
+                    rho_root: root_truncation_mm * sin / (1.0 - sin),
+                    crest_truncation_mm,
                 }
-                let rho_root = root_truncation_mm * sin / (1.0 - sin);
-                let to_root = p / 2.0 - ax;
-                if to_root <= rho_root * cos {
-                    return rho_root - (rho_root * rho_root - to_root * to_root).max(0.0).sqrt();
-                }
-                (h + crest_truncation_mm - ax * cot).clamp(0.0, h)
             }
-            ProfileShape::Trapezoid { load_flank_deg, stab_flank_deg, crest_width_mm } => {
-                let half_crest = crest_width_mm / 2.0;
-                if x.abs() <= half_crest {
-                    return h;
-                }
-                let (beyond, flank_deg) =
-                    if x > 0.0 { (x - half_crest, load_flank_deg) } else { (-x - half_crest, stab_flank_deg) };
-                (h - beyond / flank_deg.to_radians().tan()).max(0.0)
-            }
-        }
+            ProfileShape::Trapezoid { load_flank_deg, stab_flank_deg, crest_width_mm } => KernelShape::Trapezoid {
+                half_crest: crest_width_mm / 2.0,
+                cot_load: 1.0 / load_flank_deg.to_radians().tan(),
+                cot_stab: 1.0 / stab_flank_deg.to_radians().tan(),
+            },
+        };
+        ProfileKernel { pitch: self.pitch_mm, inv_pitch: 1.0 / self.pitch_mm, height: self.height_mm, shape }
     }
 
     /// Axial offsets, from a crest centre, of the centres of the root before (−z) and after (+z) it.
@@ -263,6 +257,56 @@ impl ThreadForm {
             ProfileShape::Rounded { flank_deg, .. } => 1.0 / flank_deg.to_radians().tan(),
             ProfileShape::Trapezoid { load_flank_deg, stab_flank_deg, .. } => {
                 1.0 / load_flank_deg.min(stab_flank_deg).to_radians().tan()
+            }
+        }
+    }
+}
+
+/// A [`ThreadForm`]'s profile, ready for fast evaluation (see [`ThreadForm::kernel`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ProfileKernel {
+    pitch: f64,
+    inv_pitch: f64,
+    height: f64,
+    shape: KernelShape,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum KernelShape {
+    Rounded { cos: f64, cot: f64, rho_crest: f64, rho_root: f64, crest_truncation_mm: f64 },
+    Trapezoid { half_crest: f64, cot_load: f64, cot_stab: f64 },
+}
+
+impl ProfileKernel {
+    /// Height above the root cone at axial offset `x_mm` from the nearest crest centre.
+    #[inline]
+    pub fn height_at(&self, x_mm: f64) -> f64 {
+        let (p, h) = (self.pitch, self.height);
+        // Nearest multiple of the pitch without a libm call: truncation, corrected below zero.
+        let n = x_mm * self.inv_pitch + 0.5;
+        let mut k = n as i64 as f64;
+        if k > n {
+            k -= 1.0;
+        }
+        let x = x_mm - p * k; // in [−p/2, p/2)
+        match self.shape {
+            KernelShape::Rounded { cos, cot, rho_crest, rho_root, crest_truncation_mm } => {
+                let ax = x.abs();
+                if ax <= rho_crest * cos {
+                    return h - rho_crest + (rho_crest * rho_crest - ax * ax).sqrt();
+                }
+                let to_root = p / 2.0 - ax;
+                if to_root <= rho_root * cos {
+                    return rho_root - (rho_root * rho_root - to_root * to_root).max(0.0).sqrt();
+                }
+                (h + crest_truncation_mm - ax * cot).clamp(0.0, h)
+            }
+            KernelShape::Trapezoid { half_crest, cot_load, cot_stab } => {
+                if x.abs() <= half_crest {
+                    return h;
+                }
+                let (beyond, cot) = if x > 0.0 { (x - half_crest, cot_load) } else { (-x - half_crest, cot_stab) };
+                (h - beyond * cot).max(0.0)
             }
         }
     }
