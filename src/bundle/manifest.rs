@@ -50,7 +50,10 @@ pub struct CustomThread {
     pub stab_flank_deg: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub crest_width_mm: Option<f64>,
-    /// Round-family detail (default: half the truncation of the sharp V).
+    /// Round-family details: flank half angle (default 30°) and root truncation (default half the
+    /// truncation of the sharp V).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub flank_deg: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub root_truncation_mm: Option<f64>,
 }

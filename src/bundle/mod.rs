@@ -279,6 +279,7 @@ pub fn resolve_part(part: &PartManifest, table: &ConnectionTable) -> Result<Part
         || custom.load_flank_deg.is_some()
         || custom.stab_flank_deg.is_some()
         || custom.crest_width_mm.is_some()
+        || custom.flank_deg.is_some()
         || custom.root_truncation_mm.is_some();
     let form = match row {
         Some(r) if !form_fields_given => r.form().clone(),
@@ -304,7 +305,14 @@ fn build_form(
     custom: &CustomThread,
 ) -> Result<ThreadForm, FormError> {
     match family {
-        Family::Round => ThreadForm::api_round(pitch_mm, height_mm, tolerance_mm, taper, custom.root_truncation_mm),
+        Family::Round => ThreadForm::round(
+            pitch_mm,
+            height_mm,
+            tolerance_mm,
+            taper,
+            custom.flank_deg.unwrap_or(30.0),
+            custom.root_truncation_mm,
+        ),
         Family::Buttress => {
             let load = custom.load_flank_deg.unwrap_or(3.0);
             let stab = custom.stab_flank_deg.unwrap_or(10.0);

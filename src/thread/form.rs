@@ -85,9 +85,27 @@ impl ThreadForm {
         taper_on_diameter: f64,
         root_truncation_mm: Option<f64>,
     ) -> Result<Self, FormError> {
-        let flank_deg: f64 = 30.0;
+        Self::round(pitch_mm, height_mm, height_tolerance_mm, taper_on_diameter, 30.0, root_truncation_mm)
+    }
+
+    /// Symmetric V of half angle `flank_deg` with arc crest and root (a custom round form).
+    pub fn round(
+        pitch_mm: f64,
+        height_mm: f64,
+        height_tolerance_mm: f64,
+        taper_on_diameter: f64,
+        flank_deg: f64,
+        root_truncation_mm: Option<f64>,
+    ) -> Result<Self, FormError> {
+        positive("pitch_mm", pitch_mm)?;
+        in_range("flank_deg", flank_deg, 1.0, 60.0)?;
         let sharp_v_mm = pitch_mm / (2.0 * flank_deg.to_radians().tan());
         let truncation = sharp_v_mm - height_mm;
+        if truncation < 0.0 {
+            return Err(FormError::DoesNotFit(format!(
+                "height {height_mm} mm exceeds the sharp-V height {sharp_v_mm:.4} mm of pitch {pitch_mm} mm at {flank_deg}° flanks"
+            )));
+        }
         let root = root_truncation_mm.unwrap_or(truncation / 2.0);
         Self::new(
             Family::Round,

@@ -6,11 +6,21 @@ pub const CI_SEED: u64 = 7;
 
 /// The `ci` preset rendered once per test run (seed 7), shared read-only by the tests.
 pub fn ci_bundle() -> &'static Path {
-    static DIR: OnceLock<PathBuf> = OnceLock::new();
-    DIR.get_or_init(|| {
-        let dir = tempfile::Builder::new().prefix("crestscan-ci-").tempdir().unwrap().keep();
-        let spec = sim::preset("ci").unwrap();
-        sim::simulate(&spec, CI_SEED, &dir).unwrap();
+    rendered("ci")
+}
+
+/// A `ci*` preset rendered once per test run (seed 7).
+pub fn rendered(preset: &'static str) -> &'static Path {
+    static CI: OnceLock<PathBuf> = OnceLock::new();
+    static TELECENTRIC: OnceLock<PathBuf> = OnceLock::new();
+    let cell = match preset {
+        "ci" => &CI,
+        "ci-telecentric" => &TELECENTRIC,
+        other => panic!("tests render only the ci presets, not {other}"),
+    };
+    cell.get_or_init(|| {
+        let dir = tempfile::Builder::new().prefix(&format!("crestscan-{preset}-")).tempdir().unwrap().keep();
+        sim::simulate(&sim::preset(preset).unwrap(), CI_SEED, &dir).unwrap();
         dir
     })
 }

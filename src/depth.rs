@@ -1,0 +1,239 @@
+//! Depth from focus, per view.
+//!
+//! Frames are decoded one at a time. Each is first brought onto the geometry of offset 0: the
+//! sensor distance is fixed, so moving the camera back by `o` shrinks the image of a point at depth
+//! d (from the offset-0 lens) by d / (d + o); the points that matter in frame k are those in focus
+//! there (d + o = F), so the frame is scaled about the principal point by F / (F − o). Then a focus
+//! measure (squared Laplacian, box-summed) is taken per pixel; each pixel's peak over the stack is
+//! interpolated between frames with a Gaussian through the three highest samples, and turned into
+//! depth through the optics: in focus at offset o* means depth F − o* at offset 0. The confidence
+//! says how sharply the measure peaks above its floor, so that texture-less and saturated pixels
+//! are recognised rather than trusted. The all-in-focus image keeps each pixel's sharpest colour.
+
+use crate::bundle::{BundleError, Frame, View};
+use crate::optics::{Optics, Projection};
+use serde::{Deserialize, Serialize};
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DepthOptions {
+    /// Half size of the box that sums the focus measure.
+    pub window_radius_px: usize,
+    /// Pixels whose peak-to-floor ratio is below this are not trusted (depth NaN).
+    pub min_peak_ratio: f32,
+}
+
+impl Default for DepthOptions {
+    fn default() -> Self {
+        Self { window_radius_px: 4, min_peak_ratio: 1.6 }
+    }
+}
+
+/// A view's depth map on the offset-0 pixel grid.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DepthMap {
+    pub width: usize,
+    pub height: usize,
+    /// Depth along the camera axis from the offset-0 lens centre; NaN where not trusted.
+    pub depth_mm: Vec<f32>,
+    /// Peak focus measure over its floor (median over the stack); ≥ 1.
+    pub peak_ratio: Vec<f32>,
+    /// Sharpest colour per pixel, RGB interleaved in [0, 1].
+    pub all_in_focus: Vec<f32>,
+}
+
+impl DepthMap {
+    pub fn coverage(&self) -> f64 {
+        self.depth_mm.iter().filter(|d| d.is_finite()).count() as f64 / self.depth_mm.len() as f64
+    }
+}
+
+/// Resamples `frame` (RGB or gray) onto the offset-0 grid: scale `s` about `principal`, bilinear.
+fn rescale(frame: &Frame, principal: [f64; 2], scale: f64, out_rgb: &mut [f32], out_gray: &mut [f32]) {
+    let (w, h, c) = (frame.width as usize, frame.height as usize, frame.channels as usize);
+    let px = &frame.pixels;
+    for y in 0..h {
+        let sy = principal[1] + (y as f64 + 0.5 - principal[1]) * scale - 0.5;
+        let y0 = (sy.floor() as isize).clamp(0, h as isize - 1) as usize;
+        let y1 = (y0 + 1).min(h - 1);
+        let fy = (sy - y0 as f64).clamp(0.0, 1.0) as f32;
+        for x in 0..w {
+            let sx = principal[0] + (x as f64 + 0.5 - principal[0]) * scale - 0.5;
+            let x0 = (sx.floor() as isize).clamp(0, w as isize - 1) as usize;
+            let x1 = (x0 + 1).min(w - 1);
+            let fx = (sx - x0 as f64).clamp(0.0, 1.0) as f32;
+            let i = y * w + x;
+            let mut rgb = [0f32; 3];
+            for ch in 0..c {
+                let a = px[(y0 * w + x0) * c + ch] * (1.0 - fx) + px[(y0 * w + x1) * c + ch] * fx;
+                let b = px[(y1 * w + x0) * c + ch] * (1.0 - fx) + px[(y1 * w + x1) * c + ch] * fx;
+                rgb[ch] = a * (1.0 - fy) + b * fy;
+            }
+            if c == 1 {
+                rgb = [rgb[0]; 3];
+            }
+            out_rgb[3 * i..3 * i + 3].copy_from_slice(&rgb);
+            out_gray[i] = 0.2126 * rgb[0] + 0.7152 * rgb[1] + 0.0722 * rgb[2];
+        }
+    }
+}
+
+/// Squared Laplacian, box-summed over (2r+1)², written into `out`; `scratch` is reused.
+fn focus_measure(gray: &[f32], w: usize, h: usize, r: usize, scratch: &mut [f32], out: &mut [f32]) {
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            let v = if x == 0 || y == 0 || x + 1 == w || y + 1 == h {
+                0.0
+            } else {
+                let lap = 4.0 * gray[i] - gray[i - 1] - gray[i + 1] - gray[i - w] - gray[i + w];
+                lap * lap
+            };
+            out[i] = v;
+        }
+    }
+    // Separable running sums: rows into scratch, then columns back into out.
+    for y in 0..h {
+        let row = &out[y * w..(y + 1) * w];
+        let mut acc: f32 = row[..r.min(w)].iter().sum();
+        for x in 0..w {
+            if x + r < w {
+                acc += row[x + r];
+            }
+            if x > r {
+                acc -= row[x - r - 1];
+            }
+            scratch[y * w + x] = acc;
+        }
+    }
+    for x in 0..w {
+        let mut acc: f32 = (0..r.min(h)).map(|y| scratch[y * w + x]).sum();
+        for y in 0..h {
+            if y + r < h {
+                acc += scratch[(y + r) * w + x];
+            }
+            if y > r {
+                acc -= scratch[(y - r - 1) * w + x];
+            }
+            out[y * w + x] = acc.max(0.0);
+        }
+    }
+}
+
+/// Vertex of the parabola through (x_i, y_i), i = 0..3 (x strictly increasing); None if flat/upward.
+fn parabola_vertex(x: [f64; 3], y: [f64; 3]) -> Option<f64> {
+    let d0 = (y[1] - y[0]) / (x[1] - x[0]);
+    let d1 = (y[2] - y[1]) / (x[2] - x[1]);
+    let a = (d1 - d0) / (x[2] - x[0]);
+    if a >= 0.0 {
+        return None;
+    }
+    // y = a (x − x0)(x − x1) + d0 (x − x0) + y0 → y' = 0.
+    Some(0.5 * (x[0] + x[1]) - d0 / (2.0 * a))
+}
+
+/// Runs depth from focus over one view. `frame_at(k)` decodes frame k (called once per frame, in
+/// order); `cancelled()` is polled between frames.
+pub fn depth_from_focus(
+    optics: &Optics,
+    view: &View,
+    options: &DepthOptions,
+    mut frame_at: impl FnMut(usize) -> Result<Frame, BundleError>,
+    cancelled: &dyn Fn() -> bool,
+) -> Result<Option<DepthMap>, BundleError> {
+    let (w, h) = (view.format.width as usize, view.format.height as usize);
+    let n = view.frames.len();
+    let principal = optics.principal_point(view.format.width, view.format.height);
+    let big_f = optics.focus_distance_mm;
+    let mut measures: Vec<Vec<f32>> = Vec::with_capacity(n);
+    let mut best = vec![f32::MIN; w * h];
+    let mut all_in_focus = vec![0f32; w * h * 3];
+    let (mut rgb, mut gray, mut scratch) = (vec![0f32; w * h * 3], vec![0f32; w * h], vec![0f32; w * h]);
+    for (k, entry) in view.frames.iter().enumerate() {
+        if cancelled() {
+            return Ok(None);
+        }
+        let frame = frame_at(k)?;
+        let scale = match optics.projection {
+            Projection::Perspective => (big_f - entry.offset_mm) / big_f,
+            Projection::Telecentric => 1.0,
+        };
+        rescale(&frame, principal, scale, &mut rgb, &mut gray);
+        let mut measure = vec![0f32; w * h];
+        focus_measure(&gray, w, h, options.window_radius_px, &mut scratch, &mut measure);
+        for i in 0..w * h {
+            if measure[i] > best[i] {
+                best[i] = measure[i];
+                all_in_focus[3 * i..3 * i + 3].copy_from_slice(&rgb[3 * i..3 * i + 3]);
+            }
+        }
+        measures.push(measure);
+    }
+    let offsets: Vec<f64> = view.frames.iter().map(|f| f.offset_mm).collect();
+    let mut depth_mm = vec![f32::NAN; w * h];
+    let mut peak_ratio = vec![1f32; w * h];
+    let mut column = vec![0f32; n];
+    for i in 0..w * h {
+        for k in 0..n {
+            column[k] = measures[k][i];
+        }
+        let (k_best, &peak) = column.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).expect("≥ 3 frames");
+        let mut sorted = column.clone();
+        sorted.sort_by(f32::total_cmp);
+        let floor = sorted[n / 2].max(1e-12);
+        let ratio = peak / floor;
+        peak_ratio[i] = ratio;
+        if ratio < options.min_peak_ratio || k_best == 0 || k_best + 1 == n {
+            continue;
+        }
+        let ln = |k: usize| (column[k].max(1e-20) as f64).ln();
+        let x = [offsets[k_best - 1], offsets[k_best], offsets[k_best + 1]];
+        let y = [ln(k_best - 1), ln(k_best), ln(k_best + 1)];
+        if let Some(in_focus_offset) = parabola_vertex(x, y) {
+            if (x[0]..=x[2]).contains(&in_focus_offset) {
+                depth_mm[i] = (big_f - in_focus_offset) as f32;
+            }
+        }
+    }
+    Ok(Some(DepthMap { width: w, height: h, depth_mm, peak_ratio, all_in_focus }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parabola_vertex_of_a_gaussian_is_exact() {
+        let g = |x: f64| -(x - 0.37) * (x - 0.37) / 0.08;
+        let v = parabola_vertex([0.0, 0.25, 0.5], [g(0.0), g(0.25), g(0.5)]).unwrap();
+        assert!((v - 0.37).abs() < 1e-12);
+        assert!(parabola_vertex([0.0, 1.0, 2.0], [0.0, 1.0, 2.0]).is_none());
+    }
+
+    #[test]
+    fn box_sum_matches_brute_force() {
+        let (w, h, r) = (13, 9, 2);
+        let gray: Vec<f32> = (0..w * h).map(|i| ((i * 37) % 11) as f32 / 11.0).collect();
+        let mut scratch = vec![0f32; w * h];
+        let mut out = vec![0f32; w * h];
+        focus_measure(&gray, w, h, r, &mut scratch, &mut out);
+        let lap = |x: usize, y: usize| {
+            if x == 0 || y == 0 || x + 1 == w || y + 1 == h {
+                return 0.0;
+            }
+            let i = y * w + x;
+            let l = 4.0 * gray[i] - gray[i - 1] - gray[i + 1] - gray[i - w] - gray[i + w];
+            l * l
+        };
+        for y in 0..h {
+            for x in 0..w {
+                let mut s = 0.0;
+                for yy in y.saturating_sub(r)..=(y + r).min(h - 1) {
+                    for xx in x.saturating_sub(r)..=(x + r).min(w - 1) {
+                        s += lap(xx, yy);
+                    }
+                }
+                assert!((out[y * w + x] - s).abs() < 1e-4, "({x},{y}) {} vs {s}", out[y * w + x]);
+            }
+        }
+    }
+}
