@@ -1,10 +1,12 @@
 //! Depth from focus, per view.
 //!
-//! Frames are decoded one at a time. Each is first brought onto the geometry of offset 0: the
-//! sensor distance is fixed, so moving the camera back by `o` shrinks the image of a point at depth
-//! d (from the offset-0 lens) by d / (d + o); the points that matter in frame k are those in focus
-//! there (d + o = F), so the frame is scaled about the principal point by F / (F − o). Then a focus
-//! measure (squared Laplacian, box-summed) is taken per pixel; each pixel's peak over the stack is
+//! Frames are decoded one at a time. A focus measure (squared Laplacian, box-summed) is taken on
+//! each frame's own pixel grid, then brought onto the geometry of offset 0: the sensor distance is
+//! fixed, so moving the camera back by `o` shrinks the image of a point at depth d (from the
+//! offset-0 lens) by d / (d + o); the points that matter in frame k are those in focus there
+//! (d + o = F), so the measure is scaled about the principal point by F / (F − o). (Resampling the
+//! smooth measure rather than the image keeps interpolation from blurring some frames more than
+//! others, which would bias the peak.) Each pixel's peak over the stack is
 //! interpolated between frames with a Gaussian through the three highest samples, and turned into
 //! depth through the optics: in focus at offset o* means depth F − o* at offset 0. The confidence
 //! says how sharply the measure peaks above its floor, so that texture-less and saturated pixels
@@ -47,10 +49,13 @@ impl DepthMap {
     }
 }
 
-/// Resamples `frame` (RGB or gray) onto the offset-0 grid: scale `s` about `principal`, bilinear.
-fn rescale(frame: &Frame, principal: [f64; 2], scale: f64, out_rgb: &mut [f32], out_gray: &mut [f32]) {
-    let (w, h, c) = (frame.width as usize, frame.height as usize, frame.channels as usize);
-    let px = &frame.pixels;
+/// Resamples interleaved `src` (`channels` per pixel) onto the offset-0 grid: the value at
+/// reference pixel x comes from `principal + (x − principal)·scale` in the frame (bilinear).
+fn rescale(src: &[f32], channels: usize, w: usize, h: usize, principal: [f64; 2], scale: f64, out: &mut [f32]) {
+    if scale == 1.0 {
+        out.copy_from_slice(src);
+        return;
+    }
     for y in 0..h {
         let sy = principal[1] + (y as f64 + 0.5 - principal[1]) * scale - 0.5;
         let y0 = (sy.floor() as isize).clamp(0, h as isize - 1) as usize;
@@ -61,18 +66,11 @@ fn rescale(frame: &Frame, principal: [f64; 2], scale: f64, out_rgb: &mut [f32], 
             let x0 = (sx.floor() as isize).clamp(0, w as isize - 1) as usize;
             let x1 = (x0 + 1).min(w - 1);
             let fx = (sx - x0 as f64).clamp(0.0, 1.0) as f32;
-            let i = y * w + x;
-            let mut rgb = [0f32; 3];
-            for ch in 0..c {
-                let a = px[(y0 * w + x0) * c + ch] * (1.0 - fx) + px[(y0 * w + x1) * c + ch] * fx;
-                let b = px[(y1 * w + x0) * c + ch] * (1.0 - fx) + px[(y1 * w + x1) * c + ch] * fx;
-                rgb[ch] = a * (1.0 - fy) + b * fy;
+            for ch in 0..channels {
+                let a = src[(y0 * w + x0) * channels + ch] * (1.0 - fx) + src[(y0 * w + x1) * channels + ch] * fx;
+                let b = src[(y1 * w + x0) * channels + ch] * (1.0 - fx) + src[(y1 * w + x1) * channels + ch] * fx;
+                out[(y * w + x) * channels + ch] = a * (1.0 - fy) + b * fy;
             }
-            if c == 1 {
-                rgb = [rgb[0]; 3];
-            }
-            out_rgb[3 * i..3 * i + 3].copy_from_slice(&rgb);
-            out_gray[i] = 0.2126 * rgb[0] + 0.7152 * rgb[1] + 0.0722 * rgb[2];
         }
     }
 }
@@ -147,7 +145,8 @@ pub fn depth_from_focus(
     let mut measures: Vec<Vec<f32>> = Vec::with_capacity(n);
     let mut best = vec![f32::MIN; w * h];
     let mut all_in_focus = vec![0f32; w * h * 3];
-    let (mut rgb, mut gray, mut scratch) = (vec![0f32; w * h * 3], vec![0f32; w * h], vec![0f32; w * h]);
+    let mut rgb = vec![0f32; w * h * 3];
+    let (mut native, mut scratch) = (vec![0f32; w * h], vec![0f32; w * h]);
     for (k, entry) in view.frames.iter().enumerate() {
         if cancelled() {
             return Ok(None);
@@ -157,9 +156,16 @@ pub fn depth_from_focus(
             Projection::Perspective => (big_f - entry.offset_mm) / big_f,
             Projection::Telecentric => 1.0,
         };
-        rescale(&frame, principal, scale, &mut rgb, &mut gray);
+        let gray = frame.gray();
+        focus_measure(&gray, w, h, options.window_radius_px, &mut scratch, &mut native);
         let mut measure = vec![0f32; w * h];
-        focus_measure(&gray, w, h, options.window_radius_px, &mut scratch, &mut measure);
+        rescale(&native, 1, w, h, principal, scale, &mut measure);
+        let colour = if frame.channels == 3 {
+            frame.pixels
+        } else {
+            frame.pixels.iter().flat_map(|&g| [g, g, g]).collect()
+        };
+        rescale(&colour, 3, w, h, principal, scale, &mut rgb);
         for i in 0..w * h {
             if measure[i] > best[i] {
                 best[i] = measure[i];

@@ -5,6 +5,7 @@
 //! holds the pure stages; files, HTTP and the database stay at the edges.
 
 pub mod bundle;
+pub mod depth;
 pub mod optics;
 pub mod rules;
 pub mod sim;

@@ -2,5 +2,6 @@
 
 mod bundle_reader;
 mod common;
+mod depth;
 mod reader_props;
 mod simulator;

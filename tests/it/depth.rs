@@ -1,0 +1,69 @@
+use crate::common::rendered;
+use crestscan::bundle::{Bundle, OpenOptions};
+use crestscan::depth::{DepthOptions, depth_from_focus};
+use crestscan::sim::pfm;
+use crestscan::thread::ConnectionTable;
+
+/// Depth errors (µm) against truth: all trusted pixels, and those on smooth surface (truth depth
+/// varies < 30 µm within ±6 px: crests, roots, mill surface, away from flank edges).
+fn depth_errors(preset: &'static str) -> (Vec<f64>, Vec<f64>, f64) {
+    let dir = rendered(preset);
+    let bundle = Bundle::open(dir, &ConnectionTable::api5b(), OpenOptions::default()).unwrap();
+    let (mut all, mut smooth, mut pixels) = (Vec::new(), Vec::new(), 0);
+    for (v, view) in bundle.views.iter().enumerate() {
+        let map = depth_from_focus(&bundle.optics, view, &DepthOptions::default(), |k| bundle.read_frame(v, k), &|| false)
+            .unwrap()
+            .expect("not cancelled");
+        let truth_pfm = std::fs::read(dir.join(format!("truth/{}.depth.pfm", view.id))).unwrap();
+        let (w, h, truth) = pfm::read(&truth_pfm).unwrap();
+        assert_eq!((w, h), (map.width, map.height));
+        pixels += truth.len();
+        for (i, (d, t)) in map.depth_mm.iter().zip(&truth).enumerate() {
+            if !(d.is_finite() && t.is_finite()) {
+                continue;
+            }
+            let error_um = (d - t) as f64 * 1e3;
+            all.push(error_um);
+            let (x, y) = (i % w, i / w);
+            if x >= 6 && y >= 6 && x + 6 < w && y + 6 < h {
+                let (mut lo, mut hi) = (f32::MAX, f32::MIN);
+                for yy in y - 6..=y + 6 {
+                    for xx in x - 6..=x + 6 {
+                        lo = lo.min(truth[yy * w + xx]);
+                        hi = hi.max(truth[yy * w + xx]);
+                    }
+                }
+                if hi - lo < 0.03 {
+                    smooth.push(error_um);
+                }
+            }
+        }
+    }
+    let coverage = all.len() as f64 / pixels as f64;
+    (all, smooth, coverage)
+}
+
+fn median_abs(errors: &[f64]) -> f64 {
+    let mut a: Vec<f64> = errors.iter().map(|e| e.abs()).collect();
+    a.sort_by(f64::total_cmp);
+    a[a.len() / 2]
+}
+
+#[test]
+fn depth_from_focus_recovers_truth_depth() {
+    for preset in ["ci", "ci-telecentric"] {
+        let (all, smooth, coverage) = depth_errors(preset);
+        let bias = smooth.iter().sum::<f64>() / smooth.len() as f64;
+        eprintln!(
+            "{preset}: coverage {coverage:.3}; median |error| {:.1} µm over all, {:.1} µm on {} smooth pixels (bias {bias:.1} µm)",
+            median_abs(&all),
+            median_abs(&smooth),
+            smooth.len()
+        );
+        assert!(coverage > 0.9, "{preset}: {coverage}");
+        assert!(smooth.len() > 1000, "{preset}");
+        // Frames are 250 µm apart; the peak is found well inside a step, without bias.
+        assert!(median_abs(&smooth) < 80.0, "{preset}: {}", median_abs(&smooth));
+        assert!(bias.abs() < 20.0, "{preset}: bias {bias}");
+    }
+}
