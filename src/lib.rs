@@ -4,9 +4,17 @@
 //! Data flows bundle → depth → cloud → register → fuse/mesh → profile → crest → rules. This crate
 //! holds the pure stages; files, HTTP and the database stay at the edges.
 
+pub mod bench;
 pub mod bundle;
+pub mod cloud;
+pub mod crest;
 pub mod depth;
+pub mod fuse;
+pub mod images;
 pub mod optics;
+pub mod pipeline;
+pub mod profile;
+pub mod report;
 pub mod rules;
 pub mod sim;
 pub mod thread;

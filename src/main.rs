@@ -1,7 +1,10 @@
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand};
 use crestscan::bundle::{Bundle, FrameCheck, OpenOptions};
-use crestscan::sim;
+use crestscan::pipeline::{self, PipelineOptions};
+use crestscan::rules::ArcRule;
+use crestscan::{images, sim};
+use std::sync::atomic::AtomicBool;
 use crestscan::thread::ConnectionTable;
 use std::path::PathBuf;
 
@@ -31,6 +34,21 @@ enum Command {
         #[arg(long)]
         truth_only: bool,
     },
+    /// Inspect a bundle (directory, .zip or .tar): thread heights, black crests, the 5B verdict.
+    Inspect {
+        bundle: PathBuf,
+        /// Write report.json, height-map.png and all-in-focus.png here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Print the report as JSON instead of the summary.
+        #[arg(long)]
+        json: bool,
+        /// How the buttress 25% limit applies.
+        #[arg(long, value_enum, default_value_t = ArcRuleArg::PerThread)]
+        arc_rule: ArcRuleArg,
+    },
+    /// Compare an inspection report with a simulated bundle's truth/truth.json.
+    Compare { report: PathBuf, truth: PathBuf },
     /// Validate a bundle (directory, .zip or .tar) without inspecting it.
     Validate {
         bundle: PathBuf,
@@ -43,6 +61,12 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum ArcRuleArg {
+    PerThread,
+    Combined,
 }
 
 fn main() -> Result<()> {
@@ -75,6 +99,40 @@ fn main() -> Result<()> {
                 out.display(),
                 summary.verdict.as_str()
             );
+        }
+        Command::Inspect { bundle, out, json, arc_rule } => {
+            let table = ConnectionTable::api5b();
+            let b = Bundle::open(&bundle, &table, OpenOptions::default()).map_err(|e| anyhow::anyhow!("[{}] {e}", e.code()))?;
+            let options = PipelineOptions {
+                arc_rule: match arc_rule {
+                    ArcRuleArg::PerThread => ArcRule::PerThread,
+                    ArcRuleArg::Combined => ArcRule::Combined,
+                },
+                ..Default::default()
+            };
+            let cancel = AtomicBool::new(false);
+            let inspection = pipeline::inspect(&b, &options, &|_, _| {}, &cancel)?.context("cancelled")?;
+            if let Some(dir) = &out {
+                std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+                let report_path = dir.join("report.json");
+                std::fs::write(&report_path, serde_json::to_vec_pretty(&inspection.report)?)
+                    .with_context(|| format!("writing {}", report_path.display()))?;
+                images::write_height_map(&inspection.map, &dir.join("height-map.png"))?;
+                images::write_mosaic(&inspection.map, &dir.join("all-in-focus.png"))?;
+            }
+            if json {
+                println!("{}", serde_json::to_string_pretty(&inspection.report)?);
+            } else {
+                println!("{}", inspection.report.summary());
+                if let Some(dir) = &out {
+                    println!("  wrote report.json, height-map.png, all-in-focus.png to {}", dir.display());
+                }
+            }
+        }
+        Command::Compare { report, truth } => {
+            let report: crestscan::report::Report = serde_json::from_slice(&std::fs::read(&report)?)?;
+            let truth: sim::Truth = serde_json::from_slice(&std::fs::read(&truth)?)?;
+            println!("{}", serde_json::to_string_pretty(&crestscan::bench::compare(&report, &truth))?);
         }
         Command::Validate { bundle, decode } => {
             let table = ConnectionTable::api5b();

@@ -1,0 +1,154 @@
+//! Fusion: every view's points, weighted by their focus confidence, averaged into one unrolled
+//! cylindrical map r(z, θ) with its colour. The pipe surface is 2.5D over (z, θ), so this grid is
+//! the natural fused representation; the profile stage and the mesh read it.
+
+use crate::cloud::SurfacePoint;
+use std::f64::consts::TAU;
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct GridSpec {
+    pub z0_mm: f64,
+    pub dz_mm: f64,
+    pub nz: usize,
+    /// Columns over the full 360°.
+    pub ntheta: usize,
+}
+
+impl GridSpec {
+    /// A grid with cells of about `cell_mm` on a cylinder of `radius_mm`, spanning the points' z.
+    pub fn covering(points: &[&[SurfacePoint]], cell_mm: f64, radius_mm: f64) -> Option<Self> {
+        let (mut lo, mut hi) = (f64::MAX, f64::MIN);
+        for p in points.iter().flat_map(|v| v.iter()) {
+            lo = lo.min(p.position.z);
+            hi = hi.max(p.position.z);
+        }
+        if lo > hi {
+            return None;
+        }
+        let nz = ((hi - lo) / cell_mm).ceil() as usize + 1;
+        let ntheta = (TAU * radius_mm / cell_mm).round().max(360.0) as usize;
+        Some(Self { z0_mm: lo, dz_mm: cell_mm, nz, ntheta })
+    }
+
+    pub fn dtheta_deg(&self) -> f64 {
+        360.0 / self.ntheta as f64
+    }
+
+    pub fn z_at(&self, iz: usize) -> f64 {
+        self.z0_mm + (iz as f64 + 0.5) * self.dz_mm
+    }
+
+    pub fn theta_deg_at(&self, it: usize) -> f64 {
+        (it as f64 + 0.5) * self.dtheta_deg()
+    }
+}
+
+/// The fused map, row-major by z (rows) then θ (columns).
+#[derive(Clone, Debug)]
+pub struct UnrolledMap {
+    pub grid: GridSpec,
+    /// NaN where no view saw the cell.
+    pub radius_mm: Vec<f32>,
+    pub weight: Vec<f32>,
+    pub rgb: Vec<[f32; 3]>,
+}
+
+impl UnrolledMap {
+    pub fn index(&self, iz: usize, it: usize) -> usize {
+        iz * self.grid.ntheta + it
+    }
+
+    pub fn coverage(&self) -> f64 {
+        self.radius_mm.iter().filter(|r| r.is_finite()).count() as f64 / self.radius_mm.len() as f64
+    }
+
+    pub fn gray(&self, i: usize) -> f32 {
+        let c = self.rgb[i];
+        0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2]
+    }
+}
+
+/// Confidence weight of a point: zero at a focus peak ratio of 1 (no peak), growing with sharpness.
+fn point_weight(peak_ratio: f32) -> f32 {
+    (peak_ratio - 1.0).max(0.0)
+}
+
+/// Accumulates views one at a time, so only the grid is held, never every view's points.
+pub struct Fusion {
+    grid: GridSpec,
+    sum_r: Vec<f64>,
+    sum_w: Vec<f64>,
+    sum_rgb: Vec<[f64; 3]>,
+}
+
+impl Fusion {
+    pub fn new(grid: GridSpec) -> Self {
+        let cells = grid.nz * grid.ntheta;
+        Self { grid, sum_r: vec![0.0; cells], sum_w: vec![0.0; cells], sum_rgb: vec![[0.0; 3]; cells] }
+    }
+
+    pub fn add(&mut self, points: &[SurfacePoint]) {
+        let grid = &self.grid;
+        for p in points {
+            let iz = ((p.position.z - grid.z0_mm) / grid.dz_mm).floor();
+            if iz < 0.0 || iz as usize >= grid.nz {
+                continue;
+            }
+            let theta = p.theta_rad().rem_euclid(TAU);
+            let it = ((theta / TAU * grid.ntheta as f64) as usize).min(grid.ntheta - 1);
+            let i = iz as usize * grid.ntheta + it;
+            let w = point_weight(p.weight) as f64;
+            self.sum_r[i] += w * p.radius_mm();
+            self.sum_w[i] += w;
+            for c in 0..3 {
+                self.sum_rgb[i][c] += w * p.rgb[c] as f64;
+            }
+        }
+    }
+
+    pub fn finish(self) -> UnrolledMap {
+        let radius_mm =
+            self.sum_r.iter().zip(&self.sum_w).map(|(r, w)| if *w > 0.0 { (r / w) as f32 } else { f32::NAN }).collect();
+        let rgb = self
+            .sum_rgb
+            .iter()
+            .zip(&self.sum_w)
+            .map(|(c, w)| if *w > 0.0 { [0, 1, 2].map(|k| (c[k] / w) as f32) } else { [0.0; 3] })
+            .collect();
+        UnrolledMap { grid: self.grid, radius_mm, weight: self.sum_w.into_iter().map(|w| w as f32).collect(), rgb }
+    }
+}
+
+pub fn fuse(views: &[&[SurfacePoint]], grid: GridSpec) -> UnrolledMap {
+    let mut fusion = Fusion::new(grid);
+    for v in views {
+        fusion.add(v);
+    }
+    fusion.finish()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Point3;
+
+    fn point(z: f64, theta_deg: f64, r: f64, weight: f32) -> SurfacePoint {
+        let t = theta_deg.to_radians();
+        SurfacePoint { position: Point3::new(r * t.cos(), r * t.sin(), z), rgb: [0.5; 3], weight, pixel: [0, 0] }
+    }
+
+    #[test]
+    fn weighted_mean_per_cell() {
+        let a = vec![point(1.0, 10.0, 50.0, 3.0), point(1.0, 10.0, 51.0, 2.0), point(1.0, 10.0, 99.0, 1.0)];
+        let grid = GridSpec { z0_mm: 0.0, dz_mm: 0.5, nz: 4, ntheta: 360 };
+        let map = fuse(&[&a], grid);
+        let i = map.index(2, 10);
+        // Weights 2 and 1; the point with peak ratio 1 carries none.
+        assert!((map.radius_mm[i] - (2.0 * 50.0 + 51.0) / 3.0).abs() < 1e-4);
+        assert!(map.radius_mm[map.index(0, 0)].is_nan());
+        // Negative angles wrap.
+        let b = vec![point(1.0, -0.5, 50.0, 2.0)];
+        let map = fuse(&[&b], GridSpec { z0_mm: 0.0, dz_mm: 0.5, nz: 4, ntheta: 360 });
+        assert!(map.radius_mm[map.index(2, 359)].is_finite());
+    }
+}

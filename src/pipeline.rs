@@ -1,0 +1,195 @@
+//! The whole inspection as one library call, used by the CLI and (later) the service's workers:
+//! bundle → depth (per view, in parallel) → cloud → fuse → profile → crest → rules → report.
+//! Progress is reported through a callback (stage, fraction); a cancellation flag stops it promptly
+//! (checked between frames and stages).
+
+use crate::bundle::{Bundle, BundleError};
+use crate::cloud;
+use crate::crest::{self, CrestOptions};
+use crate::depth::{DepthMap, DepthOptions, depth_from_focus};
+use crate::fuse::{Fusion, GridSpec, UnrolledMap};
+use crate::profile;
+use crate::report::{self, HeightSeries, Report, StageTiming, ThreadReport};
+use crate::rules::{self, ArcRule, RuleInput};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::time::Instant;
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PipelineOptions {
+    pub depth: DepthOptions,
+    pub crest: CrestOptions,
+    pub arc_rule: ArcRule,
+    /// Fused-map cell size in object pixels.
+    pub cell_px: f64,
+}
+
+impl Default for PipelineOptions {
+    fn default() -> Self {
+        Self { depth: DepthOptions::default(), crest: CrestOptions::default(), arc_rule: ArcRule::PerThread, cell_px: 1.5 }
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Stage {
+    Depth,
+    Fuse,
+    Profile,
+    Rules,
+}
+
+impl Stage {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Stage::Depth => "depth",
+            Stage::Fuse => "fuse",
+            Stage::Profile => "profile",
+            Stage::Rules => "crest_and_rules",
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum PipelineError {
+    #[error(transparent)]
+    Bundle(#[from] BundleError),
+    #[error("no view gave a usable depth map (is the part in focus anywhere in the stacks?)")]
+    NoDepth,
+    #[error("no thread found: the profile shows no spectrum at the {pitch_mm} mm pitch")]
+    NoThread { pitch_mm: f64 },
+}
+
+pub struct Inspection {
+    pub report: Report,
+    pub map: UnrolledMap,
+    pub depth_maps: Vec<DepthMap>,
+}
+
+/// Runs the pipeline. Ok(None) means it was cancelled.
+pub fn inspect(
+    bundle: &Bundle,
+    options: &PipelineOptions,
+    progress: &(dyn Fn(Stage, f64) + Sync),
+    cancel: &AtomicBool,
+) -> Result<Option<Inspection>, PipelineError> {
+    let cancelled = || cancel.load(Ordering::Relaxed);
+    let mut timings = Vec::new();
+    let mut clock = Instant::now();
+    let mut lap = |stage: Stage, timings: &mut Vec<StageTiming>| {
+        timings.push(StageTiming { stage: stage.as_str().into(), seconds: clock.elapsed().as_secs_f64() });
+        clock = Instant::now();
+    };
+
+    progress(Stage::Depth, 0.0);
+    let done = AtomicUsize::new(0);
+    let total = bundle.views.len();
+    let depth_maps: Vec<Option<DepthMap>> = bundle
+        .views
+        .par_iter()
+        .enumerate()
+        .map(|(v, view)| {
+            let map = depth_from_focus(&bundle.optics, view, &options.depth, |k| bundle.read_frame(v, k), &cancelled)?;
+            progress(Stage::Depth, (done.fetch_add(1, Ordering::Relaxed) + 1) as f64 / total as f64);
+            Ok(map)
+        })
+        .collect::<Result<_, BundleError>>()?;
+    if cancelled() || depth_maps.iter().any(Option::is_none) {
+        return Ok(None);
+    }
+    let depth_maps: Vec<DepthMap> = depth_maps.into_iter().flatten().collect();
+    let depth_coverage =
+        depth_maps.iter().map(|d| d.coverage()).sum::<f64>() / depth_maps.len().max(1) as f64;
+    if depth_coverage == 0.0 {
+        return Err(PipelineError::NoDepth);
+    }
+    lap(Stage::Depth, &mut timings);
+
+    progress(Stage::Fuse, 0.0);
+    let part = &bundle.part;
+    let clouds: Vec<Vec<cloud::SurfacePoint>> = bundle
+        .views
+        .par_iter()
+        .zip(&depth_maps)
+        .map(|(view, depth)| cloud::back_project(&bundle.optics, &view.pose, depth))
+        .collect();
+    let slices: Vec<&[cloud::SurfacePoint]> = clouds.iter().map(Vec::as_slice).collect();
+    let cell_mm = options.cell_px * bundle.optics.object_pixel_mm(bundle.optics.focus_distance_mm);
+    let grid = GridSpec::covering(&slices, cell_mm, part.pipe_od_mm / 2.0).ok_or(PipelineError::NoDepth)?;
+    let mut fusion = Fusion::new(grid);
+    for (k, points) in clouds.into_iter().enumerate() {
+        fusion.add(&points);
+        progress(Stage::Fuse, (k + 1) as f64 / total as f64);
+    }
+    let map = fusion.finish();
+    lap(Stage::Fuse, &mut timings);
+    if cancelled() {
+        return Ok(None);
+    }
+
+    progress(Stage::Profile, 0.0);
+    let form = &part.form;
+    let helix = profile::estimate_helix(&map, form).ok_or(PipelineError::NoThread { pitch_mm: form.pitch_mm })?;
+    let threads = profile::measure_threads(&map, form, &helix);
+    lap(Stage::Profile, &mut timings);
+    if cancelled() {
+        return Ok(None);
+    }
+
+    progress(Stage::Rules, 0.0);
+    let (observations, machined_gray) = crest::observations(&threads, part.lc_mm, helix.pitch_mm, &options.crest);
+    let input = RuleInput {
+        family: part.family(),
+        lc_mm: part.lc_mm,
+        circumference_mm: part.circumference_mm(),
+        nominal_height_mm: form.height_mm,
+        height_tolerance_mm: form.height_tolerance_mm,
+        threads: observations,
+    };
+    let assessment = rules::assess(&input, options.arc_rule);
+    let thread_reports = threads
+        .iter()
+        .map(|t| {
+            let values: Vec<Option<f64>> = t.bins.iter().map(|b| b.height_mm).collect();
+            let measured: Vec<f64> = values.iter().flatten().copied().collect();
+            let black = assessment.black_threads.iter().find(|b| b.index == t.index);
+            ThreadReport {
+                index: t.index,
+                height_mm: HeightSeries { angles_deg: t.bins.iter().map(|b| b.angle_deg).collect(), values },
+                black_crest_arcs_deg: black.map(|b| b.arcs_deg.clone()).unwrap_or_default(),
+                black_crest_length_mm: black.map_or(0.0, |b| b.length_mm),
+                crest_z_mm: [t.bins[0].crest_z_mm - 0.5 * helix.pitch_mm / 360.0, t.bins[359].crest_z_mm + 0.5 * helix.pitch_mm / 360.0],
+                min_height_mm: measured.iter().copied().reduce(f64::min),
+                mean_height_mm: (!measured.is_empty()).then(|| measured.iter().sum::<f64>() / measured.len() as f64),
+                max_height_mm: measured.iter().copied().reduce(f64::max),
+                bins_measured: measured.len(),
+            }
+        })
+        .collect();
+    lap(Stage::Rules, &mut timings);
+    progress(Stage::Rules, 1.0);
+
+    let report = Report {
+        connection: part.connection.clone(),
+        family: part.family(),
+        pipe_od_mm: part.pipe_od_mm,
+        lc_mm: part.lc_mm,
+        circumference_mm: part.circumference_mm(),
+        pitch_mm: form.pitch_mm,
+        nominal_height_mm: form.height_mm,
+        threads: thread_reports,
+        verdict: assessment.verdict,
+        reasons: assessment.messages(),
+        serial: part.serial.clone(),
+        height_tolerance_mm: form.height_tolerance_mm,
+        assessment,
+        helix,
+        depth_coverage,
+        map_coverage: map.coverage(),
+        machined_crest_gray: machined_gray,
+        timings,
+        peak_memory_mb: report::peak_memory_mb(),
+    };
+    Ok(Some(Inspection { report, map, depth_maps }))
+}

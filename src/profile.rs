@@ -1,0 +1,346 @@
+//! Thread profile: the helix (phase z_h, pitch, taper) by Fourier analysis along the generatrix,
+//! then every thread's height per 1° bin measured on the fused map per the bundle contract.
+//!
+//! Along one generatrix the surface is r(z) = taper line + the thread form shifted to the crest
+//! positions. Removing the line leaves the thread spectrum: its fundamental at 1/pitch carries the
+//! crest position in its phase (offset by the form's own fundamental phase, known analytically for
+//! asymmetric forms such as buttress). Combining bins gives z_h, the crest of thread 1 at θ = 0.
+//! Heights are then measured directly on the data, at the contract's points: the crest on its
+//! centre line and the two adjacent roots at their centres, each by a local least-squares fit over
+//! the flat (or arc) around that point, so that noise averages out and edges are avoided.
+
+use crate::fuse::UnrolledMap;
+use crate::thread::{ProfileShape, ThreadForm};
+use rustfft::FftPlanner;
+use rustfft::num_complex::Complex;
+use serde::{Deserialize, Serialize};
+use std::f64::consts::TAU;
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Helix {
+    /// z of thread 1's crest centre line at θ = 0, in [0, pitch).
+    pub z_h_mm: f64,
+    pub pitch_mm: f64,
+    /// Measured taper on diameter (from the detrended generatrix slope).
+    pub taper_on_diameter: f64,
+    /// RMS of the analytic profile (nominal form at the measured phase, taper line) against data.
+    pub fit_rms_um: f64,
+    pub bins_used: usize,
+}
+
+/// One thread at one 1° bin.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BinMeasure {
+    /// Bin centre.
+    pub angle_deg: f64,
+    pub crest_z_mm: f64,
+    pub height_mm: Option<f64>,
+    pub crest_radius_mm: Option<f64>,
+    /// Mean brightness of the crest (all-in-focus), for the photometric black-crest test.
+    pub crest_gray: Option<f32>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ThreadMeasure {
+    pub index: u32,
+    pub bins: Vec<BinMeasure>,
+}
+
+/// Fundamental Fourier coefficient of the nominal form over one pitch (crest at x = 0).
+fn form_fundamental(form: &ThreadForm) -> Complex<f64> {
+    let n = 4096;
+    let p = form.pitch_mm;
+    let mut c = Complex::new(0.0, 0.0);
+    for k in 0..n {
+        let x = (k as f64 + 0.5) / n as f64 * p - p / 2.0;
+        c += Complex::from_polar(form.height_at(x), -TAU * x / p);
+    }
+    c / n as f64
+}
+
+/// Mean generatrix r(z) of a 1° bin; None where the bin is mostly unseen.
+fn bin_generatrix(map: &UnrolledMap, bin: usize) -> Option<Vec<f64>> {
+    let g = &map.grid;
+    let per_bin = g.ntheta as f64 / 360.0;
+    let (c0, c1) = ((bin as f64 * per_bin).ceil() as usize, (((bin + 1) as f64 * per_bin).ceil() as usize).min(g.ntheta));
+    let mut profile = vec![f64::NAN; g.nz];
+    let mut seen = 0;
+    for (iz, value) in profile.iter_mut().enumerate() {
+        let (mut s, mut n) = (0.0, 0);
+        for it in c0..c1 {
+            let r = map.radius_mm[map.index(iz, it)];
+            if r.is_finite() {
+                s += r as f64;
+                n += 1;
+            }
+        }
+        if n > 0 {
+            *value = s / n as f64;
+            seen += 1;
+        }
+    }
+    if (seen as f64) < 0.7 * g.nz as f64 {
+        return None;
+    }
+    // Fill gaps linearly so the spectrum sees no steps.
+    let known: Vec<usize> = (0..g.nz).filter(|&i| profile[i].is_finite()).collect();
+    for i in 0..g.nz {
+        if profile[i].is_nan() {
+            let after = known.iter().position(|&k| k > i);
+            profile[i] = match after {
+                Some(0) => profile[known[0]],
+                Some(j) => {
+                    let (a, b) = (known[j - 1], known[j]);
+                    profile[a] + (profile[b] - profile[a]) * (i - a) as f64 / (b - a) as f64
+                }
+                None => profile[*known.last().unwrap()],
+            };
+        }
+    }
+    Some(profile)
+}
+
+/// Least-squares line through (z_k, r_k): (intercept at z = 0, slope).
+fn fit_line(z: &[f64], r: &[f64]) -> (f64, f64) {
+    let n = z.len() as f64;
+    let (mz, mr) = (z.iter().sum::<f64>() / n, r.iter().sum::<f64>() / n);
+    let (mut szz, mut szr) = (0.0, 0.0);
+    for (a, b) in z.iter().zip(r) {
+        szz += (a - mz) * (a - mz);
+        szr += (a - mz) * (b - mr);
+    }
+    let slope = if szz > 0.0 { szr / szz } else { 0.0 };
+    (mr - slope * mz, slope)
+}
+
+/// Estimates the helix from the fused map. None when no bin has enough data.
+pub fn estimate_helix(map: &UnrolledMap, form: &ThreadForm) -> Option<Helix> {
+    let g = &map.grid;
+    let p = form.pitch_mm;
+    let phase_form = form_fundamental(form).arg();
+    let z: Vec<f64> = (0..g.nz).map(|i| g.z_at(i)).collect();
+    let len = (g.nz * 4).next_power_of_two();
+    let fft = FftPlanner::new().plan_fft_forward(len);
+    let (mut sum_vec, mut slopes, mut used) = (Complex::new(0.0, 0.0), Vec::new(), 0usize);
+    let mut per_bin = Vec::new();
+    let mut buffer = vec![Complex::new(0.0, 0.0); len];
+    for bin in 0..360 {
+        let Some(profile) = bin_generatrix(map, bin) else { continue };
+        let (a, slope) = fit_line(&z, &profile);
+        // The spectrum: the strongest peak near the nominal fundamental says the data are a thread.
+        for (k, slot) in buffer.iter_mut().enumerate() {
+            *slot = if k < g.nz { Complex::new(profile[k] - a - slope * z[k], 0.0) } else { Complex::new(0.0, 0.0) };
+        }
+        fft.process(&mut buffer);
+        let nominal_bin = (len as f64 * g.dz_mm / p).round() as usize;
+        let lo = (nominal_bin as f64 * 0.85) as usize;
+        let hi = ((nominal_bin as f64 * 1.15) as usize).min(len / 2 - 1);
+        let peak = (lo..=hi).max_by(|&x, &y| buffer[x].norm().total_cmp(&buffer[y].norm()))?;
+        let floor: f64 = buffer[1..len / 2].iter().map(|c| c.norm()).sum::<f64>() / (len / 2 - 1) as f64;
+        if buffer[peak].norm() < 4.0 * floor {
+            continue;
+        }
+        // Phase at exactly 1/pitch (direct DFT), then the crest position.
+        let theta_deg = bin as f64 + 0.5;
+        let x: Complex<f64> = (0..g.nz)
+            .map(|k| Complex::from_polar(profile[k] - a - slope * z[k], -TAU * z[k] / p))
+            .sum();
+        let z_crest = (phase_form - x.arg()) * p / TAU;
+        let z_h = (z_crest - p * theta_deg / 360.0).rem_euclid(p);
+        sum_vec += Complex::from_polar(1.0, TAU * z_h / p);
+        slopes.push(slope);
+        per_bin.push((bin, a, slope, profile));
+        used += 1;
+    }
+    if used == 0 {
+        return None;
+    }
+    let z_h_mm = (sum_vec.arg() * p / TAU).rem_euclid(p);
+    slopes.sort_by(f64::total_cmp);
+    let slope = slopes[slopes.len() / 2];
+    // Residual of the analytic profile: nominal form at the measured phase on each bin's line.
+    let kernel = form.kernel();
+    let (mut sq, mut n) = (0.0, 0usize);
+    for (bin, _, _, profile) in &per_bin {
+        let theta_deg = *bin as f64 + 0.5;
+        let model: Vec<f64> = z.iter().map(|&zz| kernel.height_at(zz - z_h_mm - p * theta_deg / 360.0)).collect();
+        let resid: Vec<f64> = profile.iter().zip(&model).map(|(r, m)| r - m).collect();
+        let (a, b) = fit_line(&z, &resid);
+        for k in 0..z.len() {
+            let e = resid[k] - a - b * z[k];
+            sq += e * e;
+            n += 1;
+        }
+    }
+    Some(Helix {
+        z_h_mm,
+        pitch_mm: p,
+        taper_on_diameter: 2.0 * slope,
+        fit_rms_um: 1e3 * (sq / n as f64).sqrt(),
+        bins_used: used,
+    })
+}
+
+/// Half widths of the windows fitted around the crest and root centres.
+fn windows(form: &ThreadForm) -> (f64, f64) {
+    match form.profile {
+        ProfileShape::Trapezoid { load_flank_deg, stab_flank_deg, crest_width_mm } => {
+            let root = form.pitch_mm
+                - crest_width_mm
+                - form.height_mm * (load_flank_deg.to_radians().tan() + stab_flank_deg.to_radians().tan());
+            (0.6 * crest_width_mm / 2.0, 0.6 * root / 2.0)
+        }
+        ProfileShape::Rounded { flank_deg, crest_truncation_mm, root_truncation_mm } => {
+            let (sin, cos) = flank_deg.to_radians().sin_cos();
+            let arc = |t: f64| t * sin / (1.0 - sin) * cos;
+            (0.6 * arc(crest_truncation_mm), 0.6 * arc(root_truncation_mm))
+        }
+    }
+}
+
+/// Value at x = 0 of a least-squares fit r = a + b·x (+ c·x² when `curved`) with one pass of
+/// outlier rejection (residuals beyond 3 MAD).
+fn fit_at_centre(samples: &[(f64, f64)], curved: bool) -> Option<f64> {
+    let solve = |pts: &[(f64, f64)]| -> Option<(f64, f64, f64)> {
+        let n = if curved { 3 } else { 2 };
+        if pts.len() < 2 * n + 2 {
+            return None;
+        }
+        let mut ata = nalgebra::DMatrix::<f64>::zeros(n, n);
+        let mut atb = nalgebra::DVector::<f64>::zeros(n);
+        for &(x, r) in pts {
+            let row = [1.0, x, x * x];
+            for i in 0..n {
+                atb[i] += row[i] * r;
+                for j in 0..n {
+                    ata[(i, j)] += row[i] * row[j];
+                }
+            }
+        }
+        let sol = ata.lu().solve(&atb)?;
+        Some((sol[0], sol[1], if curved { sol[2] } else { 0.0 }))
+    };
+    let (a, b, c) = solve(samples)?;
+    let mut resid: Vec<f64> = samples.iter().map(|&(x, r)| (r - a - b * x - c * x * x).abs()).collect();
+    let mut sorted = resid.clone();
+    sorted.sort_by(f64::total_cmp);
+    let mad = sorted[sorted.len() / 2].max(1e-6);
+    let kept: Vec<(f64, f64)> =
+        samples.iter().zip(resid.iter_mut()).filter(|(_, e)| **e <= 3.0 * 1.4826 * mad).map(|(s, _)| *s).collect();
+    solve(&kept).map(|(a, _, _)| a)
+}
+
+/// Heights of every thread whose crest line starts within the map, per 1° bin.
+pub fn measure_threads(map: &UnrolledMap, form: &ThreadForm, helix: &Helix) -> Vec<ThreadMeasure> {
+    let g = &map.grid;
+    let p = helix.pitch_mm;
+    let (crest_half, root_half) = windows(form);
+    let (before, after) = form.root_centres_mm();
+    let curved = matches!(form.profile, ProfileShape::Rounded { .. });
+    let z_max = g.z0_mm + g.nz as f64 * g.dz_mm;
+    let mut threads: Vec<ThreadMeasure> = Vec::new();
+    let mut index = 1u32;
+    while helix.z_h_mm + p * (index - 1) as f64 <= z_max {
+        threads.push(ThreadMeasure { index, bins: Vec::with_capacity(360) });
+        index += 1;
+    }
+    let per_bin = g.ntheta as f64 / 360.0;
+    for bin in 0..360 {
+        let centre_deg = bin as f64 + 0.5;
+        let (c0, c1) =
+            ((bin as f64 * per_bin).ceil() as usize, (((bin + 1) as f64 * per_bin).ceil() as usize).min(g.ntheta));
+        // Samples of the bin in thread coordinates u = (z − z_h)/p − θ/360 (crest of thread i at u = i − 1).
+        let mut samples: Vec<(f64, f64, f32)> = Vec::new();
+        for it in c0..c1 {
+            let theta = g.theta_deg_at(it);
+            for iz in 0..g.nz {
+                let i = map.index(iz, it);
+                let r = map.radius_mm[i];
+                if r.is_finite() {
+                    let u = (g.z_at(iz) - helix.z_h_mm) / p - theta / 360.0;
+                    samples.push((u, r as f64, map.gray(i)));
+                }
+            }
+        }
+        samples.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let window = |centre_u: f64, half_mm: f64| -> Vec<(f64, f64, f32)> {
+            let (lo, hi) = (centre_u - half_mm / p, centre_u + half_mm / p);
+            let start = samples.partition_point(|s| s.0 < lo);
+            samples[start..].iter().take_while(|s| s.0 <= hi).map(|&(u, r, g)| ((u - centre_u) * p, r, g)).collect()
+        };
+        for thread in threads.iter_mut() {
+            let u_crest = (thread.index - 1) as f64;
+            let crest_z = helix.z_h_mm + p * (u_crest + centre_deg / 360.0);
+            let crest = window(u_crest, crest_half);
+            let root_b = window(u_crest + before / p, root_half);
+            let root_a = window(u_crest + after / p, root_half);
+            let xy = |w: &[(f64, f64, f32)]| w.iter().map(|&(x, r, _)| (x, r)).collect::<Vec<_>>();
+            let crest_r = fit_at_centre(&xy(&crest), curved);
+            let rb = fit_at_centre(&xy(&root_b), curved);
+            let ra = fit_at_centre(&xy(&root_a), curved);
+            let height = match (crest_r, rb, ra) {
+                (Some(c), Some(b), Some(a)) => Some(c - (b + (a - b) * (0.0 - before) / (after - before))),
+                _ => None,
+            };
+            let crest_gray =
+                (!crest.is_empty()).then(|| crest.iter().map(|s| s.2).sum::<f32>() / crest.len() as f32);
+            thread.bins.push(BinMeasure { angle_deg: centre_deg, crest_z_mm: crest_z, height_mm: height, crest_radius_mm: crest_r, crest_gray });
+        }
+    }
+    threads
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fuse::GridSpec;
+
+    /// A synthetic fused map of an ideal buttress thread.
+    fn ideal_map(z_h: f64, noise: f64) -> (UnrolledMap, ThreadForm) {
+        let form = ThreadForm::api_buttress(5.08, 1.5748, 0.0508, 0.0625).unwrap();
+        let grid = GridSpec { z0_mm: 0.0, dz_mm: 0.04, nz: 800, ntheta: 1440 };
+        let mut radius = Vec::with_capacity(grid.nz * grid.ntheta);
+        let mut seed = 12345u64;
+        for iz in 0..grid.nz {
+            for it in 0..grid.ntheta {
+                let (z, theta) = (grid.z_at(iz), grid.theta_deg_at(it));
+                seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                let jitter = ((seed >> 33) as f64 / (1u64 << 31) as f64 - 0.5) * 2.0 * noise;
+                let r = 55.0 + z * form.radius_slope() + form.height_at(z - z_h - 5.08 * theta / 360.0) + jitter;
+                radius.push(r as f32);
+            }
+        }
+        let cells = radius.len();
+        (UnrolledMap { grid, radius_mm: radius, weight: vec![1.0; cells], rgb: vec![[0.6; 3]; cells] }, form)
+    }
+
+    #[test]
+    fn helix_and_heights_of_an_ideal_thread() {
+        let (map, form) = ideal_map(1.234, 0.0);
+        let helix = estimate_helix(&map, &form).unwrap();
+        assert!((helix.z_h_mm - 1.234).abs() < 0.01, "{}", helix.z_h_mm);
+        assert!((helix.taper_on_diameter - 0.0625).abs() < 0.005, "{}", helix.taper_on_diameter);
+        let threads = measure_threads(&map, &form, &helix);
+        let mut checked = 0;
+        for t in &threads {
+            for b in &t.bins {
+                if let Some(h) = b.height_mm {
+                    assert!((h - 1.5748).abs() < 0.002, "thread {} at {}: {h}", t.index, b.angle_deg);
+                    checked += 1;
+                }
+            }
+        }
+        assert!(checked > 360 * 4, "{checked}");
+    }
+
+    #[test]
+    fn noise_averages_out() {
+        let (map, form) = ideal_map(3.9, 0.06);
+        let helix = estimate_helix(&map, &form).unwrap();
+        assert!((helix.z_h_mm - 3.9).abs() < 0.02, "{}", helix.z_h_mm);
+        let threads = measure_threads(&map, &form, &helix);
+        let heights: Vec<f64> = threads.iter().flat_map(|t| t.bins.iter().filter_map(|b| b.height_mm)).collect();
+        let rms = (heights.iter().map(|h| (h - 1.5748).powi(2)).sum::<f64>() / heights.len() as f64).sqrt();
+        assert!(rms < 0.01, "{rms}");
+    }
+}
