@@ -6,9 +6,8 @@
 //! offset-0 lens) by d / (d + o); the points that matter in frame k are those in focus there
 //! (d + o = F), so the measure is scaled about the principal point by F / (F − o). (Resampling the
 //! smooth measure rather than the image keeps interpolation from blurring some frames more than
-//! others, which would bias the peak.) Each pixel's peak over the stack is
-//! interpolated between frames with a Gaussian through the three highest samples, and turned into
-//! depth through the optics: in focus at offset o* means depth F − o* at offset 0. The confidence
+//! others, which would bias the peak.) Each pixel's focus curve is located between frames by the
+//! centroid of its flat top (see [`peak_offset`]) and turned into depth through the optics: in focus at offset o* means depth F − o* at offset 0. The confidence
 //! says how sharply the measure peaks above its floor, so that texture-less and saturated pixels
 //! are recognised rather than trusted. The all-in-focus image keeps each pixel's sharpest colour.
 
@@ -22,11 +21,17 @@ pub struct DepthOptions {
     pub window_radius_px: usize,
     /// Pixels whose peak-to-floor ratio is below this are not trusted (depth NaN).
     pub min_peak_ratio: f32,
+    /// The focus curve's centre is the centroid of the frames above this fraction of its peak.
+    pub peak_fraction: f32,
 }
 
 impl Default for DepthOptions {
     fn default() -> Self {
-        Self { window_radius_px: 4, min_peak_ratio: 1.6 }
+        Self {
+            window_radius_px: 4,
+            min_peak_ratio: 1.6,
+            peak_fraction: 0.2,
+        }
     }
 }
 
@@ -117,16 +122,31 @@ fn focus_measure(gray: &[f32], w: usize, h: usize, r: usize, scratch: &mut [f32]
     }
 }
 
-/// Vertex of the parabola through (x_i, y_i), i = 0..3 (x strictly increasing); None if flat/upward.
-fn parabola_vertex(x: [f64; 3], y: [f64; 3]) -> Option<f64> {
-    let d0 = (y[1] - y[0]) / (x[1] - x[0]);
-    let d1 = (y[2] - y[1]) / (x[2] - x[1]);
-    let a = (d1 - d0) / (x[2] - x[0]);
-    if a >= 0.0 {
-        return None;
+/// The in-focus offset of one pixel's focus curve. The curve is flat-topped (within the depth of
+/// field the image is as sharp as the pixels allow) and falls off symmetrically, so its centre is
+/// taken as the centroid, above the floor, of the contiguous run of frames around the maximum whose
+/// measure exceeds `fraction` of the peak height; the run's edge frames are weighted by how far
+/// they rise above the cut, which makes the centroid move smoothly with the true focus.
+fn peak_offset(column: &[f32], offsets: &[f64], k_best: usize, floor: f32, fraction: f32) -> Option<f64> {
+    let peak = column[k_best];
+    let cut = floor + fraction * (peak - floor);
+    let (mut lo, mut hi) = (k_best, k_best);
+    while lo > 0 && column[lo - 1] > cut {
+        lo -= 1;
     }
-    // y = a (x − x0)(x − x1) + d0 (x − x0) + y0 → y' = 0.
-    Some(0.5 * (x[0] + x[1]) - d0 / (2.0 * a))
+    while hi + 1 < column.len() && column[hi + 1] > cut {
+        hi += 1;
+    }
+    if lo == 0 || hi + 1 == column.len() {
+        return None; // the peak runs off the stack: focus not bracketed
+    }
+    let (mut sw, mut swx) = (0.0, 0.0);
+    for k in lo..=hi {
+        let w = (column[k] - cut) as f64;
+        sw += w;
+        swx += w * offsets[k];
+    }
+    (sw > 0.0).then(|| swx / sw)
 }
 
 /// Runs depth from focus over one view. `frame_at(k)` decodes frame k (called once per frame, in
@@ -156,8 +176,7 @@ pub fn depth_from_focus(
             Projection::Perspective => (big_f - entry.offset_mm) / big_f,
             Projection::Telecentric => 1.0,
         };
-        let gray = frame.gray();
-        focus_measure(&gray, w, h, options.window_radius_px, &mut scratch, &mut native);
+        focus_measure(&frame.gray(), w, h, options.window_radius_px, &mut scratch, &mut native);
         let mut measure = vec![0f32; w * h];
         rescale(&native, 1, w, h, principal, scale, &mut measure);
         let colour = if frame.channels == 3 {
@@ -191,13 +210,8 @@ pub fn depth_from_focus(
         if ratio < options.min_peak_ratio || k_best == 0 || k_best + 1 == n {
             continue;
         }
-        let ln = |k: usize| (column[k].max(1e-20) as f64).ln();
-        let x = [offsets[k_best - 1], offsets[k_best], offsets[k_best + 1]];
-        let y = [ln(k_best - 1), ln(k_best), ln(k_best + 1)];
-        if let Some(in_focus_offset) = parabola_vertex(x, y) {
-            if (x[0]..=x[2]).contains(&in_focus_offset) {
-                depth_mm[i] = (big_f - in_focus_offset) as f32;
-            }
+        if let Some(in_focus_offset) = peak_offset(&column, &offsets, k_best, floor, options.peak_fraction) {
+            depth_mm[i] = (big_f - in_focus_offset) as f32;
         }
     }
     Ok(Some(DepthMap { width: w, height: h, depth_mm, peak_ratio, all_in_focus }))
@@ -208,11 +222,21 @@ mod tests {
     use super::*;
 
     #[test]
-    fn parabola_vertex_of_a_gaussian_is_exact() {
-        let g = |x: f64| -(x - 0.37) * (x - 0.37) / 0.08;
-        let v = parabola_vertex([0.0, 0.25, 0.5], [g(0.0), g(0.25), g(0.5)]).unwrap();
-        assert!((v - 0.37).abs() < 1e-12);
-        assert!(parabola_vertex([0.0, 1.0, 2.0], [0.0, 1.0, 2.0]).is_none());
+    fn flat_topped_curve_centre_moves_smoothly_with_focus() {
+        let offsets: Vec<f64> = (0..12).map(|k| -1.5 + 0.25 * k as f64).collect();
+        // A plateau 0.5 mm wide with symmetric shoulders, centred at `c`.
+        let curve = |c: f64| -> Vec<f32> {
+            offsets.iter().map(|&o| (1.0 / (1.0 + (((o - c).abs() - 0.25).max(0.0) / 0.2).powi(2))) as f32 + 0.05).collect()
+        };
+        for c in [-0.4, -0.33, -0.2, 0.0, 0.11, 0.3] {
+            let column = curve(c);
+            let k_best = (0..column.len()).max_by(|&a, &b| column[a].total_cmp(&column[b])).unwrap();
+            let got = peak_offset(&column, &offsets, k_best, 0.05, 0.2).unwrap();
+            assert!((got - c).abs() < 0.03, "centre {c}: {got}");
+        }
+        // A peak at the end of the stack is not bracketed.
+        let column = curve(1.4);
+        assert!(peak_offset(&column, &offsets, 11, 0.05, 0.2).is_none());
     }
 
     #[test]

@@ -14,6 +14,7 @@ pub mod images;
 pub mod optics;
 pub mod pipeline;
 pub mod profile;
+pub mod register;
 pub mod report;
 pub mod rules;
 pub mod sim;

@@ -8,7 +8,9 @@ use crate::cloud;
 use crate::crest::{self, CrestOptions};
 use crate::depth::{DepthMap, DepthOptions, depth_from_focus};
 use crate::fuse::{Fusion, GridSpec, UnrolledMap};
+use crate::optics::ViewPose;
 use crate::profile;
+use crate::register::{self, RegisterOptions};
 use crate::report::{self, HeightSeries, Report, StageTiming, ThreadReport};
 use crate::rules::{self, ArcRule, RuleInput};
 use rayon::prelude::*;
@@ -20,6 +22,7 @@ use std::time::Instant;
 pub struct PipelineOptions {
     pub depth: DepthOptions,
     pub crest: CrestOptions,
+    pub register: RegisterOptions,
     pub arc_rule: ArcRule,
     /// Fused-map cell size in object pixels.
     pub cell_px: f64,
@@ -27,7 +30,11 @@ pub struct PipelineOptions {
 
 impl Default for PipelineOptions {
     fn default() -> Self {
-        Self { depth: DepthOptions::default(), crest: CrestOptions::default(), arc_rule: ArcRule::PerThread, cell_px: 1.5 }
+        Self {
+            depth: DepthOptions::default(),
+            crest: CrestOptions::default(),
+            register: RegisterOptions::default(),
+            arc_rule: ArcRule::PerThread, cell_px: 1.5 }
     }
 }
 
@@ -35,6 +42,7 @@ impl Default for PipelineOptions {
 #[serde(rename_all = "snake_case")]
 pub enum Stage {
     Depth,
+    Register,
     Fuse,
     Profile,
     Rules,
@@ -44,6 +52,7 @@ impl Stage {
     pub fn as_str(self) -> &'static str {
         match self {
             Stage::Depth => "depth",
+            Stage::Register => "register",
             Stage::Fuse => "fuse",
             Stage::Profile => "profile",
             Stage::Rules => "crest_and_rules",
@@ -65,6 +74,8 @@ pub struct Inspection {
     pub report: Report,
     pub map: UnrolledMap,
     pub depth_maps: Vec<DepthMap>,
+    /// The refined view poses.
+    pub poses: Vec<ViewPose>,
 }
 
 /// Runs the pipeline. Ok(None) means it was cancelled.
@@ -106,16 +117,36 @@ pub fn inspect(
     }
     lap(Stage::Depth, &mut timings);
 
-    progress(Stage::Fuse, 0.0);
+    progress(Stage::Register, 0.0);
     let part = &bundle.part;
-    let clouds: Vec<Vec<cloud::SurfacePoint>> = bundle
-        .views
-        .par_iter()
-        .zip(&depth_maps)
-        .map(|(view, depth)| cloud::back_project(&bundle.optics, &view.pose, depth))
-        .collect();
+    let encoder_poses: Vec<ViewPose> = bundle.views.iter().map(|v| v.pose).collect();
+    let project = |poses: &[ViewPose]| -> Vec<Vec<cloud::SurfacePoint>> {
+        poses.par_iter().zip(&depth_maps).map(|(pose, depth)| cloud::back_project(&bundle.optics, pose, depth)).collect()
+    };
+    let encoder_clouds = project(&encoder_poses);
+    let pixel_mm = bundle.optics.object_pixel_mm(bundle.optics.focus_distance_mm);
+    let format = bundle.views[0].format;
+    let radius_ref = part.pipe_od_mm / 2.0;
+    let registration = register::register(
+        &encoder_clouds.iter().map(Vec::as_slice).collect::<Vec<_>>(),
+        &encoder_poses,
+        radius_ref,
+        (format.height as f64 * pixel_mm / 2.0 / radius_ref).to_degrees(),
+        format.width as f64 * pixel_mm / 2.0,
+        &RegisterOptions { cell_mm: pixel_mm, ..options.register.clone() },
+    );
+    drop(encoder_clouds);
+    let poses: Vec<ViewPose> =
+        encoder_poses.iter().zip(&registration.corrections).map(|(p, c)| c.apply(p)).collect();
+    lap(Stage::Register, &mut timings);
+    if cancelled() {
+        return Ok(None);
+    }
+
+    progress(Stage::Fuse, 0.0);
+    let clouds = project(&poses);
     let slices: Vec<&[cloud::SurfacePoint]> = clouds.iter().map(Vec::as_slice).collect();
-    let cell_mm = options.cell_px * bundle.optics.object_pixel_mm(bundle.optics.focus_distance_mm);
+    let cell_mm = options.cell_px * pixel_mm;
     let grid = GridSpec::covering(&slices, cell_mm, part.pipe_od_mm / 2.0).ok_or(PipelineError::NoDepth)?;
     let mut fusion = Fusion::new(grid);
     for (k, points) in clouds.into_iter().enumerate() {
@@ -185,11 +216,12 @@ pub fn inspect(
         height_tolerance_mm: form.height_tolerance_mm,
         assessment,
         helix,
+        registration: registration.clone(),
         depth_coverage,
         map_coverage: map.coverage(),
         machined_crest_gray: machined_gray,
         timings,
         peak_memory_mb: report::peak_memory_mb(),
     };
-    Ok(Some(Inspection { report, map, depth_maps }))
+    Ok(Some(Inspection { report, map, depth_maps, poses }))
 }

@@ -2,6 +2,7 @@
 //! (../shared/spec/bundle.md, "Result shape"), plus measures, timings and diagnostics.
 
 use crate::profile::Helix;
+use crate::register::Registration;
 use crate::rules::{Assessment, Verdict};
 use crate::thread::Family;
 use serde::{Deserialize, Serialize};
@@ -50,6 +51,7 @@ pub struct Report {
     pub height_tolerance_mm: f64,
     pub assessment: Assessment,
     pub helix: Helix,
+    pub registration: Registration,
     pub depth_coverage: f64,
     pub map_coverage: f64,
     pub machined_crest_gray: f32,
