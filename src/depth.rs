@@ -194,6 +194,13 @@ pub fn depth_from_focus(
         measures.push(measure);
     }
     let offsets: Vec<f64> = view.frames.iter().map(|f| f.offset_mm).collect();
+    // Breathing moves content by up to |o|/F of its distance from the principal point.
+    let max_offset = offsets.iter().fold(0.0f64, |m, o| m.max(o.abs()));
+    let breathing_px = match optics.projection {
+        Projection::Perspective => (max_offset / big_f * (w.max(h) as f64)).ceil() as usize,
+        Projection::Telecentric => 0,
+    };
+    let border = options.window_radius_px + 1 + breathing_px;
     let mut depth_mm = vec![f32::NAN; w * h];
     let mut peak_ratio = vec![1f32; w * h];
     let mut column = vec![0f32; n];
@@ -207,6 +214,10 @@ pub fn depth_from_focus(
         let floor = sorted[n / 2].max(1e-12);
         let ratio = peak / floor;
         peak_ratio[i] = ratio;
+        let (x, y) = (i % w, i / w);
+        if x < border || y < border || x + border >= w || y + border >= h {
+            continue; // the focus window or the breathing correction runs off the frame
+        }
         if ratio < options.min_peak_ratio || k_best == 0 || k_best + 1 == n {
             continue;
         }

@@ -199,8 +199,13 @@ fn windows(form: &ThreadForm) -> (f64, f64) {
 }
 
 /// Value at x = 0 of a least-squares fit r = a + b·x (+ c·x² when `curved`) with one pass of
-/// outlier rejection (residuals beyond 3 MAD).
-fn fit_at_centre(samples: &[(f64, f64)], curved: bool) -> Option<f64> {
+/// outlier rejection (residuals beyond 3 MAD). None unless samples lie on both sides of the centre
+/// (`half` is the window's half width): an edge of the data would make it an extrapolation.
+fn fit_at_centre(samples: &[(f64, f64)], curved: bool, half: f64) -> Option<f64> {
+    let (lo, hi) = samples.iter().fold((f64::MAX, f64::MIN), |(l, h), s| (l.min(s.0), h.max(s.0)));
+    if lo > -0.5 * half || hi < 0.5 * half {
+        return None;
+    }
     let solve = |pts: &[(f64, f64)]| -> Option<(f64, f64, f64)> {
         let n = if curved { 3 } else { 2 };
         if pts.len() < 2 * n + 2 {
@@ -275,9 +280,9 @@ pub fn measure_threads(map: &UnrolledMap, form: &ThreadForm, helix: &Helix) -> V
             let root_b = window(u_crest + before / p, root_half);
             let root_a = window(u_crest + after / p, root_half);
             let xy = |w: &[(f64, f64, f32)]| w.iter().map(|&(x, r, _)| (x, r)).collect::<Vec<_>>();
-            let crest_r = fit_at_centre(&xy(&crest), curved);
-            let rb = fit_at_centre(&xy(&root_b), curved);
-            let ra = fit_at_centre(&xy(&root_a), curved);
+            let crest_r = fit_at_centre(&xy(&crest), curved, crest_half);
+            let rb = fit_at_centre(&xy(&root_b), curved, root_half);
+            let ra = fit_at_centre(&xy(&root_a), curved, root_half);
             let height = match (crest_r, rb, ra) {
                 (Some(c), Some(b), Some(a)) => Some(c - (b + (a - b) * (0.0 - before) / (after - before))),
                 _ => None,
