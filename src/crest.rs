@@ -2,7 +2,8 @@
 //! steel under the coaxial light. Each thread's crest brightness per bin is compared with the
 //! median crest brightness of the part (most crests are machined). The geometric half (a crest
 //! below nominal − tolerance, which also catches polished black crests) is applied by the rule
-//! engine from the heights. The end chamfer is machined: crests within 1.5 pitches of the end face
+//! engine from the heights, which this stage hands over median-filtered over three bins. The end
+//! chamfer is machined: crests within 1.5 pitches of the end face
 //! that look machined are flagged as chamfer, never as black.
 
 use crate::profile::ThreadMeasure;
@@ -19,6 +20,19 @@ impl Default for CrestOptions {
     fn default() -> Self {
         Self { dark_fraction: 0.45 }
     }
+}
+
+/// The height the geometric test sees at bin k: the median of the bin and its two neighbours, so a
+/// single noisy bin cannot make a black crest, while any real one (a crest left at the mill radius
+/// spans degrees) still shows. None unless at least two of the three were measured.
+fn detection_height(bins: &[crate::profile::BinMeasure], k: usize) -> Option<f64> {
+    let mut values: Vec<f64> =
+        [k.checked_sub(1), Some(k), Some(k + 1)].into_iter().flatten().filter_map(|i| bins.get(i)?.height_mm).collect();
+    if values.len() < 2 || bins[k].height_mm.is_none() {
+        return None;
+    }
+    values.sort_by(f64::total_cmp);
+    Some(if values.len() == 3 { values[1] } else { 0.5 * (values[0] + values[1]) })
 }
 
 /// The rule engine's input for each thread, and the reference (machined) crest brightness.
@@ -38,7 +52,7 @@ pub fn observations(
             let dz_per_deg = pitch_mm / 360.0;
             let mut arcs = Vec::new();
             let mut bins = Vec::with_capacity(t.bins.len());
-            for b in &t.bins {
+            for (k, b) in t.bins.iter().enumerate() {
                 let start = b.angle_deg - 0.5;
                 let dark = b.crest_gray.is_some_and(|g| g < dark_below);
                 let z_start = b.crest_z_mm - 0.5 * dz_per_deg;
@@ -50,7 +64,7 @@ pub fn observations(
                     angle_deg: start,
                     width_deg: 1.0,
                     z_mm: b.crest_z_mm,
-                    height_mm: b.height_mm,
+                    height_mm: detection_height(&t.bins, k),
                     chamfer: !dark && b.crest_z_mm < 1.5 * pitch_mm,
                 });
             }

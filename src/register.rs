@@ -62,13 +62,15 @@ pub struct RegisterOptions {
     /// Search half ranges (encoder error bounds, relative between two views).
     pub max_angle_deg: f64,
     pub max_axial_mm: f64,
-    /// Pairs whose correlation peak is weaker than this are not trusted.
+    /// Pairs whose correlation peak is weaker than this, or whose aligned overlap is smaller than
+    /// this many cells, are not trusted.
     pub min_ncc: f64,
+    pub min_overlap_cells: usize,
 }
 
 impl Default for RegisterOptions {
     fn default() -> Self {
-        Self { cell_mm: 0.041, max_angle_deg: 2.5, max_axial_mm: 0.8, min_ncc: 0.1 }
+        Self { cell_mm: 0.041, max_angle_deg: 2.5, max_axial_mm: 0.8, min_ncc: 0.1, min_overlap_cells: 2000 }
     }
 }
 
@@ -282,7 +284,7 @@ fn measure_pair(
             }
         }
     }
-    if peak < options.min_ncc {
+    if peak < options.min_ncc || cells < options.min_overlap_cells {
         return None;
     }
     let frac_s = sub_cell(ncc(&pa, &pb, ds - 1, dz, 1).0, peak, ncc(&pa, &pb, ds + 1, dz, 1).0);

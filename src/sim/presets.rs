@@ -18,7 +18,7 @@ pub struct PresetInfo {
 pub const PRESETS: &[PresetInfo] = &[
     PresetInfo { name: "ci", description: "BC 4-1/2, 3 views over 13° near Lc, 18 frames of 384×160 RGB; a black crest within Lc across threads 6–7 (accept)" },
     PresetInfo { name: "ci-telecentric", description: "LC 5-1/2 through a 0.25× telecentric lens, 3 views of 256×112, 16-bit RGB; full crests within Lc (accept)" },
-    PresetInfo { name: "standard", description: "BC 4-1/2 pin end, whole circumference (45 views × 16 frames, 864×240 RGB), z 0–35 mm; black crests only beyond Lc (accept)" },
+    PresetInfo { name: "standard", description: "BC 4-1/2 pin end, whole circumference (45 views × 19 frames, 864×320 RGB), z 0–35 mm; black crests only beyond Lc (accept)" },
     PresetInfo { name: "bc-black-1", description: "standard optics; 0.1 mm eccentric thread: one black-crested thread within Lc (accept)" },
     PresetInfo { name: "bc-black-2", description: "standard optics; undersize pipe: two black-crested threads within Lc, each under 25% (accept)" },
     PresetInfo { name: "bc-black-3", description: "standard optics; undersize, eccentric pipe: three black-crested threads within Lc (reject)" },
@@ -166,11 +166,12 @@ fn spec(
     }
 }
 
-/// The whole circumference of the pin end from the chamfer to a little past Lc.
+/// The whole circumference of the pin end from the chamfer to a little past Lc. Views 8° apart,
+/// each 13 mm (13°) wide: neighbours overlap by 5 mm, still 3 mm when two encoders err by 1° apart.
 fn ring_layout() -> Layout {
     Layout {
         width: 864,
-        height: 240,
+        height: 320,
         first_angle_deg: 0.0,
         angle_step_deg: 8.0,
         angles: 45,
