@@ -63,3 +63,230 @@ pub fn compare(report: &Report, truth: &Truth) -> Accuracy {
         worst: errors.iter().take(5).map(|e| (e.1, e.2, e.3, e.4)).collect(),
     }
 }
+
+/// A benchmark case: a preset rendered with the suite's own seed (no test or tuning uses these).
+#[derive(Clone, Copy, Debug)]
+pub struct Case {
+    pub preset: &'static str,
+    pub seed: u64,
+}
+
+/// The accuracy suite: the standard preset, the defects that decide verdicts, and the seed's
+/// Table 1, each with a seed of its own.
+pub const ACCURACY_SUITE: &[Case] = &[
+    Case { preset: "standard", seed: 9001 },
+    Case { preset: "bc-black-2", seed: 9002 },
+    Case { preset: "bc-arc-over-25", seed: 9003 },
+    Case { preset: "lc-round-black", seed: 9004 },
+    Case { preset: "bc-polished", seed: 9005 },
+    Case { preset: "seed-table1", seed: 9006 },
+];
+
+/// Registration error after refinement, with the global rotation and shift removed (they are not
+/// observable from overlaps; the encoders' mean error stands for them).
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct RegistrationError {
+    pub angle_rms_deg: f64,
+    pub angle_max_deg: f64,
+    pub axial_rms_um: f64,
+    pub axial_max_um: f64,
+    pub radial_rms_um: f64,
+    /// The same before refinement (encoder poses), for scale.
+    pub encoder_angle_rms_deg: f64,
+    pub encoder_axial_rms_um: f64,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct CaseResult {
+    pub preset: String,
+    pub seed: u64,
+    pub accuracy: Accuracy,
+    pub depth_rms_um: f64,
+    pub depth_median_um: f64,
+    pub depth_coverage: f64,
+    pub registration: RegistrationError,
+    pub decode_seconds: f64,
+    pub inspect_seconds: f64,
+    pub stage_seconds: Vec<(String, f64)>,
+    /// Seed Table 1: (thread, measured mean of bins 0–4, truth mean of the same bins), mm.
+    pub table1: Vec<(u32, f64, f64)>,
+}
+
+fn gauge_free(errors: &[f64]) -> (f64, f64) {
+    let mean = errors.iter().sum::<f64>() / errors.len().max(1) as f64;
+    let rms = (errors.iter().map(|e| (e - mean).powi(2)).sum::<f64>() / errors.len().max(1) as f64).sqrt();
+    let max = errors.iter().map(|e| (e - mean).abs()).fold(0.0, f64::max);
+    (rms, max)
+}
+
+fn registration_error(
+    encoder: &[crate::optics::ViewPose],
+    refined: &[crate::optics::ViewPose],
+    truth: &[crate::optics::ViewPose],
+) -> RegistrationError {
+    let diff = |poses: &[crate::optics::ViewPose], f: &dyn Fn(&crate::optics::ViewPose) -> f64| -> Vec<f64> {
+        poses.iter().zip(truth).map(|(p, t)| f(p) - f(t)).collect()
+    };
+    let (angle_rms_deg, angle_max_deg) = gauge_free(&diff(refined, &|p| p.angle_deg));
+    let (axial_rms, axial_max) = gauge_free(&diff(refined, &|p| p.axial_mm));
+    let (radial_rms, _) = gauge_free(&diff(refined, &|p| p.lens_radius_mm));
+    let (encoder_angle_rms_deg, _) = gauge_free(&diff(encoder, &|p| p.angle_deg));
+    let (encoder_axial_rms, _) = gauge_free(&diff(encoder, &|p| p.axial_mm));
+    RegistrationError {
+        angle_rms_deg,
+        angle_max_deg,
+        axial_rms_um: 1e3 * axial_rms,
+        axial_max_um: 1e3 * axial_max,
+        radial_rms_um: 1e3 * radial_rms,
+        encoder_angle_rms_deg,
+        encoder_axial_rms_um: 1e3 * encoder_axial_rms,
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum BenchError {
+    #[error("unknown preset {0}")]
+    Preset(String),
+    #[error(transparent)]
+    Sim(#[from] crate::sim::SimError),
+    #[error(transparent)]
+    Bundle(#[from] crate::bundle::BundleError),
+    #[error(transparent)]
+    Pipeline(#[from] crate::pipeline::PipelineError),
+    #[error("{0}")]
+    Other(String),
+}
+
+/// Renders the case into `work/<preset>-<seed>` unless a complete rendering is there, times a plain
+/// decode of every frame (the yardstick), inspects it, and compares with truth.
+pub fn run_case(case: &Case, work: &std::path::Path) -> Result<CaseResult, BenchError> {
+    use crate::bundle::{Bundle, OpenOptions};
+    use rayon::prelude::*;
+    let spec = crate::sim::preset(case.preset).ok_or_else(|| BenchError::Preset(case.preset.into()))?;
+    let dir = work.join(format!("{}-{}", case.preset, case.seed));
+    let done = dir.join(".complete");
+    if !done.exists() {
+        let _ = std::fs::remove_dir_all(&dir);
+        crate::sim::simulate(&spec, case.seed, &dir)?;
+        std::fs::write(&done, b"").map_err(|e| BenchError::Other(e.to_string()))?;
+    }
+    let truth: Truth = serde_json::from_slice(&std::fs::read(dir.join("truth/truth.json")).map_err(|e| BenchError::Other(e.to_string()))?)
+        .map_err(|e| BenchError::Other(e.to_string()))?;
+    let table = crate::thread::ConnectionTable::api5b();
+    let bundle = Bundle::open(&dir, &table, OpenOptions::default())?;
+
+    // Yardstick: decode every frame once, with the pipeline's parallelism (views across cores).
+    let started = std::time::Instant::now();
+    bundle.views.par_iter().enumerate().try_for_each(|(v, view)| {
+        for k in 0..view.frames.len() {
+            std::hint::black_box(bundle.read_frame(v, k)?);
+        }
+        Ok::<_, crate::bundle::BundleError>(())
+    })?;
+    let decode_seconds = started.elapsed().as_secs_f64();
+
+    let started = std::time::Instant::now();
+    let cancel = std::sync::atomic::AtomicBool::new(false);
+    let inspection = crate::pipeline::inspect(&bundle, &Default::default(), &|_, _| {}, &cancel)?
+        .ok_or_else(|| BenchError::Other("cancelled".into()))?;
+    let inspect_seconds = started.elapsed().as_secs_f64();
+
+    let accuracy = compare(&inspection.report, &truth);
+    let (mut sq, mut errors, mut seen, mut total) = (0.0, Vec::new(), 0usize, 0usize);
+    for (view, depth) in bundle.views.iter().zip(&inspection.depth_maps) {
+        let bytes = std::fs::read(dir.join(format!("truth/{}.depth.pfm", view.id))).map_err(|e| BenchError::Other(e.to_string()))?;
+        let (_, _, t) = crate::sim::pfm::read(&bytes).map_err(BenchError::Other)?;
+        for (d, t) in depth.depth_mm.iter().zip(&t) {
+            if t.is_finite() {
+                total += 1;
+                if d.is_finite() {
+                    let e = 1e3 * (d - t) as f64;
+                    sq += e * e;
+                    errors.push(e.abs());
+                    seen += 1;
+                }
+            }
+        }
+    }
+    errors.sort_by(f64::total_cmp);
+    let truth_poses: Vec<_> = bundle.views.iter().map(|v| truth.true_poses[&v.id]).collect();
+    let encoder: Vec<_> = bundle.views.iter().map(|v| v.pose).collect();
+    let table1 = if case.preset == "seed-table1" {
+        (1..=10u32)
+            .filter_map(|i| {
+                let r = inspection.report.threads.iter().find(|t| t.index == i)?;
+                let t = truth.threads.iter().find(|t| t.index == i)?;
+                let bins: Vec<(f64, f64)> =
+                    (0..5).filter_map(|k| Some((r.height_mm.values[k]?, t.height_mm.values[k]?))).collect();
+                (!bins.is_empty()).then(|| {
+                    let n = bins.len() as f64;
+                    (i, bins.iter().map(|b| b.0).sum::<f64>() / n, bins.iter().map(|b| b.1).sum::<f64>() / n)
+                })
+            })
+            .collect()
+    } else {
+        Vec::new()
+    };
+    Ok(CaseResult {
+        preset: case.preset.into(),
+        seed: case.seed,
+        accuracy,
+        depth_rms_um: (sq / seen.max(1) as f64).sqrt(),
+        depth_median_um: errors.get(errors.len() / 2).copied().unwrap_or(f64::NAN),
+        depth_coverage: seen as f64 / total.max(1) as f64,
+        registration: registration_error(&encoder, &inspection.poses, &truth_poses),
+        decode_seconds,
+        inspect_seconds,
+        stage_seconds: inspection.report.timings.iter().map(|t| (t.stage.clone(), t.seconds)).collect(),
+        table1,
+    })
+}
+
+/// The benchmark table, markdown.
+pub fn table(results: &[CaseResult]) -> String {
+    let mut out = String::from(
+        "| case | height RMS / max µm | bins | depth RMS / median µm, coverage | registration ° / axial µm (encoder) | black-crest length err mm | verdict | decode s | inspect s (ratio) |\n|---|---|---|---|---|---|---|---|---|\n",
+    );
+    for r in results {
+        let a = &r.accuracy;
+        let g = &r.registration;
+        out.push_str(&format!(
+            "| {} (seed {}) | {:.1} / {:.1} | {} | {:.0} / {:.1}, {:.1}% | {:.4} / {:.1} ({:.2} / {:.0}) | {:.2} | {} | {:.2} | {:.2} ({:.2}×) |\n",
+            r.preset,
+            r.seed,
+            a.height_rms_um,
+            a.height_max_um,
+            a.bins_compared,
+            r.depth_rms_um,
+            r.depth_median_um,
+            100.0 * r.depth_coverage,
+            g.angle_rms_deg,
+            g.axial_rms_um,
+            g.encoder_angle_rms_deg,
+            g.encoder_axial_rms_um,
+            a.black_crest_length_max_error_mm,
+            if a.verdict_agrees { "agrees" } else { "DISAGREES" },
+            r.decode_seconds,
+            r.inspect_seconds,
+            r.inspect_seconds / r.decode_seconds
+        ));
+    }
+    for r in results.iter().filter(|r| !r.table1.is_empty()) {
+        out.push_str("\nSeed Table 1 (mean of bins 0–4°): thread, measured mm, truth mm, error µm\n");
+        for (i, m, t) in &r.table1 {
+            out.push_str(&format!("  {i:2}  {m:.4}  {t:.4}  {:+.1}\n", 1e3 * (m - t)));
+        }
+    }
+    let stages: Vec<String> = results
+        .iter()
+        .map(|r| {
+            format!(
+                "{}: {}",
+                r.preset,
+                r.stage_seconds.iter().map(|(s, t)| format!("{s} {t:.2}")).collect::<Vec<_>>().join(", ")
+            )
+        })
+        .collect();
+    out.push_str(&format!("\nStage times (s):\n  {}\n", stages.join("\n  ")));
+    out
+}

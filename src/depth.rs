@@ -13,6 +13,7 @@
 
 use crate::bundle::{BundleError, Frame, View};
 use crate::optics::{Optics, Projection};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -54,30 +55,24 @@ impl DepthMap {
     }
 }
 
-/// Resamples interleaved `src` (`channels` per pixel) onto the offset-0 grid: the value at
-/// reference pixel x comes from `principal + (x − principal)·scale` in the frame (bilinear).
-fn rescale(src: &[f32], channels: usize, w: usize, h: usize, principal: [f64; 2], scale: f64, out: &mut [f32]) {
-    if scale == 1.0 {
-        out.copy_from_slice(src);
-        return;
-    }
-    for y in 0..h {
-        let sy = principal[1] + (y as f64 + 0.5 - principal[1]) * scale - 0.5;
-        let y0 = (sy.floor() as isize).clamp(0, h as isize - 1) as usize;
-        let y1 = (y0 + 1).min(h - 1);
-        let fy = (sy - y0 as f64).clamp(0.0, 1.0) as f32;
-        for x in 0..w {
-            let sx = principal[0] + (x as f64 + 0.5 - principal[0]) * scale - 0.5;
-            let x0 = (sx.floor() as isize).clamp(0, w as isize - 1) as usize;
-            let x1 = (x0 + 1).min(w - 1);
-            let fx = (sx - x0 as f64).clamp(0.0, 1.0) as f32;
-            for ch in 0..channels {
-                let a = src[(y0 * w + x0) * channels + ch] * (1.0 - fx) + src[(y0 * w + x1) * channels + ch] * fx;
-                let b = src[(y1 * w + x0) * channels + ch] * (1.0 - fx) + src[(y1 * w + x1) * channels + ch] * fx;
-                out[(y * w + x) * channels + ch] = a * (1.0 - fy) + b * fy;
-            }
-        }
-    }
+/// Where reference pixel (x, y) of the offset-0 grid falls in a frame scaled by `scale` about
+/// `principal`, as bilinear taps: (x0, x1, fx, y0, y1, fy).
+#[inline]
+fn taps(x: usize, y: usize, w: usize, h: usize, principal: [f64; 2], scale: f64) -> (usize, usize, f32, usize, usize, f32) {
+    let sx = principal[0] + (x as f64 + 0.5 - principal[0]) * scale - 0.5;
+    let sy = principal[1] + (y as f64 + 0.5 - principal[1]) * scale - 0.5;
+    let x0 = (sx.floor() as isize).clamp(0, w as isize - 1) as usize;
+    let y0 = (sy.floor() as isize).clamp(0, h as isize - 1) as usize;
+    (x0, (x0 + 1).min(w - 1), (sx - x0 as f64).clamp(0.0, 1.0) as f32, y0, (y0 + 1).min(h - 1), (sy - y0 as f64).clamp(0.0, 1.0) as f32)
+}
+
+/// Bilinear sample of channel `ch` of interleaved `src` at the taps.
+#[inline]
+fn sample(src: &[f32], channels: usize, w: usize, t: (usize, usize, f32, usize, usize, f32), ch: usize) -> f32 {
+    let (x0, x1, fx, y0, y1, fy) = t;
+    let a = src[(y0 * w + x0) * channels + ch] * (1.0 - fx) + src[(y0 * w + x1) * channels + ch] * fx;
+    let b = src[(y1 * w + x0) * channels + ch] * (1.0 - fx) + src[(y1 * w + x1) * channels + ch] * fx;
+    a * (1.0 - fy) + b * fy
 }
 
 /// Squared Laplacian, box-summed over (2r+1)², written into `out`; `scratch` is reused.
@@ -162,10 +157,10 @@ pub fn depth_from_focus(
     let n = view.frames.len();
     let principal = optics.principal_point(view.format.width, view.format.height);
     let big_f = optics.focus_distance_mm;
-    let mut measures: Vec<Vec<f32>> = Vec::with_capacity(n);
+    // Focus volume, pixel-major (each pixel's curve contiguous for the peak search).
+    let mut volume = vec![0f32; w * h * n];
     let mut best = vec![f32::MIN; w * h];
     let mut all_in_focus = vec![0f32; w * h * 3];
-    let mut rgb = vec![0f32; w * h * 3];
     let (mut native, mut scratch) = (vec![0f32; w * h], vec![0f32; w * h]);
     for (k, entry) in view.frames.iter().enumerate() {
         if cancelled() {
@@ -177,21 +172,22 @@ pub fn depth_from_focus(
             Projection::Telecentric => 1.0,
         };
         focus_measure(&frame.gray(), w, h, options.window_radius_px, &mut scratch, &mut native);
-        let mut measure = vec![0f32; w * h];
-        rescale(&native, 1, w, h, principal, scale, &mut measure);
-        let colour = if frame.channels == 3 {
-            frame.pixels
-        } else {
-            frame.pixels.iter().flat_map(|&g| [g, g, g]).collect()
-        };
-        rescale(&colour, 3, w, h, principal, scale, &mut rgb);
-        for i in 0..w * h {
-            if measure[i] > best[i] {
-                best[i] = measure[i];
-                all_in_focus[3 * i..3 * i + 3].copy_from_slice(&rgb[3 * i..3 * i + 3]);
+        let channels = frame.channels as usize;
+        for y in 0..h {
+            for x in 0..w {
+                let i = y * w + x;
+                let t = taps(x, y, w, h, principal, scale);
+                let m = sample(&native, 1, w, t, 0);
+                volume[i * n + k] = m;
+                if m > best[i] {
+                    // Colour only where this frame is the sharpest so far.
+                    best[i] = m;
+                    for c in 0..3 {
+                        all_in_focus[3 * i + c] = sample(&frame.pixels, channels, w, t, c.min(channels - 1));
+                    }
+                }
             }
         }
-        measures.push(measure);
     }
     let offsets: Vec<f64> = view.frames.iter().map(|f| f.offset_mm).collect();
     // Breathing moves content by up to |o|/F of its distance from the principal point.
@@ -203,28 +199,31 @@ pub fn depth_from_focus(
     let border = options.window_radius_px + 1 + breathing_px;
     let mut depth_mm = vec![f32::NAN; w * h];
     let mut peak_ratio = vec![1f32; w * h];
-    let mut column = vec![0f32; n];
-    for i in 0..w * h {
-        for k in 0..n {
-            column[k] = measures[k][i];
-        }
-        let (k_best, &peak) = column.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).expect("≥ 3 frames");
-        let mut sorted = column.clone();
-        sorted.sort_by(f32::total_cmp);
-        let floor = sorted[n / 2].max(1e-12);
-        let ratio = peak / floor;
-        peak_ratio[i] = ratio;
-        let (x, y) = (i % w, i / w);
-        if x < border || y < border || x + border >= w || y + border >= h {
-            continue; // the focus window or the breathing correction runs off the frame
-        }
-        if ratio < options.min_peak_ratio || k_best == 0 || k_best + 1 == n {
-            continue;
-        }
-        if let Some(in_focus_offset) = peak_offset(&column, &offsets, k_best, floor, options.peak_fraction) {
-            depth_mm[i] = (big_f - in_focus_offset) as f32;
-        }
-    }
+    depth_mm
+        .par_chunks_mut(w)
+        .zip(peak_ratio.par_chunks_mut(w))
+        .zip(volume.par_chunks(w * n))
+        .enumerate()
+        .for_each(|(y, ((depth_row, ratio_row), curves))| {
+            let mut sorted = vec![0f32; n];
+            for x in 0..w {
+                let column = &curves[x * n..(x + 1) * n];
+                let (k_best, &peak) = column.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).expect("≥ 3 frames");
+                sorted.copy_from_slice(column);
+                let floor = (*sorted.select_nth_unstable_by(n / 2, f32::total_cmp).1).max(1e-12);
+                let ratio = peak / floor;
+                ratio_row[x] = ratio;
+                if x < border || y < border || x + border >= w || y + border >= h {
+                    continue; // the focus window or the breathing correction runs off the frame
+                }
+                if ratio < options.min_peak_ratio || k_best == 0 || k_best + 1 == n {
+                    continue;
+                }
+                if let Some(in_focus_offset) = peak_offset(column, &offsets, k_best, floor, options.peak_fraction) {
+                    depth_row[x] = (big_f - in_focus_offset) as f32;
+                }
+            }
+        });
     Ok(Some(DepthMap { width: w, height: h, depth_mm, peak_ratio, all_in_focus }))
 }
 

@@ -47,6 +47,19 @@ enum Command {
         #[arg(long, value_enum, default_value_t = ArcRuleArg::PerThread)]
         arc_rule: ArcRuleArg,
     },
+    /// Run a benchmark suite: render its cases (cached in --work), inspect, compare with truth.
+    Bench {
+        #[arg(long, default_value = "accuracy")]
+        suite: String,
+        #[arg(long, default_value = "out/bench")]
+        work: PathBuf,
+        /// Only these presets of the suite (comma-separated).
+        #[arg(long, value_delimiter = ',')]
+        only: Vec<String>,
+        /// Also write the results as JSON here.
+        #[arg(long)]
+        json: Option<PathBuf>,
+    },
     /// Compare an inspection report with a simulated bundle's truth/truth.json.
     Compare { report: PathBuf, truth: PathBuf },
     /// Validate a bundle (directory, .zip or .tar) without inspecting it.
@@ -127,6 +140,20 @@ fn main() -> Result<()> {
                 if let Some(dir) = &out {
                     println!("  wrote report.json, height-map.png, all-in-focus.png to {}", dir.display());
                 }
+            }
+        }
+        Command::Bench { suite, work, only, json } => {
+            if suite != "accuracy" {
+                bail!("unknown suite {suite:?}; suites: accuracy");
+            }
+            let mut results = Vec::new();
+            for case in crestscan::bench::ACCURACY_SUITE.iter().filter(|c| only.is_empty() || only.iter().any(|o| o == c.preset)) {
+                eprintln!("bench: {} (seed {})", case.preset, case.seed);
+                results.push(crestscan::bench::run_case(case, &work)?);
+            }
+            println!("{}", crestscan::bench::table(&results));
+            if let Some(path) = json {
+                std::fs::write(&path, serde_json::to_vec_pretty(&results)?)?;
             }
         }
         Command::Compare { report, truth } => {

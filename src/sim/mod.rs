@@ -10,7 +10,7 @@ pub mod pfm;
 mod presets;
 pub mod render;
 
-pub use presets::{PRESETS, PresetInfo, preset};
+pub use presets::{PRESETS, PresetInfo, SEED_TABLE1_HEIGHTS_MM, preset};
 
 use crate::bundle::{FORMAT_V1, FrameEntry, Manifest, PartManifest, ViewManifest};
 use crate::optics::{Optics, ViewPose};

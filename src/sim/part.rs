@@ -121,6 +121,7 @@ impl SurfaceKernel<'_> {
         let form = part.root_radius_at_end_mm + z_mm * self.radius_slope + self.profile.height_at(offset);
         let mill = self.mill.radius(cos, sin);
         let chamfer = part.chamfer_radius_at_end_mm + z_mm * self.chamfer_slope;
+        let form = form.min(part.turned_blank_radius(z_mm));
         if mill < form && mill < chamfer {
             (mill, if part.is_polished(z_mm, theta_rad) { Material::Polished } else { Material::MillScale })
         } else {
@@ -149,11 +150,30 @@ pub struct PartModel {
     pub chamfer_radius_at_end_mm: f64,
     pub chamfer_angle_deg: f64,
     pub polished: Vec<PolishedPatch>,
+    /// A machined (turned) outside surface cut before threading, as (z, radius) knots joined
+    /// linearly and held constant beyond the ends; empty for none. Crests above it are cut flat.
+    #[serde(default)]
+    pub turned_blank_mm: Vec<[f64; 2]>,
     pub pipe_od_mm: f64,
     pub lc_mm: f64,
 }
 
 impl PartModel {
+    /// Radius of the turned blank at z (∞ where there is none).
+    pub fn turned_blank_radius(&self, z_mm: f64) -> f64 {
+        let knots = &self.turned_blank_mm;
+        match knots.len() {
+            0 => f64::INFINITY,
+            1 => knots[0][1],
+            _ => {
+                let k = knots.partition_point(|p| p[0] < z_mm).clamp(1, knots.len() - 1);
+                let ([z0, r0], [z1, r1]) = (knots[k - 1], knots[k]);
+                let t = ((z_mm - z0) / (z1 - z0)).clamp(0.0, 1.0);
+                r0 + (r1 - r0) * t
+            }
+        }
+    }
+
     pub fn root_cone_radius(&self, z_mm: f64) -> f64 {
         self.root_radius_at_end_mm + z_mm * self.form.radius_slope()
     }
@@ -229,8 +249,8 @@ impl PartModel {
         };
         let (rb, ra) = (root_r(before), root_r(after));
         let root = rb + (ra - rb) * (0.0 - before) / (after - before);
-        let chamfered = material == Material::Machined
-            && self.chamfer_radius(z) < self.root_cone_radius(z) + self.form.height_at(self.helix_offset(z, theta));
+        let cut = (self.root_cone_radius(z) + self.form.height_at(self.helix_offset(z, theta))).min(self.turned_blank_radius(z));
+        let chamfered = material == Material::Machined && self.chamfer_radius(z) < cut;
         CrestTruth { z_mm: z, height_mm: crest_r - root, material, chamfered }
     }
 }
@@ -357,6 +377,7 @@ mod tests {
             chamfer_radius_at_end_mm: 57.15 - 1.5748 - 36.0 / 32.0 - 0.4,
             chamfer_angle_deg: 65.0,
             polished: vec![],
+            turned_blank_mm: vec![],
             pipe_od_mm: 114.3,
             lc_mm: 31.84,
         }

@@ -26,6 +26,7 @@ pub const PRESETS: &[PresetInfo] = &[
     PresetInfo { name: "lc-round-black", description: "LC 4-1/2 round thread, oval pipe: a small black arc within Lc (reject)" },
     PresetInfo { name: "bc-polished", description: "standard optics; a black crest within Lc polished to look machined (found only by height)" },
     PresetInfo { name: "lc-accept", description: "LC 4-1/2 round thread, nominal pipe: black crests only beyond Lc (accept)" },
+    PresetInfo { name: "seed-table1", description: "the seed's Table 1: custom 1.000 ± 0.030 mm buttress-type form, ten threads 0.9825 … 0.4216 mm high toward the vanish end, 5 views over 40°" },
 ];
 
 /// The standard camera: 50 mm f/1.4 focused at 220 mm (magnification 0.29), 12 µm pixels (a 6 µm
@@ -70,6 +71,7 @@ fn connection_part(designation: &str, mill: impl FnOnce(&mut MillSurface), helix
         helix_z_h_mm,
         mill: mill_surface,
         polished: vec![],
+        turned_blank_mm: vec![],
         pipe_od_mm: conn.pipe_od_mm,
         lc_mm: conn.lc_mm,
     };
@@ -258,8 +260,62 @@ pub fn preset(name: &str) -> Option<SimSpec> {
             let layout = Layout { axials_mm: vec![25.0], width: 1280, ..ring_layout() };
             spec(name, pm, part, standard_optics(), layout, 50.0, sensor)
         }
+        "seed-table1" => seed_table1(sensor),
         _ => return None,
     })
+}
+
+/// The seed's Table 1 crest heights (reconstruction = CMM within 0.3 µm), read from the vanish end:
+/// thread 10 is the shallowest.
+pub const SEED_TABLE1_HEIGHTS_MM: [f64; 10] = [0.9825, 0.9823, 0.9792, 0.9799, 0.9828, 0.9486, 0.8211, 0.6655, 0.5129, 0.4216];
+
+/// The seed's premium example as a custom form (BGT2-like buttress, 1.000 ± 0.030 mm, Lc 35.8 mm)
+/// whose crests are cut by a turned blank so that, at θ = 0.5°, threads 1…10 have exactly the
+/// heights of the seed's Table 1.
+fn seed_table1(sensor: Sensor) -> SimSpec {
+    use crate::bundle::CustomThread;
+    use crate::thread::{Family, ThreadForm};
+    let form = ThreadForm::api_buttress(5.08, 1.0, 0.03, 0.0625).expect("valid form");
+    let od = 114.3;
+    let helix_z_h_mm = 1.0;
+    // Root cone: a full crest would reach the mill surface at z = 60 mm, past the ten threads.
+    let root_at_end = od / 2.0 - form.height_mm - 60.0 * form.radius_slope();
+    let mut part = PartModel {
+        chamfer_radius_at_end_mm: root_at_end - 0.4,
+        chamfer_angle_deg: 65.0,
+        root_radius_at_end_mm: root_at_end,
+        form: form.clone(),
+        helix_z_h_mm,
+        mill: nominal_mill(od),
+        polished: vec![],
+        turned_blank_mm: vec![],
+        pipe_od_mm: od,
+        lc_mm: 35.8,
+    };
+    part.turned_blank_mm = SEED_TABLE1_HEIGHTS_MM
+        .iter()
+        .enumerate()
+        .map(|(i, h)| {
+            let z = part.crest_z(i as u32 + 1, 0.5);
+            [z, part.root_cone_radius(z) + h]
+        })
+        .collect();
+    let manifest = PartManifest {
+        serial: Some("SEED-TABLE1".into()),
+        connection: Some("BGT2 4-1/2 (seed)".into()),
+        thread: Some(CustomThread {
+            family: Some(Family::Buttress),
+            pitch_mm: Some(5.08),
+            thread_height_mm: Some(1.0),
+            height_tolerance_mm: Some(0.03),
+            taper_on_diameter: Some(0.0625),
+            pipe_od_mm: Some(od),
+            lc_mm: Some(35.8),
+            ..Default::default()
+        }),
+    };
+    let layout = Layout { width: 1344, first_angle_deg: 0.0, angles: 5, axials_mm: vec![26.5], ..ring_layout() };
+    spec("seed-table1", manifest, part, standard_optics(), layout, 52.0, sensor)
 }
 
 #[cfg(test)]

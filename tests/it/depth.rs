@@ -60,7 +60,8 @@ fn depth_from_focus_recovers_truth_depth() {
             median_abs(&smooth),
             smooth.len()
         );
-        assert!(coverage > 0.9, "{preset}: {coverage}");
+        // A border of window + breathing shift (9 px on the small ci frames, 15% of them) is left out.
+        assert!(coverage > 0.8, "{preset}: {coverage}");
         assert!(smooth.len() > 1000, "{preset}");
         // Frames are 250 µm apart; the peak is found to a tenth of a step, without bias.
         assert!(median_abs(&smooth) < 25.0, "{preset}: {}", median_abs(&smooth));
