@@ -107,6 +107,7 @@ pub struct CaseResult {
     pub registration: RegistrationError,
     pub decode_seconds: f64,
     pub inspect_seconds: f64,
+    pub render: crate::sim::SimSummary,
     pub stage_seconds: Vec<(String, f64)>,
     /// Seed Table 1: (thread, measured mean of bins 0–4, truth mean of the same bins), mm.
     pub table1: Vec<(u32, f64, f64)>,
@@ -164,12 +165,17 @@ pub fn run_case(case: &Case, work: &std::path::Path) -> Result<CaseResult, Bench
     use rayon::prelude::*;
     let spec = crate::sim::preset(case.preset).ok_or_else(|| BenchError::Preset(case.preset.into()))?;
     let dir = work.join(format!("{}-{}", case.preset, case.seed));
-    let done = dir.join(".complete");
-    if !done.exists() {
-        let _ = std::fs::remove_dir_all(&dir);
-        crate::sim::simulate(&spec, case.seed, &dir)?;
-        std::fs::write(&done, b"").map_err(|e| BenchError::Other(e.to_string()))?;
-    }
+    // A finished rendering leaves its summary (render time, size) beside the bundle.
+    let done = dir.join("render-summary.json");
+    let rendered: crate::sim::SimSummary = match std::fs::read(&done).ok().and_then(|b| serde_json::from_slice(&b).ok()) {
+        Some(summary) => summary,
+        None => {
+            let _ = std::fs::remove_dir_all(&dir);
+            let summary = crate::sim::simulate(&spec, case.seed, &dir)?;
+            std::fs::write(&done, serde_json::to_vec(&summary).expect("serialises")).map_err(|e| BenchError::Other(e.to_string()))?;
+            summary
+        }
+    };
     let truth: Truth = serde_json::from_slice(&std::fs::read(dir.join("truth/truth.json")).map_err(|e| BenchError::Other(e.to_string()))?)
         .map_err(|e| BenchError::Other(e.to_string()))?;
     let table = crate::thread::ConnectionTable::api5b();
@@ -209,7 +215,11 @@ pub fn run_case(case: &Case, work: &std::path::Path) -> Result<CaseResult, Bench
         }
     }
     errors.sort_by(f64::total_cmp);
-    let truth_poses: Vec<_> = bundle.views.iter().map(|v| truth.true_poses[&v.id]).collect();
+    let truth_poses = bundle
+        .views
+        .iter()
+        .map(|v| truth.true_poses.get(&v.id).copied().ok_or_else(|| BenchError::Other(format!("truth lacks the pose of {}", v.id))))
+        .collect::<Result<Vec<_>, _>>()?;
     let encoder: Vec<_> = bundle.views.iter().map(|v| v.pose).collect();
     let table1 = if case.preset == "seed-table1" {
         (1..=10u32)
@@ -237,6 +247,7 @@ pub fn run_case(case: &Case, work: &std::path::Path) -> Result<CaseResult, Bench
         registration: registration_error(&encoder, &inspection.poses, &truth_poses),
         decode_seconds,
         inspect_seconds,
+        render: rendered,
         stage_seconds: inspection.report.timings.iter().map(|t| (t.stage.clone(), t.seconds)).collect(),
         table1,
     })
@@ -288,5 +299,9 @@ pub fn table(results: &[CaseResult]) -> String {
         })
         .collect();
     out.push_str(&format!("\nStage times (s):\n  {}\n", stages.join("\n  ")));
+    out.push_str("\nRenderings (this machine, when first rendered): preset, frames, MB, seconds\n");
+    for r in results {
+        out.push_str(&format!("  {} seed {}: {} frames, {:.0} MB, {:.1} s\n", r.preset, r.seed, r.render.frames, r.render.bytes as f64 / 1e6, r.render.seconds));
+    }
     out
 }

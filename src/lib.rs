@@ -11,6 +11,7 @@ pub mod crest;
 pub mod depth;
 pub mod fuse;
 pub mod images;
+pub mod mesh;
 pub mod optics;
 pub mod pipeline;
 pub mod profile;

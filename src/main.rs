@@ -37,7 +37,7 @@ enum Command {
     /// Inspect a bundle (directory, .zip or .tar): thread heights, black crests, the 5B verdict.
     Inspect {
         bundle: PathBuf,
-        /// Write report.json, height-map.png and all-in-focus.png here.
+        /// Write report.json, height-map.png, all-in-focus.png, mesh.ply and mesh.stl here.
         #[arg(long)]
         out: Option<PathBuf>,
         /// Print the report as JSON instead of the summary.
@@ -132,13 +132,26 @@ fn main() -> Result<()> {
                     .with_context(|| format!("writing {}", report_path.display()))?;
                 images::write_height_map(&inspection.map, &dir.join("height-map.png"))?;
                 images::write_mosaic(&inspection.map, &dir.join("all-in-focus.png"))?;
+                for (name, write) in [
+                    ("mesh.ply", crestscan::mesh::write_ply as fn(&crestscan::mesh::Mesh, std::io::BufWriter<std::fs::File>) -> std::io::Result<()>),
+                    ("mesh.stl", crestscan::mesh::write_stl),
+                ] {
+                    let path = dir.join(name);
+                    let file = std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?;
+                    write(&inspection.mesh, std::io::BufWriter::new(file)).with_context(|| format!("writing {}", path.display()))?;
+                }
             }
             if json {
                 println!("{}", serde_json::to_string_pretty(&inspection.report)?);
             } else {
                 println!("{}", inspection.report.summary());
                 if let Some(dir) = &out {
-                    println!("  wrote report.json, height-map.png, all-in-focus.png to {}", dir.display());
+                    println!(
+                        "  wrote report.json, height-map.png, all-in-focus.png, mesh.ply and mesh.stl ({} vertices, {} triangles) to {}",
+                        inspection.mesh.vertices.len(),
+                        inspection.mesh.triangles.len(),
+                        dir.display()
+                    );
                 }
             }
         }

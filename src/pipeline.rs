@@ -8,6 +8,7 @@ use crate::cloud;
 use crate::crest::{self, CrestOptions};
 use crate::depth::{DepthMap, DepthOptions, depth_from_focus};
 use crate::fuse::{Fusion, GridSpec, UnrolledMap};
+use crate::mesh::{self, MeshOptions};
 use crate::optics::ViewPose;
 use crate::profile;
 use crate::register::{self, RegisterOptions};
@@ -23,6 +24,7 @@ pub struct PipelineOptions {
     pub depth: DepthOptions,
     pub crest: CrestOptions,
     pub register: RegisterOptions,
+    pub mesh: MeshOptions,
     pub arc_rule: ArcRule,
     /// Fused-map cell size in object pixels.
     pub cell_px: f64,
@@ -34,6 +36,7 @@ impl Default for PipelineOptions {
             depth: DepthOptions::default(),
             crest: CrestOptions::default(),
             register: RegisterOptions::default(),
+            mesh: MeshOptions::default(),
             arc_rule: ArcRule::PerThread, cell_px: 1.5 }
     }
 }
@@ -44,6 +47,7 @@ pub enum Stage {
     Depth,
     Register,
     Fuse,
+    Mesh,
     Profile,
     Rules,
 }
@@ -54,6 +58,7 @@ impl Stage {
             Stage::Depth => "depth",
             Stage::Register => "register",
             Stage::Fuse => "fuse",
+            Stage::Mesh => "mesh",
             Stage::Profile => "profile",
             Stage::Rules => "crest_and_rules",
         }
@@ -68,6 +73,8 @@ pub enum PipelineError {
     NoDepth,
     #[error("no thread found: the profile shows no spectrum at the {pitch_mm} mm pitch")]
     NoThread { pitch_mm: f64 },
+    #[error(transparent)]
+    Mesh(#[from] mesh::MeshError),
 }
 
 pub struct Inspection {
@@ -76,6 +83,7 @@ pub struct Inspection {
     pub depth_maps: Vec<DepthMap>,
     /// The refined view poses.
     pub poses: Vec<ViewPose>,
+    pub mesh: mesh::Mesh,
 }
 
 /// Runs the pipeline. Ok(None) means it was cancelled.
@@ -159,6 +167,10 @@ pub fn inspect(
         return Ok(None);
     }
 
+    progress(Stage::Mesh, 0.0);
+    let mesh = mesh::build(&map, &options.mesh)?;
+    lap(Stage::Mesh, &mut timings);
+
     progress(Stage::Profile, 0.0);
     let form = &part.form;
     let helix = profile::estimate_helix(&map, form).ok_or(PipelineError::NoThread { pitch_mm: form.pitch_mm })?;
@@ -223,5 +235,5 @@ pub fn inspect(
         timings,
         peak_memory_mb: report::peak_memory_mb(),
     };
-    Ok(Some(Inspection { report, map, depth_maps, poses }))
+    Ok(Some(Inspection { report, map, depth_maps, poses, mesh }))
 }

@@ -87,7 +87,7 @@ pub struct Truth {
     pub notes: Vec<String>,
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SimSummary {
     pub files: usize,
     pub bytes: u64,
@@ -186,7 +186,8 @@ impl SimSpec {
     /// Bytes of raw pixels the bundle holds.
     pub fn raw_bytes(&self) -> u64 {
         let bytes_per_sample = if self.sensor.bit_depth > 8 { 2 } else { 1 };
-        self.views.len() as u64 * self.offsets_mm.len() as u64 * self.width as u64 * self.height as u64 * 3
+        let channels = if self.sensor.monochrome { 1 } else { 3 };
+        self.views.len() as u64 * self.offsets_mm.len() as u64 * self.width as u64 * self.height as u64 * channels
             * bytes_per_sample
     }
 }
@@ -265,7 +266,7 @@ pub fn simulate(spec: &SimSpec, seed: u64, out: &Path) -> Result<SimSummary, Sim
             mix(seed, v as u64 + 1, k as u64 + 1),
         );
         let path = out.join(frame_path(&spec.views[v].id, k));
-        write_png(&path, spec.width, spec.height, spec.sensor.bit_depth, &samples)
+        write_png(&path, spec.width, spec.height, &spec.sensor, &samples)
     })?;
 
     let (files, bytes) = dir_size(out).map_err(io(out))?;
@@ -278,17 +279,18 @@ pub fn simulate(spec: &SimSpec, seed: u64, out: &Path) -> Result<SimSummary, Sim
     })
 }
 
-fn write_png(path: &Path, width: u32, height: u32, bit_depth: u8, samples: &[u16]) -> Result<(), SimError> {
+fn write_png(path: &Path, width: u32, height: u32, sensor: &Sensor, samples: &[u16]) -> Result<(), SimError> {
     use image::ImageEncoder;
     use image::codecs::png::{CompressionType, FilterType, PngEncoder};
     let mut bytes = Vec::new();
     let encoder = PngEncoder::new_with_quality(&mut bytes, CompressionType::Fast, FilterType::Adaptive);
-    let result = if bit_depth > 8 {
+    use image::ExtendedColorType::{L8, L16, Rgb8, Rgb16};
+    let result = if sensor.bit_depth > 8 {
         let raw: Vec<u8> = samples.iter().flat_map(|v| v.to_ne_bytes()).collect();
-        encoder.write_image(&raw, width, height, image::ExtendedColorType::Rgb16)
+        encoder.write_image(&raw, width, height, if sensor.monochrome { L16 } else { Rgb16 })
     } else {
         let raw: Vec<u8> = samples.iter().map(|&v| v as u8).collect();
-        encoder.write_image(&raw, width, height, image::ExtendedColorType::Rgb8)
+        encoder.write_image(&raw, width, height, if sensor.monochrome { L8 } else { Rgb8 })
     };
     result.map_err(|e| SimError::Encode { path: path.display().to_string(), message: e.to_string() })?;
     std::fs::write(path, bytes).map_err(io(path))

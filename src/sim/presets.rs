@@ -17,7 +17,7 @@ pub struct PresetInfo {
 
 pub const PRESETS: &[PresetInfo] = &[
     PresetInfo { name: "ci", description: "BC 4-1/2, 3 views over 13° near Lc, 18 frames of 384×160 RGB; a black crest within Lc across threads 6–7 (accept)" },
-    PresetInfo { name: "ci-telecentric", description: "LC 5-1/2 through a 0.25× telecentric lens, 3 views of 256×112, 16-bit RGB; full crests within Lc (accept)" },
+    PresetInfo { name: "ci-telecentric", description: "LC 5-1/2 through a 0.2× telecentric lens, 3 views of 320×160, 16-bit gray; full crests within Lc (accept)" },
     PresetInfo { name: "standard", description: "BC 4-1/2 pin end, whole circumference (45 views × 19 frames, 864×320 RGB), z 0–35 mm; black crests only beyond Lc (accept)" },
     PresetInfo { name: "bc-black-1", description: "standard optics; 0.1 mm eccentric thread: one black-crested thread within Lc (accept)" },
     PresetInfo { name: "bc-black-2", description: "standard optics; undersize pipe: two black-crested threads within Lc, each under 25% (accept)" },
@@ -149,7 +149,21 @@ fn spec(
     truth_z_end_mm: f64,
     sensor: Sensor,
 ) -> SimSpec {
-    let (views, offsets_mm) = plan(&part, &optics, &layout, &ENCODER_JITTER);
+    spec_with_jitter(name, part_manifest, part, optics, layout, truth_z_end_mm, sensor, ENCODER_JITTER)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn spec_with_jitter(
+    name: &str,
+    part_manifest: PartManifest,
+    part: PartModel,
+    optics: Optics,
+    layout: Layout,
+    truth_z_end_mm: f64,
+    sensor: Sensor,
+    jitter: PoseJitter,
+) -> SimSpec {
+    let (views, offsets_mm) = plan(&part, &optics, &layout, &jitter);
     let description = PRESETS.iter().find(|p| p.name == name).map(|p| p.description).unwrap_or_default();
     SimSpec {
         name: name.to_string(),
@@ -161,7 +175,7 @@ fn spec(
         height: layout.height,
         views,
         offsets_mm,
-        jitter: ENCODER_JITTER,
+        jitter,
         truth_z_end_mm,
         appearance: Appearance::default(),
         sensor,
@@ -200,25 +214,30 @@ pub fn preset(name: &str) -> Option<SimSpec> {
         }
         "ci-telecentric" => {
             let (pm, part) = connection_part("LC 5-1/2", |_| {}, 2.0);
+            // 0.2× telecentric at image-side f/1 (object-side NA 0.1): 29 µm per pixel, depth of
+            // field 0.3 mm against the 1.81 mm thread. Its small views overlap by 1 mm, so this
+            // fixture's encoders are taken to be finer (±0.2°, ±0.1 mm).
             let optics = Optics {
                 projection: Projection::Telecentric,
                 focal_length_mm: 120.0,
-                f_number: 2.0,
+                f_number: 1.0,
                 focus_distance_mm: 110.0,
                 pixel_pitch_um: 5.86,
                 principal_point_px: None,
-                magnification: Some(0.25),
+                magnification: Some(0.2),
             };
             let layout = Layout {
-                width: 256,
-                height: 112,
+                width: 320,
+                height: 160,
                 first_angle_deg: 90.0,
-                angle_step_deg: 4.0,
+                angle_step_deg: 3.0,
                 angles: 3,
                 axials_mm: vec![20.0],
-                frame_step_mm: 0.25,
+                frame_step_mm: 0.15,
             };
-            spec(name, pm, part, optics, layout, 29.0, Sensor { bit_depth: 16, ..sensor })
+            let jitter = PoseJitter { angle_deg: 0.2, axial_mm: 0.1, lens_radius_mm: 0.02 };
+            let sensor = Sensor { bit_depth: 16, monochrome: true, ..sensor };
+            spec_with_jitter(name, pm, part, optics, layout, 29.0, sensor, jitter)
         }
         "standard" => {
             let (pm, part) = connection_part(

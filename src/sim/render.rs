@@ -199,11 +199,21 @@ pub struct Sensor {
     /// Lens vignetting: relative illumination 1 − k·ρ² at normalised image radius ρ (on top of cos⁴).
     pub lens_vignetting: f64,
     pub bit_depth: u8,
+    /// Gray frames (a monochrome sensor) instead of RGB.
+    #[serde(default)]
+    pub monochrome: bool,
 }
 
 impl Default for Sensor {
     fn default() -> Self {
-        Self { full_well_e: 12_000.0, read_noise_e: 4.0, white_level: 0.75, lens_vignetting: 0.12, bit_depth: 8 }
+        Self {
+            full_well_e: 12_000.0,
+            read_noise_e: 4.0,
+            white_level: 0.75,
+            lens_vignetting: 0.12,
+            bit_depth: 8,
+            monochrome: false,
+        }
     }
 }
 
@@ -277,7 +287,7 @@ impl Camera<'_> {
 /// carries no focus information; the cap bounds the gather window.
 pub const MAX_BLUR_RADIUS_PX: f32 = 12.0;
 
-/// Renders one frame to 8- or 16-bit interleaved RGB samples.
+/// Renders one frame to 8- or 16-bit samples, interleaved RGB or gray.
 pub fn render_frame(
     camera: &Camera,
     tracer: &Tracer,
@@ -403,7 +413,8 @@ fn expose(radiance: &[f32], camera: &Camera, sensor: &Sensor, noise_seed: u64) -
     let max_code = ((1u32 << sensor.bit_depth) - 1) as f64;
     let electrons_per_unit = sensor.full_well_e * sensor.white_level;
     let mut rng = ChaCha8Rng::seed_from_u64(noise_seed);
-    let mut out = vec![0u16; w * h * 3];
+    let channels = if sensor.monochrome { 1 } else { 3 };
+    let mut out = vec![0u16; w * h * channels];
     for y in 0..h {
         for x in 0..w {
             let (dx, dy) = (x as f64 + 0.5 - cx, y as f64 + 0.5 - cy);
@@ -417,9 +428,16 @@ fn expose(radiance: &[f32], camera: &Camera, sensor: &Sensor, noise_seed: u64) -
                 Projection::Telecentric => 1.0,
             };
             let gain = natural * (1.0 - sensor.lens_vignetting * rho2);
-            for c in 0..3 {
-                let i = 3 * (y * w + x) + c;
-                let signal = radiance[i] as f64 * gain * electrons_per_unit;
+            for c in 0..channels {
+                let j = 3 * (y * w + x);
+                // A monochrome sensor integrates the luminance.
+                let value = if channels == 1 {
+                    0.2126 * radiance[j] + 0.7152 * radiance[j + 1] + 0.0722 * radiance[j + 2]
+                } else {
+                    radiance[j + c]
+                };
+                let i = channels * (y * w + x) + c;
+                let signal = value as f64 * gain * electrons_per_unit;
                 let shot: f64 = StandardNormal.sample(&mut rng);
                 let read: f64 = StandardNormal.sample(&mut rng);
                 let e = signal + shot * signal.max(0.0).sqrt() + read * sensor.read_noise_e;

@@ -3,5 +3,6 @@
 mod bundle_reader;
 mod common;
 mod depth;
+mod pipeline;
 mod reader_props;
 mod simulator;

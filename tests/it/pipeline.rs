@@ -1,0 +1,112 @@
+//! The whole pipeline on a rendered ci bundle, against its truth.
+
+use crate::common::{ci_bundle, rendered};
+use crestscan::bench;
+use crestscan::bundle::{Bundle, OpenOptions};
+use crestscan::pipeline::{self, PipelineOptions, Stage};
+use crestscan::sim::Truth;
+use crestscan::thread::ConnectionTable;
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+fn truth(dir: &std::path::Path) -> Truth {
+    serde_json::from_slice(&std::fs::read(dir.join("truth/truth.json")).unwrap()).unwrap()
+}
+
+#[test]
+fn inspection_of_the_ci_bundle_matches_truth() {
+    let bundle = Bundle::open(ci_bundle(), &ConnectionTable::api5b(), OpenOptions::default()).unwrap();
+    let seen = Mutex::new(Vec::new());
+    let inspection = pipeline::inspect(
+        &bundle,
+        &PipelineOptions::default(),
+        &|stage, fraction| seen.lock().unwrap().push((stage, fraction)),
+        &AtomicBool::new(false),
+    )
+    .unwrap()
+    .expect("not cancelled");
+    let truth = truth(ci_bundle());
+    let accuracy = bench::compare(&inspection.report, &truth);
+    eprintln!("ci: {accuracy:?}");
+    assert!(accuracy.verdict_agrees);
+    assert!(accuracy.bins_compared >= 10, "{}", accuracy.bins_compared);
+    assert!(accuracy.height_rms_um < 15.0, "{}", accuracy.height_rms_um);
+    assert!(accuracy.height_max_um < 40.0, "{}", accuracy.height_max_um);
+    // Registration brings the views together: corrections match the encoder errors up to the
+    // common offset, which overlaps cannot see.
+    let errors: Vec<f64> = bundle
+        .views
+        .iter()
+        .zip(&inspection.poses)
+        .map(|(v, p)| p.angle_deg - truth.true_poses[&v.id].angle_deg)
+        .collect();
+    let mean = errors.iter().sum::<f64>() / errors.len() as f64;
+    assert!(errors.iter().all(|e| (e - mean).abs() < 0.05), "{errors:?}");
+    // Progress: every stage reported, fractions within [0, 1], ending at 1.
+    let seen = seen.into_inner().unwrap();
+    for stage in [Stage::Depth, Stage::Register, Stage::Fuse, Stage::Mesh, Stage::Profile, Stage::Rules] {
+        assert!(seen.iter().any(|(s, _)| *s == stage), "{stage:?} not reported");
+    }
+    assert!(seen.iter().all(|(_, f)| (0.0..=1.0).contains(f)));
+    assert_eq!(seen.last().unwrap(), &(Stage::Rules, 1.0));
+}
+
+#[test]
+fn cancellation_stops_the_pipeline() {
+    let bundle = Bundle::open(ci_bundle(), &ConnectionTable::api5b(), OpenOptions::default()).unwrap();
+    let cancel = AtomicBool::new(false);
+    // Cancel as soon as the first view's depth is done: the other views stop between frames.
+    let result = pipeline::inspect(
+        &bundle,
+        &PipelineOptions::default(),
+        &|stage, fraction| {
+            if stage == Stage::Depth && fraction > 0.0 {
+                cancel.store(true, Ordering::Relaxed);
+            }
+        },
+        &cancel,
+    )
+    .unwrap();
+    assert!(result.is_none(), "a cancelled inspection returns no report");
+}
+
+#[test]
+fn telecentric_round_thread_inspection() {
+    let dir = rendered("ci-telecentric");
+    let bundle = Bundle::open(dir, &ConnectionTable::api5b(), OpenOptions::default()).unwrap();
+    let inspection =
+        pipeline::inspect(&bundle, &PipelineOptions::default(), &|_, _| {}, &AtomicBool::new(false)).unwrap().unwrap();
+    let accuracy = bench::compare(&inspection.report, &truth(dir));
+    eprintln!("ci-telecentric: {accuracy:?}");
+    assert!(accuracy.verdict_agrees);
+    assert!(accuracy.bins_compared >= 5, "{}", accuracy.bins_compared);
+    assert!(accuracy.height_rms_um < 25.0, "{}", accuracy.height_rms_um);
+}
+
+#[test]
+fn cli_inspect_writes_the_report_in_the_contract_shape() {
+    let out = tempfile::tempdir().unwrap();
+    let status = std::process::Command::new(env!("CARGO_BIN_EXE_crestscan"))
+        .args(["inspect", ci_bundle().to_str().unwrap(), "--out", out.path().to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(status.status.success(), "{}", String::from_utf8_lossy(&status.stderr));
+    let summary = String::from_utf8(status.stdout).unwrap();
+    assert!(summary.contains("ACCEPT") || summary.contains("REJECT"), "{summary}");
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(out.path().join("report.json")).unwrap()).unwrap();
+    for field in ["connection", "family", "pipe_od_mm", "lc_mm", "circumference_mm", "pitch_mm", "nominal_height_mm", "threads", "verdict", "reasons"] {
+        assert!(report.get(field).is_some(), "report lacks {field}");
+    }
+    let thread = &report["threads"][0];
+    for field in ["index", "height_mm", "black_crest_arcs_deg", "black_crest_length_mm"] {
+        assert!(thread.get(field).is_some(), "thread lacks {field}");
+    }
+    assert_eq!(thread["height_mm"]["angles_deg"][0], 0.5);
+    assert_eq!(thread["height_mm"]["values"].as_array().unwrap().len(), 360);
+    assert!(std::fs::read(out.path().join("mesh.ply")).unwrap().starts_with(b"ply\nformat binary_little_endian"));
+    assert!(std::fs::metadata(out.path().join("mesh.stl")).unwrap().len() > 84 + 50 * 1000);
+    for image in ["height-map.png", "all-in-focus.png"] {
+        let decoded = image::open(out.path().join(image)).unwrap();
+        assert!(decoded.width() >= 360, "{image}");
+    }
+}
