@@ -58,16 +58,23 @@ fn form_fundamental(form: &ThreadForm) -> Complex<f64> {
     c / n as f64
 }
 
+/// The map columns whose centres fall in the 1° bin [bin, bin + 1).
+fn bin_columns(g: &crate::fuse::GridSpec, bin: usize) -> std::ops::Range<usize> {
+    let per_bin = g.ntheta as f64 / 360.0;
+    let start = (bin as f64 * per_bin).ceil() as usize;
+    let end = (((bin + 1) as f64 * per_bin).ceil() as usize).min(g.ntheta);
+    start..end
+}
+
 /// Mean generatrix r(z) of a 1° bin; None where the bin is mostly unseen.
 fn bin_generatrix(map: &UnrolledMap, bin: usize) -> Option<Vec<f64>> {
     let g = &map.grid;
-    let per_bin = g.ntheta as f64 / 360.0;
-    let (c0, c1) = ((bin as f64 * per_bin).ceil() as usize, (((bin + 1) as f64 * per_bin).ceil() as usize).min(g.ntheta));
+    let columns = bin_columns(g, bin);
     let mut profile = vec![f64::NAN; g.nz];
     let mut seen = 0;
     for (iz, value) in profile.iter_mut().enumerate() {
         let (mut s, mut n) = (0.0, 0);
-        for it in c0..c1 {
+        for it in columns.clone() {
             let r = map.radius_mm[map.index(iz, it)];
             if r.is_finite() {
                 s += r as f64;
@@ -249,14 +256,11 @@ pub fn measure_threads(map: &UnrolledMap, form: &ThreadForm, helix: &Helix) -> V
         threads.push(ThreadMeasure { index, bins: Vec::with_capacity(360) });
         index += 1;
     }
-    let per_bin = g.ntheta as f64 / 360.0;
     for bin in 0..360 {
         let centre_deg = bin as f64 + 0.5;
-        let (c0, c1) =
-            ((bin as f64 * per_bin).ceil() as usize, (((bin + 1) as f64 * per_bin).ceil() as usize).min(g.ntheta));
         // Samples of the bin in thread coordinates u = (z − z_h)/p − θ/360 (crest of thread i at u = i − 1).
         let mut samples: Vec<(f64, f64, f32)> = Vec::new();
-        for it in c0..c1 {
+        for it in bin_columns(g, bin) {
             let theta = g.theta_deg_at(it);
             for iz in 0..g.nz {
                 let i = map.index(iz, it);

@@ -274,16 +274,6 @@ fn measure_pair(
     }
     let (peak, ds, dz) = fine;
     let (_, cells) = ncc(&pa, &pb, ds, dz, 1);
-    if std::env::var_os("CRESTSCAN_DEBUG_REGISTER").is_some() {
-        eprintln!("pair {a}-{b}: peak {peak:.3} at ({ds}, {dz}) cells {cells}; coarse {best:?}; patches {}x{} {}x{}", pa.ns, pa.nz, pb.ns, pb.nz);
-        if let Ok(v) = std::env::var("CRESTSCAN_DEBUG_SHIFT") {
-            let v: Vec<i64> = v.split(',').map(|x| x.parse().unwrap()).collect();
-            for dz in v[1] - 2..=v[1] + 2 {
-                let row: Vec<String> = (v[0] - 6..=v[0] + 6).map(|ds| format!("{:.2}", ncc(&pa, &pb, ds, dz, 1).0)).collect();
-                eprintln!("  dz {dz}: {}", row.join(" "));
-            }
-        }
-    }
     if peak < options.min_ncc || cells < options.min_overlap_cells {
         return None;
     }
