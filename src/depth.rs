@@ -55,15 +55,17 @@ impl DepthMap {
     }
 }
 
-/// Where reference pixel (x, y) of the offset-0 grid falls in a frame scaled by `scale` about
-/// `principal`, as bilinear taps: (x0, x1, fx, y0, y1, fy).
-#[inline]
-fn taps(x: usize, y: usize, w: usize, h: usize, principal: [f64; 2], scale: f64) -> (usize, usize, f32, usize, usize, f32) {
-    let sx = principal[0] + (x as f64 + 0.5 - principal[0]) * scale - 0.5;
-    let sy = principal[1] + (y as f64 + 0.5 - principal[1]) * scale - 0.5;
-    let x0 = (sx.floor() as isize).clamp(0, w as isize - 1) as usize;
-    let y0 = (sy.floor() as isize).clamp(0, h as isize - 1) as usize;
-    (x0, (x0 + 1).min(w - 1), (sx - x0 as f64).clamp(0.0, 1.0) as f32, y0, (y0 + 1).min(h - 1), (sy - y0 as f64).clamp(0.0, 1.0) as f32)
+/// Bilinear taps along one axis: where reference index i of the offset-0 grid falls in a frame
+/// scaled by `scale` about `centre` (the scale is separable, so rows and columns are computed once
+/// per frame): (i0, i1, fraction).
+fn axis_taps(len: usize, centre: f64, scale: f64) -> Vec<(usize, usize, f32)> {
+    (0..len)
+        .map(|i| {
+            let s = centre + (i as f64 + 0.5 - centre) * scale - 0.5;
+            let i0 = (s.floor() as isize).clamp(0, len as isize - 1) as usize;
+            (i0, (i0 + 1).min(len - 1), (s - i0 as f64).clamp(0.0, 1.0) as f32)
+        })
+        .collect()
 }
 
 /// Bilinear sample of channel `ch` of interleaved `src` at the taps.
@@ -173,10 +175,11 @@ pub fn depth_from_focus(
         };
         focus_measure(&frame.gray(), w, h, options.window_radius_px, &mut scratch, &mut native);
         let channels = frame.channels as usize;
-        for y in 0..h {
-            for x in 0..w {
+        let (xs, ys) = (axis_taps(w, principal[0], scale), axis_taps(h, principal[1], scale));
+        for (y, &(y0, y1, fy)) in ys.iter().enumerate() {
+            for (x, &(x0, x1, fx)) in xs.iter().enumerate() {
                 let i = y * w + x;
-                let t = taps(x, y, w, h, principal, scale);
+                let t = (x0, x1, fx, y0, y1, fy);
                 let m = sample(&native, 1, w, t, 0);
                 volume[i * n + k] = m;
                 if m > best[i] {

@@ -256,7 +256,8 @@ fn measure_pair(
     let mut best = (f64::MIN, 0i64, 0i64);
     for dz in -rz..=rz {
         for ds in -rs..=rs {
-            let (c, _) = ncc(&ca, &cb, ds, dz, 1);
+            // Every other cell of the overlap is plenty to find the peak at this level.
+            let (c, _) = ncc(&ca, &cb, ds, dz, 2);
             if c > best.0 {
                 best = (c, ds, dz);
             }
