@@ -188,6 +188,9 @@ pub fn estimate_helix(map: &UnrolledMap, form: &ThreadForm) -> Option<Helix> {
     })
 }
 
+/// Half width of the strip around the crest centre line whose brightness decides black crests.
+const CREST_LINE_HALF_MM: f64 = 0.15;
+
 /// Half widths of the windows fitted around the crest and root centres.
 fn windows(form: &ThreadForm) -> (f64, f64) {
     match form.profile {
@@ -291,8 +294,11 @@ pub fn measure_threads(map: &UnrolledMap, form: &ThreadForm, helix: &Helix) -> V
                 (Some(c), Some(b), Some(a)) => Some(c - (b + (a - b) * (0.0 - before) / (after - before))),
                 _ => None,
             };
+            // Black is defined on the crest centre line: its brightness, not the whole flat's (at
+            // the onset of a black crest only a strip around the centre line keeps the mill scale).
+            let centre_line: Vec<f32> = crest.iter().filter(|s| s.0.abs() <= CREST_LINE_HALF_MM).map(|s| s.2).collect();
             let crest_gray =
-                (!crest.is_empty()).then(|| crest.iter().map(|s| s.2).sum::<f32>() / crest.len() as f32);
+                (!centre_line.is_empty()).then(|| centre_line.iter().sum::<f32>() / centre_line.len() as f32);
             thread.bins.push(BinMeasure { angle_deg: centre_deg, crest_z_mm: crest_z, height_mm: height, crest_radius_mm: crest_r, crest_gray });
         }
     }
