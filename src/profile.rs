@@ -290,8 +290,11 @@ pub fn measure_threads(map: &UnrolledMap, form: &ThreadForm, helix: &Helix) -> V
             let crest_r = fit_at_centre(&xy(&crest), curved, crest_half);
             let rb = fit_at_centre(&xy(&root_b), curved, root_half);
             let ra = fit_at_centre(&xy(&root_a), curved, root_half);
+            // A root whose window reaches past the end face is not on the part (or is the chamfer):
+            // there is no adjacent root to measure from.
+            let root_on_part = crest_z + before - root_half > 0.0;
             let height = match (crest_r, rb, ra) {
-                (Some(c), Some(b), Some(a)) => Some(c - (b + (a - b) * (0.0 - before) / (after - before))),
+                (Some(c), Some(b), Some(a)) if root_on_part => Some(c - (b + (a - b) * (0.0 - before) / (after - before))),
                 _ => None,
             };
             // Black is defined on the crest centre line: its brightness, not the whole flat's (at
