@@ -63,13 +63,12 @@ impl UnrolledMap {
     }
 
     pub fn gray(&self, i: usize) -> f32 {
-        let c = self.rgb[i];
-        0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2]
+        crate::bundle::luminance(self.rgb[i])
     }
 }
 
 /// Confidence weight of a point: zero at a focus peak ratio of 1 (no peak), growing with sharpness.
-fn point_weight(peak_ratio: f32) -> f32 {
+pub(crate) fn point_weight(peak_ratio: f32) -> f32 {
     (peak_ratio - 1.0).max(0.0)
 }
 

@@ -98,8 +98,8 @@ impl Patch {
             if s < s_range.0 || s > s_range.1 {
                 continue;
             }
-            let g = 0.2126 * p.rgb[0] + 0.7152 * p.rgb[1] + 0.0722 * p.rgb[2];
-            let w = (p.weight - 1.0).max(0.0);
+            let g = crate::bundle::luminance(p.rgb);
+            let w = crate::fuse::point_weight(p.weight);
             cells.push(((s / cell).floor() as i64, (p.position.z / cell).floor() as i64, g, p.radius_mm() as f32, w));
         }
         if cells.is_empty() {

@@ -122,12 +122,19 @@ pub struct Frame {
     pub pixels: Vec<f32>,
 }
 
+/// Luminance of a linear RGB sample (Rec. 709 weights): what a monochrome sensor integrates and what
+/// every gray view of a colour frame in this crate uses.
+#[inline]
+pub fn luminance(rgb: [f32; 3]) -> f32 {
+    0.2126 * rgb[0] + 0.7152 * rgb[1] + 0.0722 * rgb[2]
+}
+
 impl Frame {
-    /// Luminance (Rec. 709 weights for RGB).
+    /// Luminance per pixel (the samples themselves for gray frames).
     pub fn gray(&self) -> Vec<f32> {
         match self.channels {
             1 => self.pixels.clone(),
-            _ => self.pixels.chunks_exact(3).map(|p| 0.2126 * p[0] + 0.7152 * p[1] + 0.0722 * p[2]).collect(),
+            _ => self.pixels.chunks_exact(3).map(|p| luminance([p[0], p[1], p[2]])).collect(),
         }
     }
 }

@@ -432,7 +432,7 @@ fn expose(radiance: &[f32], camera: &Camera, sensor: &Sensor, noise_seed: u64) -
                 let j = 3 * (y * w + x);
                 // A monochrome sensor integrates the luminance.
                 let value = if channels == 1 {
-                    0.2126 * radiance[j] + 0.7152 * radiance[j + 1] + 0.0722 * radiance[j + 2]
+                    crate::bundle::luminance([radiance[j], radiance[j + 1], radiance[j + 2]])
                 } else {
                     radiance[j + c]
                 };
