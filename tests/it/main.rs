@@ -5,4 +5,5 @@ mod common;
 mod depth;
 mod pipeline;
 mod reader_props;
+mod service;
 mod simulator;

@@ -1,0 +1,417 @@
+//! Results of a succeeded inspection (report, per-thread table, mesh, images; immutable, with
+//! strong ETags) and the CMM comparison.
+
+use super::problem::{ApiError, Problem};
+use super::{AppState, InspectionId, rfc3339};
+use crate::cmm::{self, CmmMeasurements, CmmPoint, Comparison};
+use crate::report::Report;
+use crate::store::{Status, StoreError};
+use axum::Json;
+use axum::body::Bytes;
+use axum::extract::{Path, Query, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use serde::{Deserialize, Serialize};
+use utoipa::{IntoParams, ToSchema};
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
+
+pub fn router() -> OpenApiRouter<AppState> {
+    OpenApiRouter::new()
+        .routes(routes!(get_report))
+        .routes(routes!(get_threads))
+        .routes(routes!(get_mesh))
+        .routes(routes!(get_image))
+        .routes(routes!(put_cmm, get_cmm))
+        .routes(routes!(get_cmm_comparison))
+}
+
+/// 404 for an unknown id, 409 while it has no results.
+async fn succeeded(state: &AppState, id: &str) -> Result<InspectionId, ApiError> {
+    let id = InspectionId::parse(id)?;
+    let row = state.store.inspection(&id.0).await.map_err(|_| ApiError::not_found(&id.0))?;
+    if row.status() != Status::Succeeded {
+        return Err(ApiError::new(
+            "inspection_not_succeeded",
+            format!("inspection {} is {}; results exist once it succeeded", id.0, row.status),
+        ));
+    }
+    Ok(id)
+}
+
+/// 200 with a strong ETag, or 304 when the client already has it.
+fn immutable(headers: &HeaderMap, etag: &str, content_type: &str, body: impl Into<axum::body::Body>) -> Response {
+    let matches = headers
+        .get(header::IF_NONE_MATCH)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.split(',').any(|t| t.trim() == etag || t.trim() == "*"));
+    let etag_value = HeaderValue::from_str(etag).expect("etags are hex");
+    if matches {
+        return (StatusCode::NOT_MODIFIED, [(header::ETAG, etag_value)]).into_response();
+    }
+    (
+        StatusCode::OK,
+        [
+            (header::ETAG, etag_value),
+            (header::CONTENT_TYPE, HeaderValue::from_str(content_type).expect("static types")),
+            (header::CACHE_CONTROL, HeaderValue::from_static("private, max-age=31536000, immutable")),
+        ],
+        body.into(),
+    )
+        .into_response()
+}
+
+/// The inspection report: verdict, reasons, per-thread heights and black crests, registration,
+/// timings (the result shape of ../shared/spec/bundle.md plus measures).
+#[utoipa::path(
+    get,
+    path = "/v1/inspections/{id}/report",
+    operation_id = "get_report",
+    tag = "results",
+    params(("id" = String, Path, description = "Inspection id")),
+    responses(
+        (status = 200, description = "The report (JSON)", body = Object, headers(("ETag" = String))),
+        (status = 304, description = "Not modified"),
+        (status = 404, description = "No such inspection", body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn get_report(State(state): State<AppState>, Path(id): Path<String>, headers: HeaderMap) -> Result<Response, ApiError> {
+    let id = succeeded(&state, &id).await?;
+    let (json, etag) = state.store.report(&id.0).await?;
+    Ok(immutable(&headers, &etag, "application/json", json))
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
+pub struct AngleHeight {
+    pub angle_deg: f64,
+    /// null where no view covered the bin.
+    pub height_mm: Option<f64>,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
+pub struct ThreadRow {
+    /// Thread number (1 = nearest the pipe end).
+    pub thread: i64,
+    pub crest_z_mm: [f64; 2],
+    pub min_height_mm: Option<f64>,
+    pub mean_height_mm: Option<f64>,
+    pub max_height_mm: Option<f64>,
+    pub bins_measured: i64,
+    pub black_crest_arcs_deg: Vec<[f64; 2]>,
+    pub black_crest_length_mm: f64,
+    pub heights: Vec<AngleHeight>,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
+pub struct ThreadTable {
+    pub inspection_id: String,
+    pub threads: Vec<ThreadRow>,
+}
+
+#[derive(Clone, Debug, Default, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct FormatQuery {
+    /// Overrides `Accept`.
+    pub format: Option<String>,
+}
+
+/// The representation asked for by `?format=` or `Accept`, among `offered` (format, media type);
+/// the first is the default.
+fn negotiate(
+    headers: &HeaderMap,
+    format: Option<&str>,
+    offered: &[(&'static str, &'static str)],
+) -> Result<(&'static str, &'static str), ApiError> {
+    if let Some(f) = format {
+        return offered.iter().find(|o| o.0.eq_ignore_ascii_case(f)).copied().ok_or_else(|| {
+            let names: Vec<&str> = offered.iter().map(|o| o.0).collect();
+            ApiError::new("not_acceptable", format!("format {f:?}: offered {}", names.join(", "))).with_culprit("format")
+        });
+    }
+    let accept = headers.get(header::ACCEPT).and_then(|v| v.to_str().ok()).unwrap_or("*/*");
+    for wanted in accept.split(',').map(|a| a.split(';').next().unwrap_or("").trim().to_ascii_lowercase()) {
+        if wanted == "*/*" || wanted.is_empty() {
+            return Ok(offered[0]);
+        }
+        if let Some(o) = offered.iter().find(|o| o.1 == wanted || wanted.ends_with("/*") && o.1.starts_with(wanted.trim_end_matches('*'))) {
+            return Ok(*o);
+        }
+    }
+    let types: Vec<&str> = offered.iter().map(|o| o.1).collect();
+    Err(ApiError::new("not_acceptable", format!("Accept {accept:?}: offered {}", types.join(", "))).with_culprit("Accept"))
+}
+
+/// The per-thread height table: JSON, or CSV (`thread,angle_deg,height_mm`, the CMM upload's
+/// columns) on `Accept: text/csv` or `?format=csv`.
+#[utoipa::path(
+    get,
+    path = "/v1/inspections/{id}/threads",
+    operation_id = "get_threads",
+    tag = "results",
+    params(("id" = String, Path, description = "Inspection id"), FormatQuery),
+    responses(
+        (status = 200, description = "Per-thread table", content(
+            (ThreadTable = "application/json"),
+            (String = "text/csv"),
+        )),
+        (status = 404, description = "No such inspection", body = Problem, content_type = "application/problem+json"),
+        (status = 406, description = "Unsupported format", body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn get_threads(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    Query(q): Query<FormatQuery>,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    let id = succeeded(&state, &id).await?;
+    let (format, media) = negotiate(&headers, q.format.as_deref(), &[("json", "application/json"), ("csv", "text/csv")])?;
+    let (threads, heights) = state.store.threads(&id.0).await?;
+    if format == "csv" {
+        let mut out = String::from("thread,angle_deg,height_mm\n");
+        for h in &heights {
+            out.push_str(&format!("{},{},{}\n", h.thread_index, h.angle_deg, h.height_mm.map(|v| format!("{v:.6}")).unwrap_or_default()));
+        }
+        let etag = crate::store::etag_of(out.as_bytes());
+        return Ok(immutable(&headers, &etag, "text/csv; charset=utf-8", out));
+    }
+    let mut by_thread: std::collections::BTreeMap<i64, Vec<AngleHeight>> = Default::default();
+    for h in heights {
+        by_thread.entry(h.thread_index).or_default().push(AngleHeight { angle_deg: h.angle_deg, height_mm: h.height_mm });
+    }
+    let table = ThreadTable {
+        inspection_id: id.0.clone(),
+        threads: threads
+            .into_iter()
+            .map(|t| ThreadRow {
+                thread: t.thread_index,
+                crest_z_mm: [t.crest_z_start_mm, t.crest_z_end_mm],
+                min_height_mm: t.min_height_mm,
+                mean_height_mm: t.mean_height_mm,
+                max_height_mm: t.max_height_mm,
+                bins_measured: t.bins_measured,
+                black_crest_arcs_deg: serde_json::from_str(&t.black_crest_arcs_json).unwrap_or_default(),
+                black_crest_length_mm: t.black_crest_length_mm,
+                heights: by_thread.remove(&t.thread_index).unwrap_or_default(),
+            })
+            .collect(),
+    };
+    let body = serde_json::to_vec(&table).map_err(ApiError::internal)?;
+    let etag = crate::store::etag_of(&body);
+    Ok(immutable(&headers, &etag, media, body))
+}
+
+/// The surface mesh: binary PLY (default; `application/x-ply`) or binary STL (`model/stl`), by
+/// `?format=ply|stl` or `Accept`.
+#[utoipa::path(
+    get,
+    path = "/v1/inspections/{id}/mesh",
+    operation_id = "get_mesh",
+    tag = "results",
+    params(("id" = String, Path, description = "Inspection id"), FormatQuery),
+    responses(
+        (status = 200, description = "The mesh", content(
+            (Vec<u8> = "application/x-ply"),
+            (Vec<u8> = "model/stl"),
+        ), headers(("ETag" = String))),
+        (status = 304, description = "Not modified"),
+        (status = 404, description = "No such inspection", body = Problem, content_type = "application/problem+json"),
+        (status = 406, description = "Unsupported format", body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn get_mesh(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    Query(q): Query<FormatQuery>,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    let id = succeeded(&state, &id).await?;
+    let (format, _) = negotiate(&headers, q.format.as_deref(), &[("ply", "application/x-ply"), ("stl", "model/stl")])?;
+    let a = state.store.artifact(&id.0, if format == "stl" { "mesh.stl" } else { "mesh.ply" }).await?;
+    let mut response = immutable(&headers, &a.etag, &a.content_type, a.body);
+    let disposition = format!("attachment; filename=\"{}.{format}\"", id.0);
+    response.headers_mut().insert(header::CONTENT_DISPOSITION, HeaderValue::from_str(&disposition).expect("ASCII"));
+    Ok(response)
+}
+
+/// The unrolled height map (16-bit gray) or the all-in-focus mosaic (RGB), as PNG.
+#[utoipa::path(
+    get,
+    path = "/v1/inspections/{id}/images/{kind}",
+    operation_id = "get_image",
+    tag = "results",
+    params(
+        ("id" = String, Path, description = "Inspection id"),
+        ("kind" = String, Path, description = "height-map or all-in-focus"),
+    ),
+    responses(
+        (status = 200, description = "PNG", content((Vec<u8> = "image/png")), headers(("ETag" = String))),
+        (status = 304, description = "Not modified"),
+        (status = 404, description = "No such inspection or image", body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn get_image(
+    State(state): State<AppState>,
+    Path((id, kind)): Path<(String, String)>,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    let kind = match kind.trim_end_matches(".png") {
+        "height-map" => "height-map.png",
+        "all-in-focus" => "all-in-focus.png",
+        other => {
+            return Err(ApiError::new("not_found", format!("no image {other:?}: height-map or all-in-focus")).with_culprit("kind"));
+        }
+    };
+    let id = succeeded(&state, &id).await?;
+    let a = state.store.artifact(&id.0, kind).await?;
+    Ok(immutable(&headers, &a.etag, &a.content_type, a.body))
+}
+
+const MAX_CMM_BYTES: usize = 16 << 20;
+
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
+pub struct StoredCmm {
+    pub inspection_id: String,
+    pub instrument: Option<String>,
+    pub measured_at: Option<String>,
+    pub uploaded_at: String,
+    pub points: Vec<CmmPoint>,
+}
+
+/// Upload (or replace) the CMM measurements of an inspection: JSON
+/// (`{"instrument", "measured_at", "points": [{"thread", "angle_deg", "height_mm"}]}`) or CSV
+/// (`thread,angle_deg,height_mm`; an empty angle is the thread's mean).
+#[utoipa::path(
+    put,
+    path = "/v1/inspections/{id}/cmm",
+    operation_id = "put_cmm",
+    tag = "cmm",
+    params(("id" = String, Path, description = "Inspection id")),
+    request_body(content(
+        (CmmMeasurements = "application/json"),
+        (String = "text/csv"),
+    )),
+    responses(
+        (status = 200, description = "Stored", body = StoredCmm),
+        (status = 404, description = "No such inspection", body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
+        (status = 415, description = "Neither JSON nor CSV", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Invalid measurements (the field or CSV line is named)", body = Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn put_cmm(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+    body: axum::body::Body,
+) -> Result<Json<StoredCmm>, ApiError> {
+    let id = succeeded(&state, &id).await?;
+    let body: Bytes = axum::body::to_bytes(body, MAX_CMM_BYTES)
+        .await
+        .map_err(|_| ApiError::new("body_too_large", format!("CMM uploads are limited to {} MiB", MAX_CMM_BYTES >> 20)))?;
+    let content_type = headers.get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_ascii_lowercase();
+    let essence = content_type.split(';').next().unwrap_or("").trim();
+    let parsed = match essence {
+        "application/json" => CmmMeasurements::from_json(&body),
+        "text/csv" => CmmMeasurements::from_csv(&body),
+        other => {
+            return Err(ApiError::new("unsupported_media_type", format!("Content-Type {other:?}: send application/json or text/csv"))
+                .with_culprit("Content-Type"));
+        }
+    }
+    .map_err(|e| ApiError::new("invalid_cmm", e.to_string()).with_culprit(e.field.clone()))?;
+    state.store.put_cmm(&id.0, &parsed).await?;
+    get_cmm(State(state), Path(id.0)).await
+}
+
+/// The stored CMM measurements.
+#[utoipa::path(
+    get,
+    path = "/v1/inspections/{id}/cmm",
+    operation_id = "get_cmm",
+    tag = "cmm",
+    params(("id" = String, Path, description = "Inspection id")),
+    responses(
+        (status = 200, description = "Stored measurements", body = StoredCmm),
+        (status = 404, description = "No such inspection, or no CMM data yet", body = Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn get_cmm(State(state): State<AppState>, Path(id): Path<String>) -> Result<Json<StoredCmm>, ApiError> {
+    let id = InspectionId::parse(&id)?;
+    state.store.inspection(&id.0).await.map_err(|_| ApiError::not_found(&id.0))?;
+    let row = state.store.cmm(&id.0).await.map_err(|e| match e {
+        StoreError::NotFound => ApiError::new("cmm_not_found", format!("no CMM measurements for {}; PUT them first", id.0)),
+        other => other.into(),
+    })?;
+    Ok(Json(StoredCmm {
+        inspection_id: id.0,
+        instrument: row.instrument,
+        measured_at: row.measured_at,
+        uploaded_at: rfc3339(row.uploaded_at),
+        points: serde_json::from_str(&row.points_json).map_err(ApiError::internal)?,
+    }))
+}
+
+#[derive(Clone, Debug, Default, Deserialize, IntoParams)]
+#[serde(deny_unknown_fields)]
+#[into_params(parameter_in = Query)]
+pub struct ComparisonQuery {
+    /// Agreement tolerance in mm (default: one tenth of the thread-height tolerance band).
+    pub tolerance_mm: Option<f64>,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
+pub struct CmmComparison {
+    pub inspection_id: String,
+    pub instrument: Option<String>,
+    pub measured_at: Option<String>,
+    /// The thread-height tolerance (±) of the part.
+    pub height_tolerance_mm: f64,
+    #[serde(flatten)]
+    pub comparison: Comparison,
+}
+
+/// crestscan against the CMM: per point (thread, angle) both heights and the deviation; bias, RMS,
+/// max |deviation|, Bland–Altman limits of agreement, and agreement within a tolerance.
+#[utoipa::path(
+    get,
+    path = "/v1/inspections/{id}/cmm-comparison",
+    operation_id = "get_cmm_comparison",
+    tag = "cmm",
+    params(("id" = String, Path, description = "Inspection id"), ComparisonQuery),
+    responses(
+        (status = 200, description = "The comparison", body = CmmComparison),
+        (status = 400, description = "Invalid tolerance", body = Problem, content_type = "application/problem+json"),
+        (status = 404, description = "No such inspection, or no CMM data yet", body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn get_cmm_comparison(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    query: Result<Query<ComparisonQuery>, axum::extract::rejection::QueryRejection>,
+) -> Result<Json<CmmComparison>, ApiError> {
+    let Query(q) = query.map_err(|e| ApiError::new("invalid_query", e.body_text()))?;
+    if let Some(t) = q.tolerance_mm
+        && !(t.is_finite() && t > 0.0)
+    {
+        return Err(ApiError::new("invalid_query", format!("tolerance_mm: {t} must be a positive number")).with_culprit("tolerance_mm"));
+    }
+    let id = succeeded(&state, &id).await?;
+    let Json(stored) = get_cmm(State(state.clone()), Path(id.0.clone())).await?;
+    let (json, _) = state.store.report(&id.0).await?;
+    let report: Report = serde_json::from_str(&json).map_err(ApiError::internal)?;
+    let tolerance = q.tolerance_mm.unwrap_or_else(|| cmm::default_tolerance_mm(&report));
+    let measurements = CmmMeasurements { instrument: stored.instrument.clone(), measured_at: stored.measured_at.clone(), points: stored.points };
+    Ok(Json(CmmComparison {
+        inspection_id: id.0,
+        instrument: stored.instrument,
+        measured_at: stored.measured_at,
+        height_tolerance_mm: report.height_tolerance_mm,
+        comparison: cmm::compare(&report, &measurements, tolerance),
+    }))
+}

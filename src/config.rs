@@ -1,0 +1,126 @@
+//! Service settings. Precedence: built-in defaults < config file (TOML) < environment
+//! (`CRESTSCAN_*`) < command-line flags; the CLI layer (clap, with `env`) merges the last two.
+
+use serde::{Deserialize, Serialize};
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Settings {
+    /// Address the HTTP server listens on.
+    pub bind: SocketAddr,
+    /// SQLite database (`crestscan.db`), file store (`uploads/`) and temporary files (`tmp/`).
+    pub data_dir: PathBuf,
+    /// Inspections run at once. Each already uses every core (rayon), so 1 is right on small machines;
+    /// 0 makes an API-only node (another process on the same data directory runs the jobs).
+    pub workers: usize,
+    /// Threads of the pipeline's compute pool (0: one per core).
+    pub compute_threads: usize,
+    /// Largest accepted upload.
+    pub max_upload_mb: u64,
+    /// A running job's lease; a worker that stops heartbeating loses it after this long.
+    pub lease_seconds: f64,
+    /// How often a running job renews its lease and publishes progress.
+    pub heartbeat_seconds: f64,
+    /// Attempts (claims) before a job that keeps failing retryably, or keeps dying, is failed.
+    pub max_attempts: u32,
+    /// On shutdown, running jobs get this long to finish before they are released for re-claiming.
+    pub shutdown_grace_seconds: f64,
+    /// How often idle workers look for work (new uploads also wake them at once).
+    pub poll_interval_ms: u64,
+    /// Uploaded bundles of finished inspections are deleted after this many days (0: kept).
+    pub upload_retention_days: f64,
+    /// Tracing filter (`info`, `crestscan=debug,tower_http=info`, ...).
+    pub log: String,
+}
+
+impl Default for Settings {
+    fn default() -> Self {
+        Self {
+            bind: SocketAddr::from(([127, 0, 0, 1], 8080)),
+            data_dir: PathBuf::from("crestscan-data"),
+            workers: 1,
+            compute_threads: 0,
+            max_upload_mb: 4096,
+            lease_seconds: 30.0,
+            heartbeat_seconds: 2.0,
+            max_attempts: 3,
+            shutdown_grace_seconds: 30.0,
+            poll_interval_ms: 500,
+            upload_retention_days: 30.0,
+            log: "info".into(),
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("{path}: {message}")]
+    File { path: String, message: String },
+    #[error("{field}: {message}")]
+    Invalid { field: &'static str, message: String },
+}
+
+impl Settings {
+    /// Reads a TOML file whose keys are the field names (all optional).
+    pub fn from_file(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| ConfigError::File { path: path.display().to_string(), message: e.to_string() })?;
+        toml::from_str(&text).map_err(|e| ConfigError::File { path: path.display().to_string(), message: e.to_string() })
+    }
+
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let invalid = |field, message: &str| Err(ConfigError::Invalid { field, message: message.into() });
+        if self.max_upload_mb == 0 {
+            return invalid("max_upload_mb", "must be at least 1");
+        }
+        if !(self.heartbeat_seconds > 0.0) {
+            return invalid("heartbeat_seconds", "must be positive");
+        }
+        if !(self.lease_seconds >= 2.0 * self.heartbeat_seconds) {
+            return invalid("lease_seconds", "must be at least twice heartbeat_seconds, or leases lapse while healthy");
+        }
+        if self.max_attempts == 0 {
+            return invalid("max_attempts", "must be at least 1");
+        }
+        if !(self.shutdown_grace_seconds >= 0.0) || !(self.upload_retention_days >= 0.0) {
+            return invalid("shutdown_grace_seconds", "durations must be non-negative");
+        }
+        Ok(())
+    }
+
+    pub fn database_path(&self) -> PathBuf {
+        self.data_dir.join("crestscan.db")
+    }
+    pub fn uploads_dir(&self) -> PathBuf {
+        self.data_dir.join("uploads")
+    }
+    pub fn tmp_dir(&self) -> PathBuf {
+        self.data_dir.join("tmp")
+    }
+    pub fn max_upload_bytes(&self) -> u64 {
+        self.max_upload_mb.saturating_mul(1 << 20)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn file_overrides_defaults_and_unknown_keys_are_named() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("crestscan.toml");
+        std::fs::write(&path, "bind = \"0.0.0.0:9000\"\nworkers = 2\n").unwrap();
+        let s = Settings::from_file(&path).unwrap();
+        assert_eq!(s.bind.port(), 9000);
+        assert_eq!(s.workers, 2);
+        assert_eq!(s.lease_seconds, Settings::default().lease_seconds);
+        std::fs::write(&path, "wokers = 2\n").unwrap();
+        let e = Settings::from_file(&path).unwrap_err().to_string();
+        assert!(e.contains("wokers"), "{e}");
+        let bad = Settings { lease_seconds: 1.0, heartbeat_seconds: 2.0, ..Settings::default() };
+        assert!(bad.validate().unwrap_err().to_string().starts_with("lease_seconds"));
+    }
+}

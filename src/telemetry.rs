@@ -1,0 +1,116 @@
+//! Logs (tracing) and Prometheus metrics (prometheus-client: a registry per app, so tests can run
+//! several apps in one process): requests by matched route and status, request latency, queue
+//! depth, job outcomes and durations, pipeline stage durations.
+
+use prometheus_client::encoding::EncodeLabelSet;
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
+use prometheus_client::registry::Registry;
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct RequestLabels {
+    method: String,
+    route: String,
+    status: u16,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct RouteLabels {
+    route: String,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct StageLabels {
+    stage: String,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct OutcomeLabels {
+    outcome: String,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct StateLabels {
+    state: String,
+}
+
+type HistogramFamily<L> = Family<L, Histogram, fn() -> Histogram>;
+
+pub struct Metrics {
+    registry: Registry,
+    requests: Family<RequestLabels, Counter>,
+    request_seconds: HistogramFamily<RouteLabels>,
+    stage_seconds: HistogramFamily<StageLabels>,
+    jobs: Family<OutcomeLabels, Counter>,
+    job_seconds: HistogramFamily<OutcomeLabels>,
+    queue: Family<StateLabels, Gauge>,
+}
+
+fn latency_histogram() -> Histogram {
+    // 0.1 ms … 3.3 s.
+    Histogram::new(exponential_buckets(0.0001, 2.0, 16))
+}
+
+fn job_histogram() -> Histogram {
+    // 50 ms … 27 min.
+    Histogram::new(exponential_buckets(0.05, 2.0, 16))
+}
+
+impl Default for Metrics {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Metrics {
+    pub fn new() -> Self {
+        let mut registry = Registry::with_prefix("crestscan");
+        let requests = Family::<RequestLabels, Counter>::default();
+        let request_seconds: HistogramFamily<RouteLabels> = Family::new_with_constructor(latency_histogram);
+        let stage_seconds: HistogramFamily<StageLabels> = Family::new_with_constructor(job_histogram);
+        let jobs = Family::<OutcomeLabels, Counter>::default();
+        let job_seconds: HistogramFamily<OutcomeLabels> = Family::new_with_constructor(job_histogram);
+        let queue = Family::<StateLabels, Gauge>::default();
+        registry.register("http_requests", "HTTP requests by method, matched route and status", requests.clone());
+        registry.register("http_request_duration_seconds", "HTTP request latency by matched route", request_seconds.clone());
+        registry.register("pipeline_stage_duration_seconds", "Pipeline stage durations", stage_seconds.clone());
+        registry.register("jobs_finished", "Jobs finished by outcome (succeeded, failed, canceled, retry)", jobs.clone());
+        registry.register("job_duration_seconds", "Job durations by outcome", job_seconds.clone());
+        registry.register("queue_jobs", "Inspections queued and running", queue.clone());
+        Self { registry, requests, request_seconds, stage_seconds, jobs, job_seconds, queue }
+    }
+
+    pub fn request(&self, method: &str, route: &str, status: u16, seconds: f64) {
+        self.requests.get_or_create(&RequestLabels { method: method.into(), route: route.into(), status }).inc();
+        self.request_seconds.get_or_create(&RouteLabels { route: route.into() }).observe(seconds);
+    }
+
+    pub fn observe_stage(&self, stage: &str, seconds: f64) {
+        self.stage_seconds.get_or_create(&StageLabels { stage: stage.into() }).observe(seconds);
+    }
+
+    pub fn job_finished(&self, outcome: &str, seconds: f64) {
+        self.jobs.get_or_create(&OutcomeLabels { outcome: outcome.into() }).inc();
+        self.job_seconds.get_or_create(&OutcomeLabels { outcome: outcome.into() }).observe(seconds);
+    }
+
+    pub fn set_queue(&self, queued: i64, running: i64) {
+        self.queue.get_or_create(&StateLabels { state: "queued".into() }).set(queued);
+        self.queue.get_or_create(&StateLabels { state: "running".into() }).set(running);
+    }
+
+    /// The Prometheus text exposition.
+    pub fn render(&self) -> String {
+        let mut out = String::new();
+        prometheus_client::encoding::text::encode(&mut out, &self.registry).expect("writing to a String cannot fail");
+        out
+    }
+}
+
+/// Installs the log subscriber once per process (later calls are no-ops, as in tests).
+pub fn init_logging(filter: &str) {
+    let filter = tracing_subscriber::EnvFilter::try_new(filter).unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    let _ = tracing_subscriber::fmt().with_env_filter(filter).with_target(false).try_init();
+}
