@@ -127,6 +127,8 @@ impl Upload {
     }
 }
 
+const DRAIN_BYTES: u64 = 64 << 20;
+
 fn too_large(limit: u64) -> ApiError {
     ApiError::new("body_too_large", format!("the upload exceeds the {} MiB limit (max_upload_mb)", limit >> 20))
 }
@@ -142,6 +144,12 @@ pub async fn receive(request: Request, files: &FileStore, limit: u64) -> Result<
     if let Some(length) = request.headers().get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()?.parse::<u64>().ok())
         && length > limit
     {
+        // Read (and drop) a moderate excess so that clients without `Expect: 100-continue` see the
+        // 413 instead of a reset connection; larger bodies are cut off.
+        if length <= limit.saturating_add(DRAIN_BYTES) {
+            let mut stream = request.into_body().into_data_stream();
+            while let Some(Ok(_)) = stream.next().await {}
+        }
         return Err(too_large(limit));
     }
     let essence = content_type.split(';').next().unwrap_or("").trim().to_string();

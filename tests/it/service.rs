@@ -201,16 +201,21 @@ async fn round_trip_on_the_ci_preset() {
     }
     problem(app.get(&format!("{location}/mesh?format=obj")).await, StatusCode::NOT_ACCEPTABLE, "not_acceptable").await;
 
-    // CMM: the truth's heights, offset by +5 µm, as the CMM's CSV. crestscan − CMM is then its own
-    // error minus 5 µm: the comparison's statistics must be exactly those of the listed deviations.
+    // CMM: the truth's heights, offset by +5 µm, at every bin crestscan measured, as the CMM's
+    // CSV. crestscan − CMM is then its own error minus 5 µm: the comparison's statistics must be
+    // exactly those of the listed deviations.
     let mut cmm_csv = String::from("thread,angle_deg,height_mm\n");
-    for t in &truth.threads {
-        for (a, v) in t.height_mm.angles_deg.iter().zip(&t.height_mm.values).step_by(10) {
-            if let Some(v) = v {
+    for t in &report.threads {
+        let truth_thread = truth.threads.iter().find(|u| u.index == t.index).expect("same numbering");
+        for ((a, ours), theirs) in t.height_mm.angles_deg.iter().zip(&t.height_mm.values).zip(&truth_thread.height_mm.values) {
+            if let (Some(_), Some(v)) = (ours, theirs) {
                 cmm_csv.push_str(&format!("{},{a},{}\n", t.index, v + 0.005));
             }
         }
     }
+    // One thread's mean, without an angle: compared with crestscan's mean of that thread.
+    let mean = report.threads.iter().find(|t| t.index == thread).unwrap().mean_height_mm.unwrap();
+    cmm_csv.push_str(&format!("{thread},,{}\n", mean + 0.005));
     let put = app
         .client
         .put(app.url(&format!("{location}/cmm")))
@@ -224,6 +229,9 @@ async fn round_trip_on_the_ci_preset() {
     let devs: Vec<f64> = cmp["points"].as_array().unwrap().iter().filter_map(|p| p["deviation_mm"].as_f64()).collect();
     let agreement = &cmp["agreement"];
     assert!(devs.len() >= 10, "{cmp}");
+    assert_eq!(agreement["unmatched"], 0);
+    let mean_point = cmp["points"].as_array().unwrap().iter().find(|p| p["angle_deg"].is_null()).unwrap();
+    assert!((mean_point["deviation_mm"].as_f64().unwrap() + 0.005).abs() < 1e-9);
     assert_eq!(agreement["compared"], devs.len());
     let bias = devs.iter().sum::<f64>() / devs.len() as f64;
     let rms = (devs.iter().map(|d| d * d).sum::<f64>() / devs.len() as f64).sqrt();
