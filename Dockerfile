@@ -1,4 +1,4 @@
-# crestscan: multi-stage build, small non-root runtime image.
+# crestscan: multi-stage build, small non-root runtime image running the HTTP service.
 # No Docker engine runs on the development machines; this file follows the README's build steps
 # (cargo build --release --locked) and is kept consistent with them by review, not by a CI build.
 
@@ -16,9 +16,17 @@ RUN useradd --system --uid 10001 --home-dir /var/lib/crestscan --create-home cre
 COPY --from=build /src/target/release/crestscan /usr/local/bin/crestscan
 USER crestscan
 WORKDIR /var/lib/crestscan
+# SQLite database, uploaded bundles and temporaries. The API browser (/docs) and the OpenAPI
+# document are compiled into the binary: nothing is fetched at run time.
 VOLUME ["/var/lib/crestscan"]
-# The HTTP service (`crestscan serve`, its health check and port) arrives with the service issue;
-# until then the image runs the command-line tools, e.g.
-#   docker run --rm -v "$PWD/out:/var/lib/crestscan" IMAGE simulate --preset ci --out ci
+ENV CRESTSCAN_BIND=0.0.0.0:8080 \
+    CRESTSCAN_DATA_DIR=/var/lib/crestscan
+EXPOSE 8080
+HEALTHCHECK --interval=15s --timeout=5s --start-period=10s --retries=3 CMD ["crestscan", "healthcheck"]
+# SIGTERM drains: no new claims, running jobs get the grace period (CRESTSCAN_SHUTDOWN_GRACE_SECONDS).
+STOPSIGNAL SIGTERM
 ENTRYPOINT ["crestscan"]
-CMD ["--help"]
+CMD ["serve"]
+#   docker build -t crestscan .
+#   docker run -p 8080:8080 -v crestscan-data:/var/lib/crestscan crestscan
+#   docker run --rm crestscan simulate --list

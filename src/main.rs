@@ -78,6 +78,33 @@ enum Command {
     Serve(ServeArgs),
     /// Print the OpenAPI document of the HTTP API (JSON).
     Openapi,
+    /// Exit 0 when a local service answers /healthz (for container health checks; no curl needed).
+    Healthcheck {
+        /// The service's address [default: CRESTSCAN_BIND's port on 127.0.0.1, else 127.0.0.1:8080].
+        #[arg(long)]
+        addr: Option<std::net::SocketAddr>,
+    },
+}
+
+fn healthcheck(addr: Option<std::net::SocketAddr>) -> Result<()> {
+    use std::io::{Read, Write};
+    let addr = addr.unwrap_or_else(|| {
+        let port = std::env::var("CRESTSCAN_BIND")
+            .ok()
+            .and_then(|b| b.parse::<std::net::SocketAddr>().ok())
+            .map_or(8080, |a| a.port());
+        std::net::SocketAddr::from(([127, 0, 0, 1], port))
+    });
+    let timeout = std::time::Duration::from_secs(3);
+    let mut stream = std::net::TcpStream::connect_timeout(&addr, timeout).with_context(|| format!("connecting to {addr}"))?;
+    stream.set_read_timeout(Some(timeout))?;
+    write!(stream, "GET /healthz HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n")?;
+    let mut head = [0u8; 12];
+    stream.read_exact(&mut head)?;
+    if &head[9..12] != b"200" {
+        bail!("{addr}/healthz answered {}", String::from_utf8_lossy(&head));
+    }
+    Ok(())
 }
 
 #[derive(clap::Args)]
@@ -163,6 +190,7 @@ fn main() -> Result<()> {
     let cli = Cli::parse();
     match cli.command {
         Command::Serve(args) => serve(args)?,
+        Command::Healthcheck { addr } => healthcheck(addr)?,
         Command::Openapi => println!("{}", crestscan::api::openapi().to_pretty_json()?),
         Command::Simulate { preset, seed, out, list, truth_only } => {
             if list {

@@ -2,7 +2,7 @@
 
 use super::ingest;
 use super::problem::{ApiError, Problem};
-use super::{AppState, InspectionId, rfc3339, parse_rfc3339};
+use super::{AppState, Binary, InspectionId, parse_rfc3339, rfc3339};
 use crate::bundle::{Bundle, FrameCheck, Limits, OpenOptions};
 use crate::jobs::JobOptions;
 use crate::pipeline::PipelineOptions;
@@ -140,6 +140,18 @@ pub struct SubmitOptions {
     pub pipeline: Option<serde_json::Value>,
 }
 
+/// The multipart form of an upload. Instead of `bundle`, a `manifest` part and one part per frame
+/// (named by its manifest path) may be sent.
+#[derive(ToSchema)]
+#[allow(dead_code)]
+pub struct BundleForm {
+    /// The bundle as a zip or tar archive.
+    #[schema(value_type = String, format = Binary)]
+    bundle: Vec<u8>,
+    /// Submission options as JSON: `client_reference`, `arc_rule`, `pipeline`.
+    options: Option<String>,
+}
+
 /// Idempotency-Key: 1–255 visible ASCII characters.
 fn idempotency_key(headers: &HeaderMap) -> Result<Option<String>, ApiError> {
     let Some(v) = headers.get("idempotency-key") else { return Ok(None) };
@@ -241,10 +253,10 @@ fn accepted(row: InspectionRow, replayed: bool) -> Response {
     ),
     request_body(
         content(
-            (Vec<u8> = "application/zip"),
-            (Vec<u8> = "application/x-tar"),
-            (Vec<u8> = "application/octet-stream"),
-            (Vec<u8> = "multipart/form-data"),
+            (Binary = "application/octet-stream"),
+            (Binary = "application/zip"),
+            (Binary = "application/x-tar"),
+            (BundleForm = "multipart/form-data"),
         ),
         description = "The bundle (../shared/spec/bundle.md)."
     ),

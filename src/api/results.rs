@@ -2,7 +2,7 @@
 //! strong ETags) and the CMM comparison.
 
 use super::problem::{ApiError, Problem};
-use super::{AppState, InspectionId, rfc3339};
+use super::{AppState, Binary, InspectionId, rfc3339};
 use crate::cmm::{self, CmmMeasurements, CmmPoint, Comparison};
 use crate::report::Report;
 use crate::store::{Status, StoreError};
@@ -213,8 +213,8 @@ pub async fn get_threads(
     params(("id" = String, Path, description = "Inspection id"), FormatQuery),
     responses(
         (status = 200, description = "The mesh", content(
-            (Vec<u8> = "application/x-ply"),
-            (Vec<u8> = "model/stl"),
+            (Binary = "application/x-ply"),
+            (Binary = "model/stl"),
         ), headers(("ETag" = String))),
         (status = 304, description = "Not modified"),
         (status = 404, description = "No such inspection", body = Problem, content_type = "application/problem+json"),
@@ -248,7 +248,7 @@ pub async fn get_mesh(
         ("kind" = String, Path, description = "height-map or all-in-focus"),
     ),
     responses(
-        (status = 200, description = "PNG", content((Vec<u8> = "image/png")), headers(("ETag" = String))),
+        (status = 200, description = "PNG", content((Binary = "image/png")), headers(("ETag" = String))),
         (status = 304, description = "Not modified"),
         (status = 404, description = "No such inspection or image", body = Problem, content_type = "application/problem+json"),
         (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
