@@ -48,14 +48,19 @@ fn problem(code: &'static str, detail: impl Into<String>) -> Problem {
     ApiError::new(code, detail).problem(None)
 }
 
-/// Builds the compute pool: one thread per core (or `threads`), at lower scheduling priority so
-/// that request handling keeps its latency while inspections saturate the CPU.
+/// Builds the compute pool: one thread per core (or `threads`), scheduled SCHED_IDLE on Linux so
+/// that request handling keeps its latency while inspections saturate the CPU (the pool takes
+/// whatever CPU the request threads leave).
 pub fn compute_pool(threads: usize) -> Arc<rayon::ThreadPool> {
     let mut builder = rayon::ThreadPoolBuilder::new().thread_name(|i| format!("compute-{i}")).start_handler(|_| {
-        // SAFETY: setpriority on the calling thread (who = 0 with PRIO_PROCESS means this thread on Linux).
         #[cfg(target_os = "linux")]
+        // SAFETY: plain syscalls on the calling thread with a valid, initialised parameter.
         unsafe {
-            libc::setpriority(libc::PRIO_PROCESS, 0, 10);
+            let param = libc::sched_param { sched_priority: 0 };
+            if libc::sched_setscheduler(0, libc::SCHED_IDLE, &param) != 0 {
+                // Not permitted (some sandboxes): fall back to a lower nice value.
+                libc::setpriority(libc::PRIO_PROCESS, 0, 10);
+            }
         }
     });
     if threads > 0 {
