@@ -121,18 +121,7 @@ async fn process(ctx: &WorkerContext, job: Claimed, shutdown: &mut watch::Receiv
         let (ctx, job, cancel, progress) = (ctx.clone(), job.clone(), cancel.clone(), progress.clone());
         tokio::task::spawn_blocking(move || {
             let pool = ctx.compute.clone();
-            pool.install(|| {
-                std::panic::catch_unwind(AssertUnwindSafe(|| run_job(&ctx, &job, &cancel, &progress)))
-                    .unwrap_or_else(|panic| {
-                        let message = panic
-                            .downcast_ref::<&str>()
-                            .map(|s| s.to_string())
-                            .or_else(|| panic.downcast_ref::<String>().cloned())
-                            .unwrap_or_else(|| "unknown panic".into());
-                        tracing::error!(inspection = %job.id, %message, "pipeline panicked");
-                        Outcome::Fail(problem("pipeline_panic", format!("the pipeline crashed on this bundle: {message}")))
-                    })
-            })
+            pool.install(|| contain(&job.id, || run_job(&ctx, &job, &cancel, &progress)))
         })
     };
     tokio::pin!(task);
@@ -210,6 +199,19 @@ async fn process(ctx: &WorkerContext, job: Claimed, shutdown: &mut watch::Receiv
     }
 }
 
+/// Runs a job's blocking part; a panic becomes that job's permanent failure, not the worker's end.
+fn contain(id: &str, run: impl FnOnce() -> Outcome) -> Outcome {
+    std::panic::catch_unwind(AssertUnwindSafe(run)).unwrap_or_else(|panic| {
+        let message = panic
+            .downcast_ref::<&str>()
+            .map(|s| s.to_string())
+            .or_else(|| panic.downcast_ref::<String>().cloned())
+            .unwrap_or_else(|| "unknown panic".into());
+        tracing::error!(inspection = %id, %message, "pipeline panicked");
+        Outcome::Fail(problem("pipeline_panic", format!("the pipeline crashed on this bundle: {message}")))
+    })
+}
+
 /// The blocking part: open the stored bundle, run the pipeline, encode the results.
 fn run_job(ctx: &WorkerContext, job: &Claimed, cancel: &AtomicBool, progress: &Mutex<Option<(Stage, f64)>>) -> Outcome {
     let options: JobOptions = match serde_json::from_str(&job.options_json) {
@@ -269,4 +271,28 @@ pub fn encode_results(inspection: &pipeline::Inspection) -> Result<JobResults, B
             Artifact { kind: "all-in-focus.png", content_type: "image/png", body: images::mosaic_png(&inspection.map)? },
         ],
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_panicking_job_fails_with_a_problem_and_the_caller_goes_on() {
+        let outcome = contain("job-1", || {
+            let empty: Vec<u8> = Vec::new();
+            Outcome::Fail(problem("no_depth", format!("{}", empty[3])))
+        });
+        let Outcome::Fail(p) = outcome else { panic!("a panic must fail the job") };
+        assert_eq!((p.code.as_str(), p.status), ("pipeline_panic", 500));
+        assert!(p.detail.contains("index out of bounds"), "{}", p.detail);
+        assert!(matches!(contain("job-2", || Outcome::Canceled), Outcome::Canceled));
+    }
+
+    #[test]
+    fn io_errors_retry_and_bad_input_fails() {
+        assert!(matches!(bundle_outcome(BundleError::Io { path: "x".into(), message: "EIO".into() }), Outcome::Retry(_)));
+        let Outcome::Fail(p) = bundle_outcome(BundleError::MissingFile { path: "a/0.png".into() }) else { panic!() };
+        assert_eq!(p.code, "missing_file");
+    }
 }

@@ -223,4 +223,17 @@ mod tests {
         }
         assert_eq!(ApiError::from(BundleError::MissingFile { path: "a.png".into() }).culprit.as_deref(), Some("a.png"));
     }
+
+    #[test]
+    fn every_code_is_documented_in_the_readme_under_its_status() {
+        let readme = include_str!("../../README.md");
+        let errors = &readme[readme.find("### Errors").expect("README has an Errors section")..];
+        for (code, status, _) in CODES {
+            let row = errors
+                .lines()
+                .find(|l| l.contains(&format!("`{code}`")))
+                .unwrap_or_else(|| panic!("{code} is not in the README's error table"));
+            assert!(row.contains(&status.to_string()), "{code} listed under the wrong status: {row}");
+        }
+    }
 }

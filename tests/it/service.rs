@@ -13,7 +13,8 @@ use std::time::{Duration, Instant};
 pub struct TestApp {
     pub base: String,
     pub client: reqwest::Client,
-    pub data: tempfile::TempDir,
+    pub data: std::path::PathBuf,
+    dir: Option<tempfile::TempDir>,
     stop: Option<tokio::sync::oneshot::Sender<()>>,
     server: Option<tokio::task::JoinHandle<()>>,
 }
@@ -50,17 +51,23 @@ impl TestApp {
         }
     }
 
-    pub async fn stop(mut self) {
+    /// Graceful shutdown; returns the data directory (still on disk while held).
+    pub async fn stop(mut self) -> Option<tempfile::TempDir> {
         if let Some(s) = self.stop.take() {
             let _ = s.send(());
         }
         if let Some(h) = self.server.take() {
             h.await.unwrap();
         }
+        self.dir.take()
+    }
+
+    pub async fn store(&self) -> crestscan::store::Store {
+        open_store(&self.data).await
     }
 
     pub fn uploads(&self) -> usize {
-        let dir = self.data.path().join("uploads");
+        let dir = self.data.join("uploads");
         if dir.exists() { walk(&dir).len() } else { 0 }
     }
 }
@@ -78,11 +85,22 @@ pub fn test_settings(data: &Path) -> Settings {
     }
 }
 
+pub async fn open_store(data: &Path) -> crestscan::store::Store {
+    crestscan::store::Store::open(&data.join("crestscan.db"), &data.join("uploads"), &data.join("tmp")).await.unwrap()
+}
+
 /// Starts the real application on port 0 with a fresh data directory.
 pub async fn spawn_app_with(edit: impl FnOnce(&mut Settings)) -> TestApp {
+    let dir = tempfile::tempdir().unwrap();
+    let mut app = spawn_app_in(dir.path(), edit).await;
+    app.dir = Some(dir);
+    app
+}
+
+/// Starts the real application on port 0 on an existing data directory.
+pub async fn spawn_app_in(data: &Path, edit: impl FnOnce(&mut Settings)) -> TestApp {
     crestscan::telemetry::init_logging("warn");
-    let data = tempfile::tempdir().unwrap();
-    let mut settings = test_settings(data.path());
+    let mut settings = test_settings(data);
     edit(&mut settings);
     let app = Application::build(settings).await.unwrap();
     let base = format!("http://{}", app.address());
@@ -94,7 +112,7 @@ pub async fn spawn_app_with(edit: impl FnOnce(&mut Settings)) -> TestApp {
         .await
         .unwrap();
     });
-    TestApp { base, client: reqwest::Client::new(), data, stop: Some(tx), server: Some(server) }
+    TestApp { base, client: reqwest::Client::new(), data: data.to_path_buf(), dir: None, stop: Some(tx), server: Some(server) }
 }
 
 pub async fn spawn_app() -> TestApp {
@@ -370,13 +388,7 @@ async fn idempotent_retry_and_cancel() {
 
     // Cancel while running: requested, seen by the lease holder at its heartbeat.
     let second: Value = send("station-7-run-43", "").await.unwrap().json().await.unwrap();
-    let store = crestscan::store::Store::open(
-        &app.data.path().join("crestscan.db"),
-        &app.data.path().join("uploads"),
-        &app.data.path().join("tmp"),
-    )
-    .await
-    .unwrap();
+    let store = app.store().await;
     let claimed = store.claim("test-worker", Duration::from_secs(30)).await.unwrap().expect("one queued");
     assert_eq!(claimed.id, second["id"].as_str().unwrap());
     let response = app.client.post(app.url(&format!("/v1/inspections/{}/cancel", claimed.id))).send().await.unwrap();
@@ -514,9 +526,7 @@ async fn kill_9_loses_no_accepted_inspection() {
     child.kill().unwrap();
     child.wait().unwrap();
     // Exactly once: one report and one set of thread rows per inspection.
-    let store = crestscan::store::Store::open(&data.path().join("crestscan.db"), &data.path().join("uploads"), &data.path().join("tmp"))
-        .await
-        .unwrap();
+    let store = open_store(data.path()).await;
     let (reports,): (i64,) = sqlx::query_as("SELECT COUNT(*) FROM reports").fetch_one(&store.pool).await.unwrap();
     assert_eq!(reports, 3);
     let (dupes,): (i64,) = sqlx::query_as(
@@ -526,4 +536,44 @@ async fn kill_9_loses_no_accepted_inspection() {
     .await
     .unwrap();
     assert_eq!(dupes, 0);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn graceful_shutdown_lets_the_running_job_finish() {
+    let app = spawn_app().await;
+    let id = app.submit(ci_tar(), "").await.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let v: Value = app.get(&format!("/v1/inspections/{id}")).await.json().await.unwrap();
+        if v["status"] == "running" {
+            break;
+        }
+        assert_eq!(v["status"], "queued");
+        assert!(Instant::now() < deadline);
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    let data = app.data.clone();
+    let _dir = app.stop().await;
+    let row = open_store(&data).await.inspection(&id).await.unwrap();
+    assert_eq!(row.status, "succeeded", "the job finished within the grace period before the process stopped");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_api_node_and_a_worker_node_share_a_data_directory_and_failures_are_problems() {
+    // An API-only node accepts; the upload then vanishes (an operator's mistake).
+    let api = spawn_app_with(|s| s.workers = 0).await;
+    let created: Value = api.submit(ci_tar(), "").await.json().await.unwrap();
+    let id = created["id"].as_str().unwrap();
+    let sha = created["bundle"]["sha256"].as_str().unwrap();
+    api.store().await.files.remove(sha).unwrap();
+    // A worker node on the same directory claims it and fails it with a problem object.
+    let worker = spawn_app_in(&api.data, |_| {}).await;
+    let done = api.wait(id, Duration::from_secs(60)).await;
+    assert_eq!(done["status"], "failed");
+    assert_eq!(done["error"]["code"], "upload_missing");
+    assert_eq!(done["error"]["status"], 500);
+    assert!(done["error"]["detail"].as_str().unwrap().contains(sha));
+    assert_eq!(done["attempts"], 1, "a permanent failure is not retried");
+    worker.stop().await;
+    api.stop().await;
 }
