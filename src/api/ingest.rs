@@ -129,6 +129,19 @@ impl Upload {
 
 const DRAIN_BYTES: u64 = 64 << 20;
 
+/// Reads and drops up to 64 MiB of a body that is being refused, so a client that sends it whole
+/// (without `Expect: 100-continue`) reads the problem instead of a reset connection.
+pub async fn drain(body: Body) {
+    let mut stream = body.into_data_stream();
+    let mut seen = 0u64;
+    while let Some(Ok(chunk)) = stream.next().await {
+        seen += chunk.len() as u64;
+        if seen > DRAIN_BYTES {
+            break;
+        }
+    }
+}
+
 fn too_large(limit: u64) -> ApiError {
     ApiError::new("body_too_large", format!("the upload exceeds the {} MiB limit (max_upload_mb)", limit >> 20))
 }
@@ -147,8 +160,7 @@ pub async fn receive(request: Request, files: &FileStore, limit: u64) -> Result<
         // Read (and drop) a moderate excess so that clients without `Expect: 100-continue` see the
         // 413 instead of a reset connection; larger bodies are cut off.
         if length <= limit.saturating_add(DRAIN_BYTES) {
-            let mut stream = request.into_body().into_data_stream();
-            while let Some(Ok(_)) = stream.next().await {}
+            drain(request.into_body()).await;
         }
         return Err(too_large(limit));
     }
@@ -157,14 +169,18 @@ pub async fn receive(request: Request, files: &FileStore, limit: u64) -> Result<
         "multipart/form-data" => receive_multipart(request, files, limit).await,
         "application/zip" | "application/x-zip-compressed" | "application/x-tar" | "application/tar"
         | "application/octet-stream" => receive_raw(request.into_body(), files, limit).await,
-        other => Err(ApiError::new(
+        other => {
+            let error = ApiError::new(
             "unsupported_media_type",
             format!(
                 "Content-Type {:?}: send the bundle as application/zip, application/x-tar, application/octet-stream or multipart/form-data",
                 if other.is_empty() { "(none)" } else { other }
             ),
-        )
-        .with_culprit("Content-Type")),
+            )
+            .with_culprit("Content-Type");
+            drain(request.into_body()).await;
+            Err(error)
+        }
     }
 }
 
@@ -173,7 +189,16 @@ async fn receive_raw(body: Body, files: &FileStore, limit: u64) -> Result<Receiv
     let mut stream = body.into_data_stream();
     while let Some(chunk) = stream.next().await {
         let chunk = chunk.map_err(|e| ApiError::new("bad_request", format!("reading the body: {e}")))?;
-        upload.count(chunk.len())?;
+        if let Err(e) = upload.count(chunk.len()) {
+            let mut rest = 0u64;
+            while let Some(Ok(chunk)) = stream.next().await {
+                rest += chunk.len() as u64;
+                if rest > DRAIN_BYTES {
+                    break;
+                }
+            }
+            return Err(e);
+        }
         upload.send(Chunk::Raw(chunk)).await?;
     }
     if upload.received == 0 {

@@ -276,8 +276,14 @@ pub async fn create_inspection(
     headers: HeaderMap,
     request: Request,
 ) -> Result<Response, ApiError> {
-    let Query(query) = query.map_err(|e| ApiError::new("invalid_query", e.body_text()))?;
-    let key = idempotency_key(&headers)?;
+    let early = query.map_err(|e| ApiError::new("invalid_query", e.body_text())).and_then(|q| Ok((q.0, idempotency_key(&headers)?)));
+    let (query, key) = match early {
+        Ok(ok) => ok,
+        Err(e) => {
+            ingest::drain(request.into_body()).await;
+            return Err(e);
+        }
+    };
     let received = ingest::receive(request, &state.store.files, state.settings.max_upload_bytes()).await?;
     let (reference, options) = resolve_options(query, received.options_part.as_deref())?;
     let options_json = serde_json::to_string(&options).expect("options serialise");

@@ -540,7 +540,8 @@ async fn kill_9_loses_no_accepted_inspection() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn graceful_shutdown_lets_the_running_job_finish() {
-    let app = spawn_app().await;
+    // A grace period long enough for a starved CI machine (the compute pool runs at SCHED_IDLE).
+    let app = spawn_app_with(|s| s.shutdown_grace_seconds = 300.0).await;
     let id = app.submit(ci_tar(), "").await.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
     let deadline = Instant::now() + Duration::from_secs(60);
     loop {
