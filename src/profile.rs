@@ -305,12 +305,59 @@ pub fn measure_threads(map: &UnrolledMap, form: &ThreadForm, helix: &Helix) -> V
             thread.bins.push(BinMeasure { angle_deg: centre_deg, crest_z_mm: crest_z, height_mm: height, crest_radius_mm: crest_r, crest_gray });
         }
     }
+    // Along the helix, thread i's last bin (359.5°) is followed by thread i + 1's first (0.5°).
+    let helix_order: Vec<Option<f64>> = threads.iter().flat_map(|t| t.bins.iter().map(|b| b.height_mm)).collect();
+    let filtered = median_along_helix(&helix_order);
+    for (bin, h) in threads.iter_mut().flat_map(|t| t.bins.iter_mut()).zip(filtered) {
+        bin.height_mm = h;
+    }
     threads
+}
+
+/// Each bin's height replaced by the median of the five bins around it along the helix (three at
+/// the ends of the measured runs), where all were measured. One bin's fit can be thrown by a few
+/// bad samples (a specular pixel, a flank leaking into a window); a real change of height (a black
+/// crest, the run-out) spans many bins and keeps its edges, which a median does not move. The
+/// sequence is the helix, not the circle: across 360° → 0° a crest continues as the next thread,
+/// whose height on a run-out differs.
+fn median_along_helix(heights: &[Option<f64>]) -> Vec<Option<f64>> {
+    let n = heights.len();
+    let window = |i: usize, half: usize| -> Option<Vec<f64>> {
+        if i < half || i + half >= n {
+            return None;
+        }
+        heights[i - half..=i + half].iter().copied().collect()
+    };
+    (0..n)
+        .map(|i| {
+            heights[i]?;
+            let mut w = window(i, 2).or_else(|| window(i, 1))?;
+            w.sort_by(f64::total_cmp);
+            Some(w[w.len() / 2])
+        })
+        .map(Some)
+        .zip(heights)
+        .map(|(m, &h)| m.flatten().or(h))
+        .collect()
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn median_along_the_helix_removes_spikes_and_keeps_steps() {
+        let mut h: Vec<Option<f64>> = (0..16).map(|i| Some(if i < 8 { 1.0 } else { 0.8 })).collect();
+        h[3] = Some(1.3);
+        h[4] = Some(0.7);
+        h[12] = None;
+        let m = median_along_helix(&h);
+        assert_eq!((m[3], m[4]), (Some(1.0), Some(1.0)), "two adjacent spikes removed");
+        assert_eq!((m[7], m[8]), (Some(1.0), Some(0.8)), "step kept in place");
+        assert_eq!(m[12], None, "gaps stay gaps");
+        assert_eq!((m[11], m[13]), (Some(0.8), Some(0.8)));
+        assert_eq!((m[0], m[15]), (Some(1.0), Some(0.8)), "ends are not wrapped");
+    }
     use crate::fuse::GridSpec;
 
     /// A synthetic fused map of an ideal buttress thread.
