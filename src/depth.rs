@@ -105,16 +105,27 @@ fn focus_measure(gray: &[f32], w: usize, h: usize, r: usize, scratch: &mut [f32]
             scratch[y * w + x] = acc;
         }
     }
-    for x in 0..w {
-        let mut acc: f32 = (0..r.min(h)).map(|y| scratch[y * w + x]).sum();
-        for y in 0..h {
-            if y + r < h {
-                acc += scratch[(y + r) * w + x];
+    // Columns as whole rows: a running sum of rows (the same additions, in the same order, as a
+    // per-column running sum, but streaming through memory instead of striding down columns).
+    let mut acc = vec![0f32; w];
+    for y in 0..r.min(h) {
+        for (a, &v) in acc.iter_mut().zip(&scratch[y * w..(y + 1) * w]) {
+            *a += v;
+        }
+    }
+    for y in 0..h {
+        if y + r < h {
+            for (a, &v) in acc.iter_mut().zip(&scratch[(y + r) * w..(y + r + 1) * w]) {
+                *a += v;
             }
-            if y > r {
-                acc -= scratch[(y - r - 1) * w + x];
+        }
+        if y > r {
+            for (a, &v) in acc.iter_mut().zip(&scratch[(y - r - 1) * w..(y - r) * w]) {
+                *a -= v;
             }
-            out[y * w + x] = acc.max(0.0);
+        }
+        for (o, &a) in out[y * w..(y + 1) * w].iter_mut().zip(&acc) {
+            *o = a.max(0.0);
         }
     }
 }
@@ -159,8 +170,11 @@ pub fn depth_from_focus(
     let n = view.frames.len();
     let principal = optics.principal_point(view.format.width, view.format.height);
     let big_f = optics.focus_distance_mm;
-    // Focus volume, pixel-major (each pixel's curve contiguous for the peak search).
-    let mut volume = vec![0f32; w * h * n];
+    // Focus volume, frame-major: each frame's measure is written as one contiguous plane (a
+    // pixel-major layout would scatter every write to its own cache line); the peak search gathers
+    // a row's curves from the n planes.
+    let plane = w * h;
+    let mut volume = vec![0f32; plane * n];
     let mut best = vec![f32::MIN; w * h];
     let mut all_in_focus = vec![0f32; w * h * 3];
     let (mut native, mut scratch) = (vec![0f32; w * h], vec![0f32; w * h]);
@@ -181,7 +195,7 @@ pub fn depth_from_focus(
                 let i = y * w + x;
                 let t = (x0, x1, fx, y0, y1, fy);
                 let m = sample(&native, 1, w, t, 0);
-                volume[i * n + k] = m;
+                volume[k * plane + i] = m;
                 if m > best[i] {
                     // Colour only where this frame is the sharpest so far.
                     best[i] = m;
@@ -205,10 +219,16 @@ pub fn depth_from_focus(
     depth_mm
         .par_chunks_mut(w)
         .zip(peak_ratio.par_chunks_mut(w))
-        .zip(volume.par_chunks(w * n))
         .enumerate()
-        .for_each(|(y, ((depth_row, ratio_row), curves))| {
+        .for_each(|(y, (depth_row, ratio_row))| {
             let mut sorted = vec![0f32; n];
+            let mut curves = vec![0f32; w * n];
+            for k in 0..n {
+                let row = &volume[k * plane + y * w..k * plane + (y + 1) * w];
+                for (x, &m) in row.iter().enumerate() {
+                    curves[x * n + k] = m;
+                }
+            }
             for x in 0..w {
                 let column = &curves[x * n..(x + 1) * n];
                 let (k_best, &peak) = column.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).expect("≥ 3 frames");

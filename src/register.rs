@@ -90,17 +90,38 @@ struct Patch {
     radius: Vec<f32>,
 }
 
+/// What registration needs of a surface point, computed once per view (every pair reuses it).
+#[derive(Clone, Copy)]
+struct Sample {
+    theta_rad: f64,
+    z_mm: f64,
+    gray: f32,
+    radius_mm: f32,
+    weight: f32,
+}
+
+fn samples(points: &[SurfacePoint]) -> Vec<Sample> {
+    points
+        .iter()
+        .map(|p| Sample {
+            theta_rad: p.theta_rad(),
+            z_mm: p.position.z,
+            gray: crate::bundle::luminance(p.rgb),
+            radius_mm: p.radius_mm() as f32,
+            weight: crate::fuse::point_weight(p.weight),
+        })
+        .collect()
+}
+
 impl Patch {
-    fn build(points: &[SurfacePoint], ref_angle: f64, radius_ref: f64, cell: f64, s_range: (f64, f64)) -> Option<Patch> {
+    fn build(points: &[Sample], ref_angle: f64, radius_ref: f64, cell: f64, s_range: (f64, f64)) -> Option<Patch> {
         let mut cells: Vec<(i64, i64, f32, f32, f32)> = Vec::new();
         for p in points {
-            let s = radius_ref * wrap(p.theta_rad() - ref_angle);
+            let s = radius_ref * wrap(p.theta_rad - ref_angle);
             if s < s_range.0 || s > s_range.1 {
                 continue;
             }
-            let g = crate::bundle::luminance(p.rgb);
-            let w = crate::fuse::point_weight(p.weight);
-            cells.push(((s / cell).floor() as i64, (p.position.z / cell).floor() as i64, g, p.radius_mm() as f32, w));
+            cells.push(((s / cell).floor() as i64, (p.z_mm / cell).floor() as i64, p.gray, p.radius_mm, p.weight));
         }
         if cells.is_empty() {
             return None;
@@ -186,15 +207,24 @@ fn texture(gray: &[f32], radius: &[f32], ns: usize, nz: usize) -> Vec<f32> {
 /// sampling every `stride` cells. Returns (ncc, cells).
 fn ncc(a: &Patch, b: &Patch, ds: i64, dz: i64, stride: usize) -> (f64, usize) {
     let (mut sa, mut sb, mut saa, mut sbb, mut sab, mut n) = (0f64, 0f64, 0f64, 0f64, 0f64, 0usize);
+    // a's cell (s, z) meets b's cell (s + off_s, z + off_z) (b's content moved by +d); only the
+    // rows and the run of columns inside b are visited.
+    let (off_s, off_z) = (a.s0 - ds - b.s0, a.z0 - dz - b.z0);
+    let st = stride as i64;
+    // First s on the stride grid with s + off_s ≥ 0, and the end of the run inside b.
+    let s_lo = if off_s >= 0 { 0 } else { ((-off_s + st - 1) / st) * st };
+    let s_hi = (b.ns as i64 - off_s).min(a.ns as i64);
     for z in (0..a.nz).step_by(stride) {
-        for s in (0..a.ns).step_by(stride) {
-            let va = a.gray[z * a.ns + s];
-            if va.is_nan() {
-                continue;
-            }
-            // b's content moved by +d: the cell of a at position x meets b's cell at x − d.
-            let vb = b.at(&b.gray, a.s0 + s as i64 - ds, a.z0 + z as i64 - dz);
-            if vb.is_nan() {
+        let zb = z as i64 + off_z;
+        if zb < 0 || zb >= b.nz as i64 || s_lo >= s_hi {
+            continue;
+        }
+        let row_a = &a.gray[z * a.ns..(z + 1) * a.ns];
+        let row_b = &b.gray[zb as usize * b.ns..(zb as usize + 1) * b.ns];
+        for s in (s_lo as usize..s_hi as usize).step_by(stride) {
+            let va = row_a[s];
+            let vb = row_b[(s as i64 + off_s) as usize];
+            if va.is_nan() || vb.is_nan() {
                 continue;
             }
             let (x, y) = (va as f64, vb as f64);
@@ -225,7 +255,7 @@ fn sub_cell(left: f64, centre: f64, right: f64) -> f64 {
 fn measure_pair(
     a: usize,
     b: usize,
-    points: &[&[SurfacePoint]],
+    points: &[Vec<Sample>],
     angles_rad: &[f64],
     radius_ref: f64,
     options: &RegisterOptions,
@@ -235,18 +265,18 @@ fn measure_pair(
     let margin = radius_ref * options.max_angle_deg.to_radians();
     // a's data near b, and b's data near a, in a's frame.
     let offset_b = radius_ref * wrap(angles_rad[b] - ref_angle);
-    let half = |pts: &[SurfacePoint], centre: f64| {
-        pts.iter().map(|p| (radius_ref * wrap(p.theta_rad() - ref_angle) - centre).abs()).fold(0.0, f64::max)
+    let half = |pts: &[Sample], centre: f64| {
+        pts.iter().map(|p| (radius_ref * wrap(p.theta_rad - ref_angle) - centre).abs()).fold(0.0, f64::max)
     };
-    let half_a = half(points[a], 0.0).min(radius_ref * PI / 2.0);
-    let half_b = half(points[b], offset_b).min(radius_ref * PI / 2.0);
+    let half_a = half(&points[a], 0.0).min(radius_ref * PI / 2.0);
+    let half_b = half(&points[b], offset_b).min(radius_ref * PI / 2.0);
     let lo = (offset_b - half_b - margin).max(-half_a);
     let hi = (offset_b + half_b + margin).min(half_a);
     if hi <= lo {
         return None;
     }
-    let pa = Patch::build(points[a], ref_angle, radius_ref, cell, (lo.max(offset_b - half_b - margin), hi))?;
-    let pb = Patch::build(points[b], ref_angle, radius_ref, cell, (-half_a - margin, half_a + margin))?;
+    let pa = Patch::build(&points[a], ref_angle, radius_ref, cell, (lo.max(offset_b - half_b - margin), hi))?;
+    let pb = Patch::build(&points[b], ref_angle, radius_ref, cell, (-half_a - margin, half_a + margin))?;
 
     // The grain's correlation peak is a cell or two wide: search every shift at half resolution,
     // then ±2 cells around the best at full resolution, then sub-cell.
@@ -364,9 +394,10 @@ pub fn register(
     use rayon::prelude::*;
     let angles: Vec<f64> = poses.iter().map(|p| p.angle_deg.to_radians()).collect();
     let candidates = overlapping_pairs(poses, half_angle_deg, half_axial_mm);
+    let samples: Vec<Vec<Sample>> = points.par_iter().map(|p| samples(p)).collect();
     let mut pairs: Vec<PairMeasure> = candidates
         .par_iter()
-        .filter_map(|&(a, b)| measure_pair(a, b, points, &angles, radius_ref, options))
+        .filter_map(|&(a, b)| measure_pair(a, b, &samples, &angles, radius_ref, options))
         .collect();
     let n = poses.len();
     let axis = |f: &dyn Fn(&PairMeasure) -> f64, huber: f64| {
