@@ -221,7 +221,7 @@ pub fn depth_from_focus(
         .zip(peak_ratio.par_chunks_mut(w))
         .enumerate()
         .for_each(|(y, (depth_row, ratio_row))| {
-            let mut sorted = vec![0f32; n];
+            let mut sorted = vec![0u32; n];
             let mut curves = vec![0f32; w * n];
             for k in 0..n {
                 let row = &volume[k * plane + y * w..k * plane + (y + 1) * w];
@@ -231,9 +231,19 @@ pub fn depth_from_focus(
             }
             for x in 0..w {
                 let column = &curves[x * n..(x + 1) * n];
-                let (k_best, &peak) = column.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).expect("≥ 3 frames");
-                sorted.copy_from_slice(column);
-                let floor = (*sorted.select_nth_unstable_by(n / 2, f32::total_cmp).1).max(1e-12);
+                // The last maximum, as `max_by` would give.
+                let (mut k_best, mut peak) = (0, column[0]);
+                for (k, &m) in column.iter().enumerate().skip(1) {
+                    if m >= peak {
+                        (k_best, peak) = (k, m);
+                    }
+                }
+                // Focus measures are ≥ 0, and non-negative floats order like their bit patterns:
+                // an integer selection finds the same median without a comparison closure.
+                for (b, &m) in sorted.iter_mut().zip(column) {
+                    *b = m.to_bits() & 0x7fff_ffff;
+                }
+                let floor = f32::from_bits(*sorted.select_nth_unstable(n / 2).1).max(1e-12);
                 let ratio = peak / floor;
                 ratio_row[x] = ratio;
                 if x < border || y < border || x + border >= w || y + border >= h {
