@@ -84,8 +84,11 @@ impl Settings {
         if self.max_attempts == 0 {
             return invalid("max_attempts", "must be at least 1");
         }
-        if !(self.shutdown_grace_seconds >= 0.0) || !(self.upload_retention_days >= 0.0) {
-            return invalid("shutdown_grace_seconds", "durations must be non-negative");
+        if !(self.shutdown_grace_seconds >= 0.0) {
+            return invalid("shutdown_grace_seconds", "must be non-negative");
+        }
+        if !(self.upload_retention_days >= 0.0) {
+            return invalid("upload_retention_days", "must be non-negative (0 keeps uploads)");
         }
         Ok(())
     }
