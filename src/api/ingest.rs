@@ -218,6 +218,23 @@ async fn receive_multipart(request: Request, files: &FileStore, limit: u64) -> R
     let mut multipart = Multipart::from_request(request, &())
         .await
         .map_err(|e| ApiError::new("invalid_multipart", e.body_text()))?;
+    let result = read_parts(&mut multipart, files, limit).await;
+    if result.is_err() {
+        // As for raw bodies: read (and drop) a moderate rest so the client sees the problem.
+        let mut seen = 0u64;
+        'parts: while let Ok(Some(mut field)) = multipart.next_field().await {
+            while let Ok(Some(chunk)) = field.chunk().await {
+                seen += chunk.len() as u64;
+                if seen > DRAIN_BYTES {
+                    break 'parts;
+                }
+            }
+        }
+    }
+    result
+}
+
+async fn read_parts(multipart: &mut Multipart, files: &FileStore, limit: u64) -> Result<Received, ApiError> {
     let mut upload = Upload::start(files, limit)?;
     let mut options = None;
     let (mut archive_part, mut manifest_part, mut frame_parts) = (false, false, 0usize);

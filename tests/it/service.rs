@@ -318,7 +318,9 @@ async fn bad_requests_get_their_problem_codes_and_store_nothing() {
     problem(bad_multipart, StatusCode::BAD_REQUEST, "invalid_multipart").await;
     let traversal = reqwest::multipart::Form::new()
         .part("manifest", reqwest::multipart::Part::bytes(std::fs::read(ci_bundle().join("manifest.json")).unwrap()))
-        .part("../etc/passwd", reqwest::multipart::Part::bytes(b"x".to_vec()));
+        .part("../etc/passwd", reqwest::multipart::Part::bytes(b"x".to_vec()))
+        // More after the refused part: the server reads the rest, so the client gets the answer.
+        .part("views/a000-z00/000.png", reqwest::multipart::Part::bytes(vec![0u8; 48 << 20]));
     problem(app.client.post(app.url("/v1/inspections")).multipart(traversal).send().await.unwrap(), StatusCode::UNPROCESSABLE_ENTITY, "unsafe_path").await;
     // Too large for the configured limit.
     let small = spawn_app_with(|s| {
