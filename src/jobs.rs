@@ -31,7 +31,7 @@ pub struct WorkerContext {
     pub settings: crate::config::Settings,
     /// Wakes idle workers when work arrives.
     pub wake: Arc<Notify>,
-    /// Unique per process: a lease names the process that holds it.
+    /// Unique per process; each claim's lease token starts with it.
     pub owner: String,
 }
 
@@ -46,6 +46,11 @@ enum Outcome {
 
 fn problem(code: &'static str, detail: impl Into<String>) -> Problem {
     ApiError::new(code, detail).problem(None)
+}
+
+/// The caps a bundle is opened with, at ingest and in the worker alike.
+pub fn bundle_limits(max_upload_bytes: u64) -> crate::bundle::Limits {
+    crate::bundle::Limits { max_total_bytes: max_upload_bytes.saturating_mul(4), ..crate::bundle::Limits::default() }
 }
 
 /// Builds the compute pool: one thread per core (or `threads`), scheduled SCHED_IDLE on Linux so
@@ -90,10 +95,12 @@ async fn worker_loop(ctx: WorkerContext, slot: usize, mut shutdown: watch::Recei
         if *shutdown.borrow() {
             return;
         }
-        match ctx.store.claim(&ctx.owner, lease).await {
+        // A lease names the claim, not only the process: two slots of one process never share one.
+        let lease_token = format!("{}/{}", ctx.owner, uuid::Uuid::now_v7());
+        match ctx.store.claim(&lease_token, lease).await {
             Ok(Some(job)) => {
                 tracing::info!(inspection = %job.id, attempt = job.attempts, slot, "claimed");
-                process(&ctx, job, &mut shutdown).await;
+                process(&ctx, job, &lease_token, &mut shutdown).await;
             }
             Ok(None) => {
                 tokio::select! {
@@ -110,7 +117,7 @@ async fn worker_loop(ctx: WorkerContext, slot: usize, mut shutdown: watch::Recei
     }
 }
 
-async fn process(ctx: &WorkerContext, job: Claimed, shutdown: &mut watch::Receiver<bool>) {
+async fn process(ctx: &WorkerContext, job: Claimed, lease_token: &str, shutdown: &mut watch::Receiver<bool>) {
     let started = Instant::now();
     let cancel = Arc::new(AtomicBool::new(false));
     let progress: Arc<Mutex<Option<(Stage, f64)>>> = Arc::new(Mutex::new(None));
@@ -136,7 +143,7 @@ async fn process(ctx: &WorkerContext, job: Claimed, shutdown: &mut watch::Receiv
             _ = beat.tick() => {
                 let snapshot = *progress.lock().expect("progress lock");
                 let stage = snapshot.map(|(s, f)| (s.as_str(), f));
-                match ctx.store.heartbeat(&job.id, &ctx.owner, lease, stage).await {
+                match ctx.store.heartbeat(&job.id, lease_token, lease, stage).await {
                     Ok(Heartbeat::Held { cancel_requested }) => if cancel_requested { cancel.store(true, Ordering::Relaxed) },
                     Ok(Heartbeat::Lost) => {
                         tracing::warn!(inspection = %job.id, "lease lost; stopping");
@@ -154,7 +161,7 @@ async fn process(ctx: &WorkerContext, job: Claimed, shutdown: &mut watch::Receiv
                 tracing::info!(inspection = %job.id, "grace period over: stopping the job and releasing it");
                 cancel.store(true, Ordering::Relaxed);
                 let _ = (&mut task).await;
-                if let Err(e) = ctx.store.requeue(&job.id, &ctx.owner, Duration::ZERO, None, true).await {
+                if let Err(e) = ctx.store.requeue(&job.id, lease_token, Duration::ZERO, None, true).await {
                     tracing::error!(inspection = %job.id, error = %e, "release failed; the lease will lapse");
                 }
                 return;
@@ -171,20 +178,20 @@ async fn process(ctx: &WorkerContext, job: Claimed, shutdown: &mut watch::Receiv
             for t in &results.report.timings {
                 ctx.metrics.observe_stage(&t.stage, t.seconds);
             }
-            ("succeeded", ctx.store.complete_success(&job.id, &ctx.owner, &results).await)
+            ("succeeded", ctx.store.complete_success(&job.id, lease_token, &results).await)
         }
-        Outcome::Canceled => ("canceled", ctx.store.complete_without_results(&job.id, &ctx.owner, Status::Canceled, None).await),
+        Outcome::Canceled => ("canceled", ctx.store.complete_without_results(&job.id, lease_token, Status::Canceled, None).await),
         Outcome::Fail(p) => {
             let json = serde_json::to_string(&p).expect("problem serialises");
-            ("failed", ctx.store.complete_without_results(&job.id, &ctx.owner, Status::Failed, Some(&json)).await)
+            ("failed", ctx.store.complete_without_results(&job.id, lease_token, Status::Failed, Some(&json)).await)
         }
         Outcome::Retry(p) => {
             let json = serde_json::to_string(&p).expect("problem serialises");
-            let result = if job.attempts >= ctx.settings.max_attempts as i64 {
-                ctx.store.complete_without_results(&job.id, &ctx.owner, Status::Failed, Some(&json)).await
+            let result = if job.attempts >= job.max_attempts {
+                ctx.store.complete_without_results(&job.id, lease_token, Status::Failed, Some(&json)).await
             } else {
                 let backoff = Duration::from_secs((1u64 << job.attempts.clamp(0, 6)).min(60));
-                ctx.store.requeue(&job.id, &ctx.owner, backoff, Some(&json), false).await
+                ctx.store.requeue(&job.id, lease_token, backoff, Some(&json), false).await
             };
             ("retry", result)
         }
@@ -222,7 +229,8 @@ fn run_job(ctx: &WorkerContext, job: &Claimed, cancel: &AtomicBool, progress: &M
     if !path.is_file() {
         return Outcome::Fail(problem("upload_missing", format!("the uploaded bundle {} is no longer in the store", job.upload_sha256)));
     }
-    let bundle = match Bundle::open(&path, &ctx.table, OpenOptions::default()) {
+    let limits = bundle_limits(ctx.settings.max_upload_bytes());
+    let bundle = match Bundle::open(&path, &ctx.table, OpenOptions { limits, ..OpenOptions::default() }) {
         Ok(b) => b,
         Err(e) => return bundle_outcome(e),
     };

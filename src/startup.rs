@@ -35,7 +35,7 @@ impl Application {
     pub async fn build(settings: Settings) -> Result<Self, StartupError> {
         settings.validate()?;
         let store = Store::open(&settings.database_path(), &settings.uploads_dir(), &settings.tmp_dir()).await?;
-        let cleared = store.files.clear_temporaries().map_err(StoreError::Io)?;
+        let cleared = store.files.clear_temporaries(Duration::from_secs(6 * 3600)).map_err(StoreError::Io)?;
         if cleared > 0 {
             tracing::info!(cleared, "removed temporaries of interrupted uploads");
         }

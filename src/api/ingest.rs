@@ -242,11 +242,15 @@ async fn read_parts(multipart: &mut Multipart, files: &FileStore, limit: u64) ->
         let name = field.name().unwrap_or("").to_string();
         match name.as_str() {
             "options" => {
-                let bytes = field.bytes().await.map_err(multipart_error)?;
-                if bytes.len() > 1 << 20 {
-                    return Err(ApiError::new("invalid_option", "the options part exceeds 1 MiB").with_culprit("options"));
+                let mut bytes = Vec::new();
+                while let Some(chunk) = field.chunk().await.map_err(multipart_error)? {
+                    upload.count(chunk.len())?;
+                    bytes.extend_from_slice(&chunk);
+                    if bytes.len() > 1 << 20 {
+                        return Err(ApiError::new("invalid_option", "the options part exceeds 1 MiB").with_culprit("options"));
+                    }
                 }
-                options = Some(bytes.to_vec());
+                options = Some(bytes);
             }
             "bundle" => {
                 if archive_part || manifest_part || frame_parts > 0 {
@@ -283,10 +287,17 @@ async fn read_parts(multipart: &mut Multipart, files: &FileStore, limit: u64) ->
                     frame_parts += 1;
                     path
                 };
+                // Parts are held in memory until written as tar entries: each is capped like a
+                // bundle file.
+                let max_part = crate::bundle::Limits::default().max_file_bytes;
                 let mut data = Vec::new();
                 while let Some(chunk) = field.chunk().await.map_err(multipart_error)? {
                     upload.count(chunk.len())?;
                     data.extend_from_slice(&chunk);
+                    if data.len() as u64 > max_part {
+                        return Err(ApiError::new("bundle_too_large", format!("part {path:?} exceeds the per-file cap of {max_part} bytes"))
+                            .with_culprit(path));
+                    }
                 }
                 upload.send(Chunk::Entry { path, data }).await?;
             }

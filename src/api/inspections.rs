@@ -3,7 +3,7 @@
 use super::ingest;
 use super::problem::{ApiError, Problem};
 use super::{AppState, Binary, InspectionId, parse_rfc3339, rfc3339};
-use crate::bundle::{Bundle, FrameCheck, Limits, OpenOptions};
+use crate::bundle::{Bundle, FrameCheck, OpenOptions};
 use crate::jobs::JobOptions;
 use crate::pipeline::PipelineOptions;
 use crate::rules::ArcRule;
@@ -309,15 +309,16 @@ pub async fn create_inspection(
     let limit = state.settings.max_upload_bytes();
     let files = state.store.files.clone();
     let ingest::Received { file, sha256, size_bytes, .. } = received;
-    let (upload, serial, connection) = tokio::task::spawn_blocking(move || {
-        let limits = Limits { max_total_bytes: limit.saturating_mul(4), ..Limits::default() };
+    let (upload, serial, connection, file) = tokio::task::spawn_blocking(move || {
+        let limits = crate::jobs::bundle_limits(limit);
         let bundle = Bundle::open(file.path(), &table, OpenOptions { limits, frame_check: FrameCheck::Headers })?;
         let serial = bundle.manifest.part.serial.clone();
         let connection = bundle.manifest.part.connection.clone();
         let summary = crate::store::UploadInfo { sha256: sha256.clone(), size_bytes, views: bundle.views.len(), frames: bundle.frame_count() };
         drop(bundle);
-        files.commit(file, &sha256).map_err(ApiError::internal)?;
-        Ok::<_, ApiError>((summary, serial, connection))
+        // Durable now; placed under its hash inside the database transaction.
+        files.prepare(&file).map_err(ApiError::internal)?;
+        Ok::<_, ApiError>((summary, serial, connection, file))
     })
     .await
     .map_err(ApiError::internal)??;
@@ -333,7 +334,7 @@ pub async fn create_inspection(
         request_sha256,
         max_attempts: state.settings.max_attempts,
     };
-    let response = match state.store.insert_inspection(&new).await? {
+    let response = match state.store.insert_inspection(&new, file).await? {
         Inserted::Created(row) => {
             tracing::info!(inspection = %row.id, bytes = new.upload.size_bytes, "accepted");
             state.wake.notify_one();
@@ -442,7 +443,7 @@ pub async fn list_inspections(
 )]
 pub async fn get_inspection(State(state): State<AppState>, Path(id): Path<String>) -> Result<Json<Inspection>, ApiError> {
     let id = InspectionId::parse(&id)?;
-    let row = state.store.inspection(&id.0).await.map_err(|_| ApiError::not_found(&id.0))?;
+    let row = state.store.inspection(&id.0).await.map_err(|e| super::missing_inspection(e, &id.0))?;
     Ok(Json(row.into()))
 }
 
@@ -462,7 +463,7 @@ pub async fn get_inspection(State(state): State<AppState>, Path(id): Path<String
 )]
 pub async fn cancel_inspection(State(state): State<AppState>, Path(id): Path<String>) -> Result<Response, ApiError> {
     let id = InspectionId::parse(&id)?;
-    let before = state.store.inspection(&id.0).await.map_err(|_| ApiError::not_found(&id.0))?;
+    let before = state.store.inspection(&id.0).await.map_err(|e| super::missing_inspection(e, &id.0))?;
     if matches!(before.status(), Status::Succeeded | Status::Failed) {
         return Err(ApiError::new("inspection_finished", format!("inspection {} already {}", id.0, before.status)));
     }

@@ -48,6 +48,14 @@ impl InspectionId {
     }
 }
 
+/// 404 for an unknown inspection; any other store failure stays a 500.
+pub fn missing_inspection(e: crate::store::StoreError, id: &str) -> ApiError {
+    match e {
+        crate::store::StoreError::NotFound => ApiError::not_found(id),
+        other => other.into(),
+    }
+}
+
 pub fn rfc3339(ms: i64) -> String {
     time::OffsetDateTime::from_unix_timestamp_nanos(ms as i128 * 1_000_000)
         .ok()

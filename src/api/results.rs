@@ -29,7 +29,7 @@ pub fn router() -> OpenApiRouter<AppState> {
 /// 404 for an unknown id, 409 while it has no results.
 async fn succeeded(state: &AppState, id: &str) -> Result<InspectionId, ApiError> {
     let id = InspectionId::parse(id)?;
-    let row = state.store.inspection(&id.0).await.map_err(|_| ApiError::not_found(&id.0))?;
+    let row = state.store.inspection(&id.0).await.map_err(|e| super::missing_inspection(e, &id.0))?;
     if row.status() != Status::Succeeded {
         return Err(ApiError::new(
             "inspection_not_succeeded",
@@ -39,22 +39,27 @@ async fn succeeded(state: &AppState, id: &str) -> Result<InspectionId, ApiError>
     Ok(id)
 }
 
-/// 200 with a strong ETag, or 304 when the client already has it.
+/// 200 with a strong ETag, or 304 when the client already has it (If-None-Match compares weakly,
+/// as RFC 9110 asks). Representations chosen by `Accept` say so in `Vary`.
 fn immutable(headers: &HeaderMap, etag: &str, content_type: &str, body: impl Into<axum::body::Body>) -> Response {
     let matches = headers
         .get(header::IF_NONE_MATCH)
         .and_then(|v| v.to_str().ok())
-        .is_some_and(|v| v.split(',').any(|t| t.trim() == etag || t.trim() == "*"));
+        .is_some_and(|v| v.split(',').map(|t| t.trim().trim_start_matches("W/")).any(|t| t == etag || t == "*"));
     let etag_value = HeaderValue::from_str(etag).expect("etags are hex");
+    let cache = HeaderValue::from_static("private, max-age=31536000, immutable");
+    let vary = HeaderValue::from_static("Accept");
     if matches {
-        return (StatusCode::NOT_MODIFIED, [(header::ETAG, etag_value)]).into_response();
+        return (StatusCode::NOT_MODIFIED, [(header::ETAG, etag_value), (header::CACHE_CONTROL, cache), (header::VARY, vary)])
+            .into_response();
     }
     (
         StatusCode::OK,
         [
             (header::ETAG, etag_value),
             (header::CONTENT_TYPE, HeaderValue::from_str(content_type).expect("static types")),
-            (header::CACHE_CONTROL, HeaderValue::from_static("private, max-age=31536000, immutable")),
+            (header::CACHE_CONTROL, cache),
+            (header::VARY, vary),
         ],
         body.into(),
     )
@@ -130,7 +135,13 @@ fn negotiate(
         });
     }
     let accept = headers.get(header::ACCEPT).and_then(|v| v.to_str().ok()).unwrap_or("*/*");
-    for wanted in accept.split(',').map(|a| a.split(';').next().unwrap_or("").trim().to_ascii_lowercase()) {
+    // Media ranges in the client's order; `q=0` means "not this one".
+    let refused = |range: &str| range.split(';').skip(1).any(|p| matches!(p.trim().replace(' ', "").as_str(), "q=0" | "q=0.0" | "q=0.00" | "q=0.000"));
+    for wanted in accept
+        .split(',')
+        .filter(|a| !refused(a))
+        .map(|a| a.split(';').next().unwrap_or("").trim().to_ascii_lowercase())
+    {
         if wanted == "*/*" || wanted.is_empty() {
             return Ok(offered[0]);
         }
@@ -310,9 +321,13 @@ pub async fn put_cmm(
     body: axum::body::Body,
 ) -> Result<Json<StoredCmm>, ApiError> {
     let id = succeeded(&state, &id).await?;
-    let body: Bytes = axum::body::to_bytes(body, MAX_CMM_BYTES)
-        .await
-        .map_err(|_| ApiError::new("body_too_large", format!("CMM uploads are limited to {} MiB", MAX_CMM_BYTES >> 20)))?;
+    let body: Bytes = axum::body::to_bytes(body, MAX_CMM_BYTES).await.map_err(|e| {
+        if std::error::Error::source(&e).is_some_and(|s| s.is::<http_body_util::LengthLimitError>()) {
+            ApiError::new("body_too_large", format!("CMM uploads are limited to {} MiB", MAX_CMM_BYTES >> 20))
+        } else {
+            ApiError::new("bad_request", format!("reading the body: {e}"))
+        }
+    })?;
     let content_type = headers.get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_ascii_lowercase();
     let essence = content_type.split(';').next().unwrap_or("").trim();
     let parsed = match essence {
@@ -342,7 +357,7 @@ pub async fn put_cmm(
 )]
 pub async fn get_cmm(State(state): State<AppState>, Path(id): Path<String>) -> Result<Json<StoredCmm>, ApiError> {
     let id = InspectionId::parse(&id)?;
-    state.store.inspection(&id.0).await.map_err(|_| ApiError::not_found(&id.0))?;
+    state.store.inspection(&id.0).await.map_err(|e| super::missing_inspection(e, &id.0))?;
     let row = state.store.cmm(&id.0).await.map_err(|e| match e {
         StoreError::NotFound => ApiError::new("cmm_not_found", format!("no CMM measurements for {}; PUT them first", id.0)),
         other => other.into(),

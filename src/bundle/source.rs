@@ -180,13 +180,14 @@ impl Source {
             Kind::Dir(root) => {
                 let file_path = self.dir_path(root, path)?;
                 let mut file = File::open(&file_path).map_err(|e| missing_or_io(path, e))?;
-                read_capped(&mut file, max, path)
+                read_capped(&mut file, max, path, io_err)
             }
             Kind::Zip { archive, index } => {
                 let &(i, _) = index.get(&full).ok_or_else(|| BundleError::MissingFile { path: path.into() })?;
                 let mut archive = archive.lock().unwrap_or_else(|p| p.into_inner());
-                let mut entry = archive.by_index(i).map_err(|e| io_err(path, e))?;
-                read_capped(&mut entry, max, path)
+                // A damaged entry (bad CRC, broken deflate stream) is the client's archive, not our I/O.
+                let mut entry = archive.by_index(i).map_err(|e| damaged_entry(path, e))?;
+                read_capped(&mut entry, max, path, damaged_entry)
             }
             Kind::Tar { file, index } => {
                 let entry = index.get(&full).ok_or_else(|| BundleError::MissingFile { path: path.into() })?;
@@ -196,7 +197,10 @@ impl Source {
                 let mut file = file.lock().unwrap_or_else(|p| p.into_inner());
                 file.seek(SeekFrom::Start(entry.data_offset)).map_err(|e| io_err(path, e))?;
                 let mut bytes = vec![0u8; entry.size as usize];
-                file.read_exact(&mut bytes).map_err(|e| io_err(path, e))?;
+                file.read_exact(&mut bytes).map_err(|e| match e.kind() {
+                    std::io::ErrorKind::UnexpectedEof => damaged_entry(path, "the archive ends inside this entry"),
+                    _ => io_err(path, e),
+                })?;
                 Ok(bytes)
             }
         }
@@ -283,15 +287,24 @@ fn read_up_to(file: &mut File, buf: &mut [u8]) -> std::io::Result<usize> {
 }
 
 /// Reads at most `max` bytes; more means the declared size lied (a bomb) or the cap is too small.
-fn read_capped(reader: &mut impl Read, max: u64, path: &str) -> Result<Vec<u8>, BundleError> {
+fn read_capped(
+    reader: &mut impl Read,
+    max: u64,
+    path: &str,
+    on_error: fn(&str, std::io::Error) -> BundleError,
+) -> Result<Vec<u8>, BundleError> {
     let mut bytes = Vec::new();
-    reader.take(max + 1).read_to_end(&mut bytes).map_err(|e| io_err(path, e))?;
+    reader.take(max + 1).read_to_end(&mut bytes).map_err(|e| on_error(path, e))?;
     if bytes.len() as u64 > max {
         return Err(BundleError::Limit {
             message: format!("{path}: larger than the per-file cap of {max} bytes"),
         });
     }
     Ok(bytes)
+}
+
+fn damaged_entry(path: &str, e: impl std::fmt::Display) -> BundleError {
+    BundleError::Archive { message: format!("{path}: damaged archive entry: {e}") }
 }
 
 fn too_many_files(n: usize, limits: Limits) -> BundleError {

@@ -37,19 +37,31 @@ impl FileStore {
         self.path_of(sha256).is_file()
     }
 
-    /// Makes the temporary file durable under its hash. Idempotent: an existing file of the same
-    /// hash is kept and the temporary one discarded.
-    pub fn commit(&self, file: tempfile::NamedTempFile, sha256: &str) -> io::Result<PathBuf> {
+    /// Makes the temporary file's contents durable (fsync); slow for big uploads, so done before
+    /// the database transaction that [`FileStore::place`]s it.
+    pub fn prepare(&self, file: &tempfile::NamedTempFile) -> io::Result<()> {
+        file.as_file().sync_all()
+    }
+
+    /// Renames a prepared temporary file under its hash and fsyncs the directory. Idempotent: an
+    /// existing file of the same hash is kept and the temporary one discarded. Callers hold the
+    /// database's write lock, which serialises this with the retention sweep's deletion.
+    pub fn place(&self, file: tempfile::NamedTempFile, sha256: &str) -> io::Result<PathBuf> {
         let target = self.path_of(sha256);
         if target.is_file() {
             return Ok(target);
         }
-        file.as_file().sync_all()?;
         let dir = target.parent().expect("hash paths have a parent");
         std::fs::create_dir_all(dir)?;
         file.persist(&target).map_err(|e| e.error)?;
         std::fs::File::open(dir)?.sync_all()?;
         Ok(target)
+    }
+
+    /// [`FileStore::prepare`] and [`FileStore::place`] at once.
+    pub fn commit(&self, file: tempfile::NamedTempFile, sha256: &str) -> io::Result<PathBuf> {
+        self.prepare(&file)?;
+        self.place(file, sha256)
     }
 
     pub fn remove(&self, sha256: &str) -> io::Result<()> {
@@ -59,11 +71,17 @@ impl FileStore {
         }
     }
 
-    /// Deletes leftovers of uploads interrupted by a crash.
-    pub fn clear_temporaries(&self) -> io::Result<usize> {
+    /// Deletes leftovers of uploads interrupted by a crash: temporaries untouched for `age` (another
+    /// process on the same data directory may be writing younger ones right now).
+    pub fn clear_temporaries(&self, age: std::time::Duration) -> io::Result<usize> {
         let mut n = 0;
         for entry in std::fs::read_dir(&self.tmp)? {
-            let path = entry?.path();
+            let entry = entry?;
+            let modified = entry.metadata()?.modified()?;
+            if modified.elapsed().map_or(true, |e| e < age) {
+                continue;
+            }
+            let path = entry.path();
             let removed = if path.is_dir() { std::fs::remove_dir_all(&path) } else { std::fs::remove_file(&path) };
             n += removed.is_ok() as usize;
         }

@@ -159,6 +159,7 @@ pub struct Claimed {
     pub upload_sha256: String,
     pub options_json: String,
     pub attempts: i64,
+    pub max_attempts: i64,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -260,9 +261,11 @@ impl Store {
             .await?)
     }
 
-    /// Records an accepted upload and its queued inspection in one transaction. The upload's file
-    /// must already be committed to the file store.
-    pub async fn insert_inspection(&self, new: &NewInspection) -> Result<Inserted, StoreError> {
+    /// Records an accepted upload and its queued inspection in one transaction, placing the
+    /// (prepared, i.e. fsynced) upload file under its hash while the transaction holds the write
+    /// lock: the retention sweep deletes files under the same lock, so a committed row always has
+    /// its file.
+    pub async fn insert_inspection(&self, new: &NewInspection, file: tempfile::NamedTempFile) -> Result<Inserted, StoreError> {
         let now = now_ms();
         let mut tx = self.pool.begin().await?;
         // A write first, so the transaction holds the write lock before it reads the key.
@@ -292,6 +295,11 @@ impl Store {
                 };
             }
         }
+        let files = self.files.clone();
+        let sha = new.upload.sha256.clone();
+        tokio::task::spawn_blocking(move || files.place(file, &sha))
+            .await
+            .map_err(|e| StoreError::Io(std::io::Error::other(e)))??;
         sqlx::query(
             "INSERT INTO inspections (id, status, upload_sha256, serial, connection, client_reference, options_json, \
              created_at, updated_at, max_attempts, available_at, idempotency_key, request_sha256) \
@@ -389,7 +397,7 @@ impl Store {
              WHERE id = (SELECT id FROM inspections WHERE cancel_requested = 0 AND \
                ((status = 'queued' AND available_at <= ?) OR (status = 'running' AND lease_expires_at < ?)) \
                ORDER BY id LIMIT 1) \
-             RETURNING id, upload_sha256, options_json, attempts",
+             RETURNING id, upload_sha256, options_json, attempts, max_attempts",
         )
         .bind(owner)
         .bind(now + lease.as_millis() as i64)
@@ -540,7 +548,8 @@ impl Store {
     }
 
     /// Puts a job back in the queue: a retryable failure (after `delay`, error kept for the
-    /// record) or a release at shutdown (delay zero, attempt not counted).
+    /// record) or a release at shutdown (delay zero, attempt not counted). A job whose cancel was
+    /// requested is canceled instead (claims skip it, so queued it would wait forever).
     pub async fn requeue(
         &self,
         id: &str,
@@ -551,10 +560,12 @@ impl Store {
     ) -> Result<bool, StoreError> {
         let now = now_ms();
         let updated = sqlx::query(
-            "UPDATE inspections SET status = 'queued', available_at = ?, updated_at = ?, lease_owner = NULL, \
-             lease_expires_at = NULL, error_json = COALESCE(?, error_json), attempts = attempts - ?, \
+            "UPDATE inspections SET status = CASE WHEN cancel_requested = 1 THEN 'canceled' ELSE 'queued' END, \
+             finished_at = CASE WHEN cancel_requested = 1 THEN ? ELSE NULL END, available_at = ?, updated_at = ?, \
+             lease_owner = NULL, lease_expires_at = NULL, error_json = COALESCE(?, error_json), attempts = attempts - ?, \
              progress_stage = NULL, progress_fraction = NULL WHERE id = ? AND lease_owner = ? AND status = 'running'",
         )
+        .bind(now)
         .bind(now + delay.as_millis() as i64)
         .bind(now)
         .bind(problem_json)
@@ -645,11 +656,27 @@ impl Store {
         .bind(cutoff_ms)
         .fetch_all(&self.pool)
         .await?;
+        let mut purged = 0;
         for (sha,) in &due {
-            sqlx::query("UPDATE uploads SET purged_at = ? WHERE sha256 = ?").bind(now_ms()).bind(sha).execute(&self.pool).await?;
-            self.files.remove(sha)?;
+            // Re-checked and deleted under the write lock: an upload of the same bundle accepted
+            // since the SELECT keeps its file (it places it under the same lock).
+            let mut tx = self.pool.begin().await?;
+            let marked = sqlx::query(
+                "UPDATE uploads SET purged_at = ? WHERE sha256 = ? AND purged_at IS NULL AND NOT EXISTS (SELECT 1 \
+                 FROM inspections i WHERE i.upload_sha256 = uploads.sha256 AND (i.finished_at IS NULL OR i.finished_at >= ?))",
+            )
+            .bind(now_ms())
+            .bind(sha)
+            .bind(cutoff_ms)
+            .execute(&mut *tx)
+            .await?;
+            if marked.rows_affected() == 1 {
+                self.files.remove(sha)?;
+                purged += 1;
+            }
+            tx.commit().await?;
         }
-        Ok(due.len())
+        Ok(purged)
     }
 
     pub async fn ping(&self) -> Result<(), StoreError> {
