@@ -132,7 +132,10 @@ const DRAIN_BYTES: u64 = 64 << 20;
 /// Reads and drops up to 64 MiB of a body that is being refused, so a client that sends it whole
 /// (without `Expect: 100-continue`) reads the problem instead of a reset connection.
 pub async fn drain(body: Body) {
-    let mut stream = body.into_data_stream();
+    drain_stream(body.into_data_stream()).await
+}
+
+async fn drain_stream(mut stream: axum::body::BodyDataStream) {
     let mut seen = 0u64;
     while let Some(Ok(chunk)) = stream.next().await {
         seen += chunk.len() as u64;
@@ -190,13 +193,7 @@ async fn receive_raw(body: Body, files: &FileStore, limit: u64) -> Result<Receiv
     while let Some(chunk) = stream.next().await {
         let chunk = chunk.map_err(|e| ApiError::new("bad_request", format!("reading the body: {e}")))?;
         if let Err(e) = upload.count(chunk.len()) {
-            let mut rest = 0u64;
-            while let Some(Ok(chunk)) = stream.next().await {
-                rest += chunk.len() as u64;
-                if rest > DRAIN_BYTES {
-                    break;
-                }
-            }
+            drain_stream(stream).await;
             return Err(e);
         }
         upload.send(Chunk::Raw(chunk)).await?;

@@ -164,9 +164,7 @@ async fn problem_response(response: Response, path: String) -> Response {
     let detail = if text.trim().is_empty() { status.canonical_reason().unwrap_or("error").to_string() } else { text };
     let mut problem = ApiError::new(code, detail).problem(Some(path));
     problem.status = status.as_u16();
-    let mut out = Response::from_parts(parts, axum::body::Body::empty());
-    out = with_problem(problem, out);
-    out
+    with_problem(problem, Response::from_parts(parts, axum::body::Body::empty()))
 }
 
 fn with_problem(problem: problem::Problem, response: Response) -> Response {
