@@ -1,83 +1,369 @@
-//! Black-crest detection, photometric half: a crest showing mill scale is far darker than machined
-//! steel under the coaxial light. Each thread's crest brightness per bin is compared with the
-//! median crest brightness of the part (most crests are machined). The geometric half (a crest
-//! below nominal − tolerance, which also catches polished black crests) is applied by the rule
-//! engine from the heights, which this stage hands over median-filtered over three bins. The end
-//! chamfer is machined: crests within 1.5 pitches of the end face
-//! that look machined are flagged as chamfer, never as black.
+//! Black-crest detection, both ways the seed names.
+//!
+//! Photometric: a crest showing mill scale is far darker than machined steel under the coaxial
+//! light. Each thread's crest brightness per bin is compared with the median crest brightness of the
+//! part (most crests are machined).
+//!
+//! Geometric: a black crest is the mill surface, which lies below the cone the chaser cut, so a
+//! crest is on the mill surface where it falls below the machined crest cone. The cone is fitted to
+//! every crest of the part (r = a + b·z + c·cos θ + d·sin θ: the lathe cuts a round cone whose axis
+//! may sit off the pipe frame's), trimmed one-sidedly so that black crests do not pull it down. The
+//! deficit below it, median-filtered along the helix, starts a black run where it clearly exceeds
+//! the noise and extends it while it stays above a lower threshold (hysteresis: the mill surface
+//! meets the cone at a shallow angle, so a black crest's ends are shallow). This catches crests
+//! polished to look machined, and unlike a height threshold it does not mistake a vanishing thread
+//! (shallow because its root rises, its crest still machined) for a black one. The end chamfer is
+//! machined: crests within 1.5 pitches of the end face that look machined are flagged as chamfer,
+//! never as black.
 
-use crate::profile::ThreadMeasure;
+use crate::profile::{BinMeasure, ThreadMeasure};
 use crate::rules::{CrestBin, ThreadObservation};
+use nalgebra::{Matrix4, Vector4};
 use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct CrestOptions {
     /// A crest darker than this fraction of the median crest brightness shows mill scale.
     pub dark_fraction: f32,
+    /// A crest this far below the machined crest cone (median of five bins along the helix) starts
+    /// a geometric black run; the threshold rises to four times the crests' own scatter when that
+    /// is larger.
+    pub mill_onset_um: f64,
+    /// A run extends along the helix while the crest stays this far below the cone (or 1.5 times
+    /// the scatter, when larger).
+    pub mill_extent_um: f64,
 }
 
 impl Default for CrestOptions {
     fn default() -> Self {
-        Self { dark_fraction: 0.45 }
+        Self { dark_fraction: 0.45, mill_onset_um: 15.0, mill_extent_um: 5.0 }
     }
 }
 
-/// The height the geometric test sees at bin k: the median of the bin and its two neighbours, so a
-/// single noisy bin cannot make a black crest, while any real one (a crest left at the mill radius
-/// spans degrees) still shows. None unless at least two of the three were measured.
-fn detection_height(bins: &[crate::profile::BinMeasure], k: usize) -> Option<f64> {
-    let mut values: Vec<f64> =
-        [k.checked_sub(1), Some(k), Some(k + 1)].into_iter().flatten().filter_map(|i| bins.get(i)?.height_mm).collect();
-    if values.len() < 2 || bins[k].height_mm.is_none() {
+/// The machined crest cone r = a + b·z + c·cos θ + d·sin θ fitted to the part's crests.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CrestCone {
+    pub radius_at_end_mm: f64,
+    /// Radial growth per mm of z (half the taper on diameter).
+    pub slope: f64,
+    /// Offset of the cone's axis from the pipe frame's, x and y.
+    pub axis_offset_mm: [f64; 2],
+    /// Robust scatter of the median-filtered crest radii about the cone.
+    pub scatter_um: f64,
+    pub crests_fitted: usize,
+    /// The thresholds the geometric test used.
+    pub onset_um: f64,
+    pub extent_um: f64,
+}
+
+impl CrestCone {
+    pub fn radius_at(&self, z_mm: f64, theta_deg: f64) -> f64 {
+        let (sin, cos) = theta_deg.to_radians().sin_cos();
+        self.radius_at_end_mm + self.slope * z_mm + self.axis_offset_mm[0] * cos + self.axis_offset_mm[1] * sin
+    }
+}
+
+/// What the crest stage hands on: the rule engine's input per thread, the reference (machined)
+/// crest brightness and the fitted crest cone.
+#[derive(Clone, Debug)]
+pub struct CrestFindings {
+    pub observations: Vec<ThreadObservation>,
+    pub machined_crest_gray: f32,
+    pub cone: Option<CrestCone>,
+}
+
+fn median(values: &mut [f64]) -> Option<f64> {
+    if values.is_empty() {
         return None;
     }
-    values.sort_by(f64::total_cmp);
-    Some(if values.len() == 3 { values[1] } else { 0.5 * (values[0] + values[1]) })
+    let mid = values.len() / 2;
+    Some(*values.select_nth_unstable_by(mid, f64::total_cmp).1)
 }
 
-/// The rule engine's input for each thread, and the reference (machined) crest brightness.
+/// Least-squares cone through (z, θ°, r), trimmed one-sidedly from an initial guess at the nominal
+/// slope. None with fewer than 20 crests.
+fn fit_cone(crests: &[(f64, f64, f64)], nominal_slope: f64) -> Option<(Vector4<f64>, f64, usize)> {
+    if crests.len() < 20 {
+        return None;
+    }
+    let row = |z: f64, theta_deg: f64| {
+        let (sin, cos) = theta_deg.to_radians().sin_cos();
+        Vector4::new(1.0, z, cos, sin)
+    };
+    let mut offsets: Vec<f64> = crests.iter().map(|&(z, _, r)| r - nominal_slope * z).collect();
+    let mut params = Vector4::new(median(&mut offsets)?, nominal_slope, 0.0, 0.0);
+    let mut sigma = f64::INFINITY;
+    let mut used = 0;
+    for _ in 0..6 {
+        let residuals: Vec<f64> = crests.iter().map(|&(z, t, r)| r - row(z, t).dot(&params)).collect();
+        let mut abs: Vec<f64> = residuals.iter().map(|e| e.abs()).collect();
+        // The first pass measures the scatter of the bulk (most crests are machined).
+        sigma = (1.4826 * median(&mut abs)?).max(1e-4);
+        let (mut ata, mut atb) = (Matrix4::<f64>::zeros(), Vector4::<f64>::zeros());
+        used = 0;
+        for (&(z, t, r), &e) in crests.iter().zip(&residuals) {
+            // Black crests lie below the cone: trim far more readily below than above.
+            if e < -2.5 * sigma || e > 4.0 * sigma {
+                continue;
+            }
+            let x = row(z, t);
+            ata += x * x.transpose();
+            atb += x * r;
+            used += 1;
+        }
+        if used < 20 {
+            return None;
+        }
+        params = ata.lu().solve(&atb)?;
+    }
+    Some((params, sigma, used))
+}
+
+/// Robust scatter of the smoothed deficits (µm) and the onset and extent thresholds it implies.
+fn thresholds(smoothed: &[Option<f64>], options: &CrestOptions) -> (f64, f64, f64) {
+    // Most crests are machined: their deficits scatter about zero, the black ones sit far out.
+    let mut abs: Vec<f64> = smoothed.iter().flatten().map(|d| d.abs()).collect();
+    let scatter_um = 1e3 * 1.4826 * median(&mut abs).unwrap_or(0.0);
+    (options.mill_onset_um.max(4.0 * scatter_um), options.mill_extent_um.max(1.5 * scatter_um), scatter_um)
+}
+
+/// Marks runs along the helix: a bin whose deficit reaches `onset` starts a run, which extends in
+/// both directions over bins whose deficit stays at or above `extent` (a gap ends it).
+fn mill_runs(smoothed: &[Option<f64>], onset_mm: f64, extent_mm: f64) -> Vec<bool> {
+    let mut on = vec![false; smoothed.len()];
+    let above = |i: usize, t: f64| smoothed[i].is_some_and(|d| d >= t);
+    for i in 0..smoothed.len() {
+        if !above(i, onset_mm) || on[i] {
+            continue;
+        }
+        let (mut lo, mut hi) = (i, i);
+        while lo > 0 && above(lo - 1, extent_mm) {
+            lo -= 1;
+        }
+        while hi + 1 < smoothed.len() && above(hi + 1, extent_mm) {
+            hi += 1;
+        }
+        on[lo..=hi].iter_mut().for_each(|b| *b = true);
+    }
+    on
+}
+
+/// Where a geometric run shows mill scale anywhere, the darkness marks its extent: the crest
+/// radius is fitted over a window as wide as the flat, and the flat mill surface cuts the rising
+/// cone's far edge a few degrees before it reaches the centre line, so the geometric run starts
+/// early on that side; the brightness is read on the centre line itself. A run with no dark bin
+/// (a polished crest) stands on its geometry alone.
+fn defer_to_darkness(runs: &mut [bool], dark: &[bool]) {
+    let mut i = 0;
+    while i < runs.len() {
+        if !runs[i] {
+            i += 1;
+            continue;
+        }
+        let end = runs[i..].iter().position(|r| !r).map_or(runs.len(), |n| i + n);
+        if dark[i..end].iter().any(|&d| d) {
+            for k in i..end {
+                runs[k] = dark[k];
+            }
+        }
+        i = end;
+    }
+}
+
+/// The rule engine's input for each thread, the reference crest brightness and the crest cone.
+/// `nominal_slope` (half the nominal taper on diameter) seeds the cone fit.
 pub fn observations(
     threads: &[ThreadMeasure],
     lc_mm: f64,
     pitch_mm: f64,
+    nominal_slope: f64,
     options: &CrestOptions,
-) -> (Vec<ThreadObservation>, f32) {
+) -> CrestFindings {
     let mut grays: Vec<f32> = threads.iter().flat_map(|t| t.bins.iter().filter_map(|b| b.crest_gray)).collect();
     grays.sort_by(f32::total_cmp);
     let reference = grays.get(grays.len() / 2).copied().unwrap_or(0.0);
     let dark_below = options.dark_fraction * reference;
+    let is_dark = |b: &BinMeasure| b.crest_gray.is_some_and(|g| g < dark_below);
+    let chamfer_zone_mm = 1.5 * pitch_mm;
+    let in_helix_order = || threads.iter().flat_map(|t| t.bins.iter());
+
+    // Geometric: the crests' deficits below the fitted cone, in helix order.
+    let crests: Vec<(f64, f64, f64)> = in_helix_order()
+        .filter(|b| b.crest_z_mm >= chamfer_zone_mm && !is_dark(b))
+        .filter_map(|b| Some((b.crest_z_mm, b.angle_deg, b.crest_radius_mm?)))
+        .collect();
+    let (on_mill, cone) = match fit_cone(&crests, nominal_slope) {
+        None => (vec![false; in_helix_order().count()], None),
+        Some((params, _, used)) => {
+            let deficits: Vec<Option<f64>> = in_helix_order()
+                .map(|b| {
+                    let (sin, cos) = b.angle_deg.to_radians().sin_cos();
+                    let cone = Vector4::new(1.0, b.crest_z_mm, cos, sin).dot(&params);
+                    b.crest_radius_mm.map(|r| cone - r)
+                })
+                .collect();
+            let smoothed = crate::profile::median_along_helix(&deficits);
+            let (onset_um, extent_um, scatter_um) = thresholds(&smoothed, options);
+            let cone = CrestCone {
+                radius_at_end_mm: params[0],
+                slope: params[1],
+                axis_offset_mm: [params[2], params[3]],
+                scatter_um,
+                crests_fitted: used,
+                onset_um,
+                extent_um,
+            };
+            let mut runs = mill_runs(&smoothed, 1e-3 * onset_um, 1e-3 * extent_um);
+            let dark: Vec<bool> = in_helix_order().map(is_dark).collect();
+            defer_to_darkness(&mut runs, &dark);
+            (runs, Some(cone))
+        }
+    };
+
+    let mut on_mill = on_mill.into_iter();
     let observations = threads
         .iter()
         .map(|t| {
             let dz_per_deg = pitch_mm / 360.0;
             let mut arcs = Vec::new();
             let mut bins = Vec::with_capacity(t.bins.len());
-            for (k, b) in t.bins.iter().enumerate() {
+            for b in &t.bins {
                 let start = b.angle_deg - 0.5;
-                let dark = b.crest_gray.is_some_and(|g| g < dark_below);
+                let dark = is_dark(b);
                 let z_start = b.crest_z_mm - 0.5 * dz_per_deg;
                 if dark && z_start <= lc_mm {
                     let end = (start + 1.0).min(start + (lc_mm - z_start) / dz_per_deg);
                     arcs.push([start, end]);
                 }
+                let chamfer = !dark && b.crest_z_mm < chamfer_zone_mm;
                 bins.push(CrestBin {
                     angle_deg: start,
                     width_deg: 1.0,
                     z_mm: b.crest_z_mm,
-                    height_mm: detection_height(&t.bins, k),
-                    chamfer: !dark && b.crest_z_mm < 1.5 * pitch_mm,
+                    height_mm: b.height_mm,
+                    chamfer,
+                    on_mill_surface: on_mill.next().unwrap_or(false) && !chamfer,
                 });
             }
             ThreadObservation { index: t.index, black_crest_arcs_deg: crate::rules::union_arcs(arcs), bins }
         })
         .collect();
-    (observations, reference)
+    CrestFindings { observations, machined_crest_gray: reference, cone }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::profile::BinMeasure;
+
+    const PITCH: f64 = 5.08;
+    const SLOPE: f64 = 0.0625 / 2.0;
+
+    /// Seven threads whose crests lie on a cone whose axis is 0.04 mm off the frame's, with ±4 µm
+    /// of deterministic scatter; `crest(index, θ°, cone radius)` may move a crest below the cone.
+    fn part(crest: impl Fn(u32, f64, f64) -> f64) -> Vec<ThreadMeasure> {
+        let mut seed = 7u64;
+        (1..=7)
+            .map(|index| {
+                let bins = (0..360)
+                    .map(|k| {
+                        let angle_deg = k as f64 + 0.5;
+                        let z = 1.0 + PITCH * (index as f64 - 1.0 + angle_deg / 360.0);
+                        let cone = 55.0 + SLOPE * z + 0.04 * angle_deg.to_radians().cos();
+                        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                        let jitter = ((seed >> 33) as f64 / (1u64 << 31) as f64 - 0.5) * 0.008;
+                        BinMeasure {
+                            angle_deg,
+                            crest_z_mm: z,
+                            height_mm: Some(1.5),
+                            crest_radius_mm: Some(crest(index, angle_deg, cone) + jitter),
+                            crest_gray: Some(0.5),
+                        }
+                    })
+                    .collect();
+                ThreadMeasure { index, bins }
+            })
+            .collect()
+    }
+
+    fn mill_arcs(findings: &CrestFindings, index: u32) -> Vec<[f64; 2]> {
+        let t = findings.observations.iter().find(|t| t.index == index).unwrap();
+        crate::rules::union_arcs(
+            t.bins.iter().filter(|b| b.on_mill_surface).map(|b| [b.angle_deg, b.angle_deg + b.width_deg]).collect(),
+        )
+    }
+
+    #[test]
+    fn a_polished_crest_below_the_cone_is_found_to_its_shallow_ends() {
+        // Thread 5 meets an undersize mill surface from 100° to 160°, 60 µm deep in the middle.
+        let threads = part(|index, theta, cone| {
+            let depth = if index == 5 { (0.060 - 0.002 * (theta - 130.0).abs()).max(0.0) } else { 0.0 };
+            cone - depth
+        });
+        let findings = observations(&threads, 40.0, PITCH, SLOPE, &CrestOptions::default());
+        let cone = findings.cone.as_ref().unwrap();
+        assert!((cone.axis_offset_mm[0] - 0.04).abs() < 0.002 && cone.axis_offset_mm[1].abs() < 0.002, "{cone:?}");
+        assert!((cone.slope - SLOPE).abs() < 1e-3, "{cone:?}");
+        assert!(cone.scatter_um < 4.0, "{cone:?}");
+        let arcs = mill_arcs(&findings, 5);
+        assert_eq!(arcs.len(), 1, "{arcs:?}");
+        // The deficit exceeds the 5 µm extent from 102.5° to 157.5°.
+        assert!((arcs[0][0] - 102.5).abs() <= 2.0 && (arcs[0][1] - 157.5).abs() <= 2.0, "{arcs:?}");
+        for index in [1, 2, 3, 4, 6, 7] {
+            assert!(mill_arcs(&findings, index).is_empty(), "thread {index}");
+        }
+        // The rule engine reports it as a polished black crest (bright, found by geometry).
+        let input = crate::rules::RuleInput {
+            family: crate::thread::Family::Buttress,
+            lc_mm: 40.0,
+            circumference_mm: 350.0,
+            nominal_height_mm: 1.5,
+            height_tolerance_mm: 0.05,
+            threads: findings.observations,
+        };
+        let a = crate::rules::assess(&input, crate::rules::ArcRule::PerThread);
+        assert_eq!(a.black_threads.len(), 1);
+        assert_eq!(a.black_threads[0].evidence, crate::rules::BlackCrestEvidence::Geometric);
+    }
+
+    #[test]
+    fn a_vanishing_thread_with_machined_crests_is_not_black() {
+        // Heights fall to a third toward the vanish end because the roots rise; crests stay on the cone.
+        let mut threads = part(|_, _, cone| cone);
+        for t in threads.iter_mut().filter(|t| t.index >= 5) {
+            t.bins.iter_mut().for_each(|b| b.height_mm = Some(0.5));
+        }
+        let findings = observations(&threads, 40.0, PITCH, SLOPE, &CrestOptions::default());
+        assert!(findings.observations.iter().all(|t| t.bins.iter().all(|b| !b.on_mill_surface)));
+        let input = crate::rules::RuleInput {
+            family: crate::thread::Family::Round,
+            lc_mm: 40.0,
+            circumference_mm: 350.0,
+            nominal_height_mm: 1.5,
+            height_tolerance_mm: 0.05,
+            threads: findings.observations,
+        };
+        assert_eq!(crate::rules::assess(&input, crate::rules::ArcRule::PerThread).verdict, crate::rules::Verdict::Accept);
+    }
+
+    #[test]
+    fn runs_start_at_the_onset_and_extend_over_the_extent() {
+        let d = |v: &[f64]| v.iter().map(|&x| Some(x)).collect::<Vec<_>>();
+        let runs = mill_runs(&d(&[0.0, 0.006, 0.010, 0.020, 0.007, 0.004, 0.009, 0.0]), 0.015, 0.005);
+        assert_eq!(runs, [false, true, true, true, true, false, false, false]);
+        // A gap (unmeasured bin) ends a run; extent-level bins alone start nothing.
+        let mut gapped = d(&[0.020, 0.010, 0.010, 0.0]);
+        gapped[1] = None;
+        assert_eq!(mill_runs(&gapped, 0.015, 0.005), [true, false, false, false]);
+    }
+
+    #[test]
+    fn darkness_marks_the_extent_of_runs_that_show_it() {
+        let mut runs = vec![false, true, true, true, true, false, true, true, false];
+        let dark = [false, false, true, true, false, false, false, false, false];
+        defer_to_darkness(&mut runs, &dark);
+        assert_eq!(runs, [false, false, true, true, false, false, true, true, false]);
+    }
 
     #[test]
     fn dark_crests_within_lc_become_arcs_clipped_at_lc() {
@@ -92,12 +378,12 @@ mod tests {
             .collect();
         let threads = vec![ThreadMeasure { index: 6, bins }];
         // Lc at z = 31.0 → θ = (31 − 30) / 5.08 · 360 = 70.9°: no dark crest within Lc.
-        let (obs, reference) = observations(&threads, 31.0, 5.08, &CrestOptions::default());
-        assert_eq!(reference, 0.5);
-        assert!(obs[0].black_crest_arcs_deg.is_empty());
+        let findings = observations(&threads, 31.0, 5.08, 0.0, &CrestOptions::default());
+        assert_eq!(findings.machined_crest_gray, 0.5);
+        assert!(findings.observations[0].black_crest_arcs_deg.is_empty());
         // Lc at z = 32.0 → θ = 141.7°: the dark arc runs 100° to 141.7°.
-        let (obs, _) = observations(&threads, 32.0, 5.08, &CrestOptions::default());
-        let arc = obs[0].black_crest_arcs_deg[0];
+        let findings = observations(&threads, 32.0, 5.08, 0.0, &CrestOptions::default());
+        let arc = findings.observations[0].black_crest_arcs_deg[0];
         assert_eq!(arc[0], 100.0);
         assert!((arc[1] - 2.0 / 5.08 * 360.0).abs() < 1e-9, "{arc:?}");
     }

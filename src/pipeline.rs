@@ -181,7 +181,8 @@ pub fn inspect(
     }
 
     progress(Stage::Rules, 0.0);
-    let (observations, machined_gray) = crest::observations(&threads, part.lc_mm, helix.pitch_mm, &options.crest);
+    let crest::CrestFindings { observations, machined_crest_gray, cone: crest_cone } =
+        crest::observations(&threads, part.lc_mm, helix.pitch_mm, form.radius_slope(), &options.crest);
     let input = RuleInput {
         family: part.family(),
         lc_mm: part.lc_mm,
@@ -231,7 +232,8 @@ pub fn inspect(
         registration: registration.clone(),
         depth_coverage,
         map_coverage: map.coverage(),
-        machined_crest_gray: machined_gray,
+        machined_crest_gray,
+        crest_cone,
         timings,
         peak_memory_mb: report::peak_memory_mb(),
     };

@@ -320,7 +320,7 @@ pub fn measure_threads(map: &UnrolledMap, form: &ThreadForm, helix: &Helix) -> V
 /// crest, the run-out) spans many bins and keeps its edges, which a median does not move. The
 /// sequence is the helix, not the circle: across 360° → 0° a crest continues as the next thread,
 /// whose height on a run-out differs.
-fn median_along_helix(heights: &[Option<f64>]) -> Vec<Option<f64>> {
+pub(crate) fn median_along_helix(heights: &[Option<f64>]) -> Vec<Option<f64>> {
     let n = heights.len();
     let window = |i: usize, half: usize| -> Option<Vec<f64>> {
         if i < half || i + half >= n {

@@ -55,6 +55,8 @@ pub struct Report {
     pub depth_coverage: f64,
     pub map_coverage: f64,
     pub machined_crest_gray: f32,
+    /// The machined crest cone the geometric black-crest test measured crests against.
+    pub crest_cone: Option<crate::crest::CrestCone>,
     pub timings: Vec<StageTiming>,
     /// Peak resident memory of the process (Linux VmHWM), when known.
     pub peak_memory_mb: Option<f64>,

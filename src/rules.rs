@@ -5,9 +5,11 @@
 //!   not exceed 25% of the circumference, per thread (default) or over all threads combined.
 //!
 //! A crest point is black where the photometric stage saw mill scale on it (arcs, already clipped to
-//! Lc) or where the crest height is below nominal − tolerance within Lc (a crest left at the mill
-//! radius, which catches crests polished to look machined). The chamfer at the pipe end is machined:
-//! bins flagged `chamfer` never count as geometric black crests.
+//! Lc) or where the crest stage found the crest geometrically on the mill surface within Lc (below
+//! the machined crest cone, which catches crests polished to look machined; a low height alone is
+//! not enough: a vanishing thread is shallow because its root rises, its crest is still machined).
+//! The chamfer at the pipe end is machined: bins flagged `chamfer` never count as geometric black
+//! crests.
 
 use crate::thread::Family;
 use serde::{Deserialize, Serialize};
@@ -39,6 +41,9 @@ pub struct CrestBin {
     /// The crest here is the machined end chamfer, not a thread crest.
     #[serde(default)]
     pub chamfer: bool,
+    /// The crest stage found this crest below the machined crest cone: it is the mill surface.
+    #[serde(default)]
+    pub on_mill_surface: bool,
 }
 
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -159,13 +164,12 @@ pub fn arc_length_mm(arcs_deg: &[[f64; 2]], circumference_mm: f64) -> f64 {
     arcs_deg.iter().map(|a| a[1] - a[0]).sum::<f64>() / 360.0 * circumference_mm
 }
 
-/// Black arcs of one thread from its heights: bins within Lc whose height is below the full-crest
-/// minimum. The part of a bin beyond Lc is cut off by interpolating the crest z across the bin.
-fn geometric_arcs(bins: &[CrestBin], lc_mm: f64, min_full_height_mm: f64) -> Vec<[f64; 2]> {
+/// Black arcs of one thread from its geometry: bins within Lc whose crest is on the mill surface.
+/// The part of a bin beyond Lc is cut off by interpolating the crest z across the bin.
+fn geometric_arcs(bins: &[CrestBin], lc_mm: f64) -> Vec<[f64; 2]> {
     let mut arcs = Vec::new();
     for (k, bin) in bins.iter().enumerate() {
-        let Some(height) = bin.height_mm else { continue };
-        if bin.chamfer || height >= min_full_height_mm {
+        if bin.chamfer || !bin.on_mill_surface {
             continue;
         }
         // z grows linearly along the helix: estimate dz/dθ from the neighbours.
@@ -212,11 +216,10 @@ fn lengths_text(threads: &[&BlackThread]) -> String {
 
 /// Applies the acceptance rules.
 pub fn assess(input: &RuleInput, arc_rule: ArcRule) -> Assessment {
-    let min_full = input.nominal_height_mm - input.height_tolerance_mm;
     let mut black_threads = Vec::new();
     for thread in &input.threads {
         let photometric = union_arcs(thread.black_crest_arcs_deg.clone());
-        let geometric = union_arcs(geometric_arcs(&thread.bins, input.lc_mm, min_full));
+        let geometric = union_arcs(geometric_arcs(&thread.bins, input.lc_mm));
         let evidence = match (photometric.is_empty(), geometric.is_empty()) {
             (true, true) => continue,
             (false, true) => BlackCrestEvidence::Photometric,
@@ -235,13 +238,13 @@ pub fn assess(input: &RuleInput, arc_rule: ArcRule) -> Assessment {
         reasons.push(Reason {
             code: ReasonCode::PolishedBlackCrest,
             message: format!(
-                "thread {}: crest height below {:.3} mm over {:.1} mm within Lc with a machined look: \
-                 a black crest polished or finished to look full",
-                t.index, min_full, t.length_mm
+                "thread {}: crest on the mill surface, below the machined crest cone, over {:.1} mm within Lc \
+                 with a machined look: a black crest polished or finished to look full",
+                t.index, t.length_mm
             ),
             threads: vec![t.index],
             value: Some(t.length_mm),
-            limit: Some(min_full),
+            limit: None,
             unit: Some("mm".into()),
         });
     }
@@ -391,7 +394,8 @@ mod tests {
         }
     }
 
-    /// Full bins everywhere except `low` (start, end) degrees, where the height is `height`.
+    /// Full machined bins everywhere except `low` (start, end) degrees, where the height is `height`
+    /// and the crest is on the mill surface.
     fn bins(z0: f64, pitch: f64, low: (usize, usize), height: f64, chamfer: bool) -> Vec<CrestBin> {
         (0..360)
             .map(|k| {
@@ -402,6 +406,7 @@ mod tests {
                     z_mm: z0 + pitch * (k as f64 + 0.5) / 360.0,
                     height_mm: Some(if is_low { height } else { 1.0 }),
                     chamfer: chamfer && is_low,
+                    on_mill_surface: is_low,
                 }
             })
             .collect()
@@ -491,8 +496,8 @@ mod tests {
     }
 
     #[test]
-    fn polished_crest_is_black_by_its_height() {
-        // Bright crest (no photometric arc) whose height is below 1.000 − 0.030 over 30°.
+    fn polished_crest_is_black_by_its_geometry() {
+        // Bright crest (no photometric arc) on the mill surface over 30°.
         let t = ThreadObservation { index: 4, black_crest_arcs_deg: vec![], bins: bins(18.0, 5.08, (100, 130), 0.95, false) };
         let mut input = buttress(vec![t]);
         input.family = Family::Round;
@@ -501,9 +506,10 @@ mod tests {
         assert_eq!(a.black_threads[0].evidence, BlackCrestEvidence::Geometric);
         assert_eq!(a.black_threads[0].arcs_deg, vec![[100.0, 130.0]]);
         assert!(a.reasons.iter().any(|r| r.code == ReasonCode::PolishedBlackCrest));
-        // A crest just inside tolerance is full.
-        let ok = ThreadObservation { index: 4, black_crest_arcs_deg: vec![], bins: bins(18.0, 5.08, (100, 130), 0.971, false) };
-        input.threads = vec![ok];
+        // A shallow thread whose crest is machined (a vanishing thread: its root rises) is not black.
+        let mut shallow = bins(18.0, 5.08, (100, 130), 0.45, false);
+        shallow.iter_mut().for_each(|b| b.on_mill_surface = false);
+        input.threads = vec![ThreadObservation { index: 4, black_crest_arcs_deg: vec![], bins: shallow }];
         assert_eq!(assess(&input, ArcRule::PerThread).verdict, Verdict::Accept);
     }
 

@@ -306,6 +306,8 @@ impl PartModel {
                     z_mm: crest.z_mm,
                     height_mm: inside.then_some(crest.height_mm),
                     chamfer: crest.chamfered,
+                    // Every black crest point is already in the traced arcs.
+                    on_mill_surface: false,
                 });
             }
             let arcs = self.black_arcs(index);
