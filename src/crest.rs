@@ -1,8 +1,9 @@
 //! Black-crest detection, both ways the seed names.
 //!
 //! Photometric: a crest showing mill scale is far darker than machined steel under the coaxial
-//! light. Each thread's crest brightness per bin is compared with the median crest brightness of the
-//! part (most crests are machined).
+//! light. Each thread's crest brightness per bin (on the crest centre line) is compared with the
+//! median crest brightness of the part (most crests are machined): dark is below a fraction of it,
+//! or below it by many times the machined crests' own scatter, whichever is the higher bar.
 //!
 //! Geometric: a black crest is the mill surface, which lies below the cone the chaser cut, so a
 //! crest is on the mill surface where it falls below the machined crest cone. The cone is fitted to
@@ -24,8 +25,11 @@ use serde::{Deserialize, Serialize};
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct CrestOptions {
-    /// A crest darker than this fraction of the median crest brightness shows mill scale.
+    /// A crest darker than this fraction of the median crest brightness shows mill scale…
     pub dark_fraction: f32,
+    /// …and so does one darker than the median by this many times the crests' robust brightness
+    /// scatter, when that is the higher threshold.
+    pub dark_sigmas: f32,
     /// A crest this far below the machined crest cone (median of five bins along the helix) starts
     /// a geometric black run; the threshold rises to four times the crests' own scatter when that
     /// is larger.
@@ -37,7 +41,7 @@ pub struct CrestOptions {
 
 impl Default for CrestOptions {
     fn default() -> Self {
-        Self { dark_fraction: 0.45, mill_onset_um: 15.0, mill_extent_um: 5.0 }
+        Self { dark_fraction: 0.45, dark_sigmas: 6.0, mill_onset_um: 15.0, mill_extent_um: 5.0 }
     }
 }
 
@@ -183,7 +187,13 @@ pub fn observations(
     let mut grays: Vec<f32> = threads.iter().flat_map(|t| t.bins.iter().filter_map(|b| b.crest_gray)).collect();
     grays.sort_by(f32::total_cmp);
     let reference = grays.get(grays.len() / 2).copied().unwrap_or(0.0);
-    let dark_below = options.dark_fraction * reference;
+    // Machined crests scatter little about the reference; a thin strip of mill scale (a round
+    // crest barely touched by the mill surface) darkens the centre line by less than half, but
+    // far beyond that scatter.
+    let mut spread: Vec<f64> = grays.iter().map(|&g| (g - reference).abs() as f64).collect();
+    // (Floored at 3% of the reference, so that noiseless data cannot call the median itself dark.)
+    let gray_scatter = ((1.4826 * median(&mut spread).unwrap_or(0.0)) as f32).max(0.03 * reference);
+    let dark_below = (options.dark_fraction * reference).max(reference - options.dark_sigmas * gray_scatter);
     let is_dark = |b: &BinMeasure| b.crest_gray.is_some_and(|g| g < dark_below);
     let chamfer_zone_mm = 1.5 * pitch_mm;
     let in_helix_order = || threads.iter().flat_map(|t| t.bins.iter());
