@@ -95,10 +95,10 @@ pub fn inspect(
 ) -> Result<Option<Inspection>, PipelineError> {
     let cancelled = || cancel.load(Ordering::Relaxed);
     let mut timings = Vec::new();
-    let mut clock = Instant::now();
-    let mut lap = |stage: Stage, timings: &mut Vec<StageTiming>| {
-        timings.push(StageTiming { stage: stage.as_str().into(), seconds: clock.elapsed().as_secs_f64() });
-        clock = Instant::now();
+    let clock = std::cell::Cell::new(Instant::now());
+    let lap = |stage: Stage, timings: &mut Vec<StageTiming>| {
+        timings.push(StageTiming { stage: stage.as_str().into(), seconds: clock.get().elapsed().as_secs_f64() });
+        clock.set(Instant::now());
     };
 
     progress(Stage::Depth, 0.0);
@@ -156,26 +156,48 @@ pub fn inspect(
     let slices: Vec<&[cloud::SurfacePoint]> = clouds.iter().map(Vec::as_slice).collect();
     let cell_mm = options.cell_px * pixel_mm;
     let grid = GridSpec::covering(&slices, cell_mm, part.pipe_od_mm / 2.0).ok_or(PipelineError::NoDepth)?;
+    drop(slices);
     let mut fusion = Fusion::new(grid);
-    for (k, points) in clouds.into_iter().enumerate() {
-        fusion.add(&points);
+    // Binning (angle and radius per point) runs per view in parallel; the sums stay in view order.
+    // Each view's points are dropped as soon as they are binned.
+    let binned: Vec<Vec<crate::fuse::Binned>> = clouds.into_par_iter().map(|points| fusion.bin(&points)).collect();
+    for (k, points) in binned.iter().enumerate() {
+        fusion.accumulate(points);
         progress(Stage::Fuse, (k + 1) as f64 / total as f64);
     }
+    drop(binned);
     let map = fusion.finish();
     lap(Stage::Fuse, &mut timings);
     if cancelled() {
         return Ok(None);
     }
 
+    // The mesh is an export: it runs beside the profile, which the verdict needs. Each stage's
+    // own time is reported; together they take the longer of the two.
     progress(Stage::Mesh, 0.0);
-    let mesh = mesh::build(&map, &options.mesh)?;
-    lap(Stage::Mesh, &mut timings);
-
     progress(Stage::Profile, 0.0);
     let form = &part.form;
-    let helix = profile::estimate_helix(&map, form).ok_or(PipelineError::NoThread { pitch_mm: form.pitch_mm })?;
-    let threads = profile::measure_threads(&map, form, &helix);
-    lap(Stage::Profile, &mut timings);
+    fn timed<T>(f: impl FnOnce() -> T) -> (T, f64) {
+        let started = Instant::now();
+        let out = f();
+        (out, started.elapsed().as_secs_f64())
+    }
+    let ((mesh, mesh_seconds), ((helix, threads), profile_seconds)) = rayon::join(
+        || timed(|| mesh::build(&map, &options.mesh)),
+        || {
+            timed(|| {
+                let helix = profile::estimate_helix(&map, form);
+                let threads = helix.as_ref().map(|h| profile::measure_threads(&map, form, h));
+                (helix, threads)
+            })
+        },
+    );
+    let mesh = mesh?;
+    let helix = helix.ok_or(PipelineError::NoThread { pitch_mm: form.pitch_mm })?;
+    let threads = threads.expect("measured whenever the helix was found");
+    timings.push(StageTiming { stage: Stage::Mesh.as_str().into(), seconds: mesh_seconds });
+    timings.push(StageTiming { stage: Stage::Profile.as_str().into(), seconds: profile_seconds });
+    clock.set(Instant::now());
     if cancelled() {
         return Ok(None);
     }

@@ -24,7 +24,7 @@ pub const PRESETS: &[PresetInfo] = &[
     PresetInfo { name: "bc-black-3", description: "standard optics; undersize, eccentric pipe: three black-crested threads within Lc (reject)" },
     PresetInfo { name: "bc-arc-over-25", description: "standard optics; a thread black over more than 25% of the circumference within Lc (reject)" },
     PresetInfo { name: "lc-round-black", description: "LC 4-1/2 round thread, oval pipe: a small black arc within Lc (reject)" },
-    PresetInfo { name: "bc-polished", description: "standard optics; a black crest within Lc polished to look machined (found only by height)" },
+    PresetInfo { name: "bc-polished", description: "standard optics; a black crest within Lc polished to look machined (found only by its geometry)" },
     PresetInfo { name: "lc-accept", description: "LC 4-1/2 round thread, nominal pipe: black crests only beyond Lc (accept)" },
     PresetInfo { name: "seed-table1", description: "the seed's Table 1: custom 1.000 ± 0.030 mm buttress-type form, ten threads 0.9825 … 0.4216 mm high toward the vanish end, 5 views over 40°" },
 ];

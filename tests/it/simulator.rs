@@ -106,6 +106,9 @@ fn presets_carry_the_defects_they_promise() {
     assert!(t.threads.iter().map(|th| th.black_crest_length_mm).sum::<f64>() < 30.0, "a small arc");
     let t = truth("lc-accept");
     assert_eq!((t.verdict, black(&t)), (Verdict::Accept, 0));
+    // Table 1's shallow threads vanish by their roots: machined crests, not black ones.
+    let t = truth("seed-table1");
+    assert_eq!((t.verdict, black(&t)), (Verdict::Accept, 0), "{:?}", t.reasons);
     // Polished: black by geometry only, its material looks machined.
     let spec = sim::preset("bc-polished").unwrap();
     let t = spec.truth(1);
