@@ -87,7 +87,7 @@ fn median(values: &mut [f64]) -> Option<f64> {
 
 /// Least-squares cone through (z, θ°, r), trimmed one-sidedly from an initial guess at the nominal
 /// slope. None with fewer than 20 crests.
-fn fit_cone(crests: &[(f64, f64, f64)], nominal_slope: f64) -> Option<(Vector4<f64>, f64, usize)> {
+fn fit_cone(crests: &[(f64, f64, f64)], nominal_slope: f64) -> Option<(Vector4<f64>, usize)> {
     if crests.len() < 20 {
         return None;
     }
@@ -97,13 +97,12 @@ fn fit_cone(crests: &[(f64, f64, f64)], nominal_slope: f64) -> Option<(Vector4<f
     };
     let mut offsets: Vec<f64> = crests.iter().map(|&(z, _, r)| r - nominal_slope * z).collect();
     let mut params = Vector4::new(median(&mut offsets)?, nominal_slope, 0.0, 0.0);
-    let mut sigma = f64::INFINITY;
     let mut used = 0;
     for _ in 0..6 {
         let residuals: Vec<f64> = crests.iter().map(|&(z, t, r)| r - row(z, t).dot(&params)).collect();
         let mut abs: Vec<f64> = residuals.iter().map(|e| e.abs()).collect();
-        // The first pass measures the scatter of the bulk (most crests are machined).
-        sigma = (1.4826 * median(&mut abs)?).max(1e-4);
+        // The median ignores the black minority: this is the machined crests' scatter.
+        let sigma = (1.4826 * median(&mut abs)?).max(1e-4);
         let (mut ata, mut atb) = (Matrix4::<f64>::zeros(), Vector4::<f64>::zeros());
         used = 0;
         for (&(z, t, r), &e) in crests.iter().zip(&residuals) {
@@ -121,7 +120,7 @@ fn fit_cone(crests: &[(f64, f64, f64)], nominal_slope: f64) -> Option<(Vector4<f
         }
         params = ata.lu().solve(&atb)?;
     }
-    Some((params, sigma, used))
+    Some((params, used))
 }
 
 /// Robust scatter of the smoothed deficits (µm) and the onset and extent thresholds it implies.
@@ -205,7 +204,7 @@ pub fn observations(
         .collect();
     let (on_mill, cone) = match fit_cone(&crests, nominal_slope) {
         None => (vec![false; in_helix_order().count()], None),
-        Some((params, _, used)) => {
+        Some((params, used)) => {
             let deficits: Vec<Option<f64>> = in_helix_order()
                 .map(|b| {
                     let (sin, cos) = b.angle_deg.to_radians().sin_cos();
