@@ -3,7 +3,8 @@
 //! Photometric: a crest showing mill scale is far darker than machined steel under the coaxial
 //! light. Each thread's crest brightness per bin (on the crest centre line) is compared with the
 //! median crest brightness of the part (most crests are machined): dark is below a fraction of it,
-//! or below it by many times the machined crests' own scatter, whichever is the higher bar.
+//! or below it by many times the machined crests' own scatter, whichever is the higher bar, or,
+//! for a sustained dip (the median of five bins along the helix), below it by fewer scatters.
 //!
 //! Geometric: a black crest is the mill surface, which lies below the cone the chaser cut, so a
 //! crest is on the mill surface where it falls below the machined crest cone. The cone is fitted to
@@ -17,7 +18,7 @@
 //! machined: crests within 1.5 pitches of the end face that look machined are flagged as chamfer,
 //! never as black.
 
-use crate::profile::{BinMeasure, ThreadMeasure};
+use crate::profile::ThreadMeasure;
 use crate::rules::{CrestBin, ThreadObservation};
 use nalgebra::{Matrix4, Vector4};
 use serde::{Deserialize, Serialize};
@@ -28,8 +29,11 @@ pub struct CrestOptions {
     /// A crest darker than this fraction of the median crest brightness shows mill scale…
     pub dark_fraction: f32,
     /// …and so does one darker than the median by this many times the crests' robust brightness
-    /// scatter, when that is the higher threshold.
+    /// scatter, when that is the higher threshold…
     pub dark_sigmas: f32,
+    /// …and so does a sustained dip: the median of five bins along the helix below the median by
+    /// this many scatters.
+    pub dark_run_sigmas: f32,
     /// A crest this far below the machined crest cone (median of five bins along the helix) starts
     /// a geometric black run; the threshold rises to four times the crests' own scatter when that
     /// is larger.
@@ -41,7 +45,7 @@ pub struct CrestOptions {
 
 impl Default for CrestOptions {
     fn default() -> Self {
-        Self { dark_fraction: 0.45, dark_sigmas: 6.0, mill_onset_um: 15.0, mill_extent_um: 5.0 }
+        Self { dark_fraction: 0.45, dark_sigmas: 6.0, dark_run_sigmas: 4.0, mill_onset_um: 15.0, mill_extent_um: 5.0 }
     }
 }
 
@@ -193,14 +197,24 @@ pub fn observations(
     // (Floored at 3% of the reference, so that noiseless data cannot call the median itself dark.)
     let gray_scatter = ((1.4826 * median(&mut spread).unwrap_or(0.0)) as f32).max(0.03 * reference);
     let dark_below = (options.dark_fraction * reference).max(reference - options.dark_sigmas * gray_scatter);
-    let is_dark = |b: &BinMeasure| b.crest_gray.is_some_and(|g| g < dark_below);
+    // A sustained dip counts at a lower bar than a single bin: the median of five bins along the
+    // helix below the reference by `dark_run_sigmas` scatters (one dark speck cannot make it).
+    let run_below = reference - options.dark_run_sigmas * gray_scatter;
+    let run_gray = crate::profile::median_along_helix(
+        &threads.iter().flat_map(|t| t.bins.iter().map(|b| b.crest_gray.map(f64::from))).collect::<Vec<_>>(),
+    );
     let chamfer_zone_mm = 1.5 * pitch_mm;
     let in_helix_order = || threads.iter().flat_map(|t| t.bins.iter());
+    let dark: Vec<bool> = in_helix_order()
+        .zip(&run_gray)
+        .map(|(b, run)| b.crest_gray.is_some_and(|g| g < dark_below) || run.is_some_and(|g| g < run_below as f64))
+        .collect();
 
     // Geometric: the crests' deficits below the fitted cone, in helix order.
     let crests: Vec<(f64, f64, f64)> = in_helix_order()
-        .filter(|b| b.crest_z_mm >= chamfer_zone_mm && !is_dark(b))
-        .filter_map(|b| Some((b.crest_z_mm, b.angle_deg, b.crest_radius_mm?)))
+        .zip(&dark)
+        .filter(|(b, dark)| b.crest_z_mm >= chamfer_zone_mm && !**dark)
+        .filter_map(|(b, _)| Some((b.crest_z_mm, b.angle_deg, b.crest_radius_mm?)))
         .collect();
     let (on_mill, cone) = match fit_cone(&crests, nominal_slope) {
         None => (vec![false; in_helix_order().count()], None),
@@ -224,13 +238,12 @@ pub fn observations(
                 extent_um,
             };
             let mut runs = mill_runs(&smoothed, 1e-3 * onset_um, 1e-3 * extent_um);
-            let dark: Vec<bool> = in_helix_order().map(is_dark).collect();
             defer_to_darkness(&mut runs, &dark);
             (runs, Some(cone))
         }
     };
 
-    let mut on_mill = on_mill.into_iter();
+    let (mut on_mill, mut dark) = (on_mill.into_iter(), dark.into_iter());
     let observations = threads
         .iter()
         .map(|t| {
@@ -239,7 +252,7 @@ pub fn observations(
             let mut bins = Vec::with_capacity(t.bins.len());
             for b in &t.bins {
                 let start = b.angle_deg - 0.5;
-                let dark = is_dark(b);
+                let dark = dark.next().unwrap_or(false);
                 let z_start = b.crest_z_mm - 0.5 * dz_per_deg;
                 if dark && z_start <= lc_mm {
                     let end = (start + 1.0).min(start + (lc_mm - z_start) / dz_per_deg);
@@ -264,6 +277,7 @@ pub fn observations(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::profile::BinMeasure;
 
     const PITCH: f64 = 5.08;
     const SLOPE: f64 = 0.0625 / 2.0;
@@ -372,6 +386,24 @@ mod tests {
         let dark = [false, false, true, true, false, false, false, false, false];
         defer_to_darkness(&mut runs, &dark);
         assert_eq!(runs, [false, false, true, true, false, false, true, true, false]);
+    }
+
+    #[test]
+    fn a_sustained_faint_dip_is_dark_and_a_single_faint_bin_is_not() {
+        // Reference 0.6, scatter at its 3% floor (0.018): one bin must fall below 0.492, five in a
+        // row below 0.528. Bins 100–111 sit at 0.51; bin 300 alone at 0.51.
+        let bins = (0..360)
+            .map(|k| BinMeasure {
+                angle_deg: k as f64 + 0.5,
+                crest_z_mm: 20.0 + 5.08 * (k as f64 + 0.5) / 360.0,
+                height_mm: Some(1.5),
+                crest_radius_mm: None,
+                crest_gray: Some(if (100..112).contains(&k) || k == 300 { 0.51 } else { 0.6 }),
+            })
+            .collect();
+        let threads = vec![ThreadMeasure { index: 4, bins }];
+        let findings = observations(&threads, 40.0, 5.08, 0.0, &CrestOptions::default());
+        assert_eq!(findings.observations[0].black_crest_arcs_deg, vec![[100.0, 112.0]]);
     }
 
     #[test]
