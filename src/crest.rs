@@ -388,36 +388,32 @@ mod tests {
         assert_eq!(runs, [false, false, true, true, false, false, true, true, false]);
     }
 
+    /// One 5.08 mm pitch thread starting at `z0_mm`, crest brightness per bin from `gray`.
+    fn one_thread(index: u32, z0_mm: f64, crest_radius_mm: Option<f64>, gray: impl Fn(usize) -> f32) -> ThreadMeasure {
+        let bins = (0..360)
+            .map(|k| BinMeasure {
+                angle_deg: k as f64 + 0.5,
+                crest_z_mm: z0_mm + 5.08 * (k as f64 + 0.5) / 360.0,
+                height_mm: Some(1.5),
+                crest_radius_mm,
+                crest_gray: Some(gray(k)),
+            })
+            .collect();
+        ThreadMeasure { index, bins }
+    }
+
     #[test]
     fn a_sustained_faint_dip_is_dark_and_a_single_faint_bin_is_not() {
         // Reference 0.6, scatter at its 3% floor (0.018): one bin must fall below 0.492, five in a
         // row below 0.528. Bins 100–111 sit at 0.51; bin 300 alone at 0.51.
-        let bins = (0..360)
-            .map(|k| BinMeasure {
-                angle_deg: k as f64 + 0.5,
-                crest_z_mm: 20.0 + 5.08 * (k as f64 + 0.5) / 360.0,
-                height_mm: Some(1.5),
-                crest_radius_mm: None,
-                crest_gray: Some(if (100..112).contains(&k) || k == 300 { 0.51 } else { 0.6 }),
-            })
-            .collect();
-        let threads = vec![ThreadMeasure { index: 4, bins }];
+        let threads = vec![one_thread(4, 20.0, None, |k| if (100..112).contains(&k) || k == 300 { 0.51 } else { 0.6 })];
         let findings = observations(&threads, 40.0, 5.08, 0.0, &CrestOptions::default());
         assert_eq!(findings.observations[0].black_crest_arcs_deg, vec![[100.0, 112.0]]);
     }
 
     #[test]
     fn dark_crests_within_lc_become_arcs_clipped_at_lc() {
-        let bins = (0..360)
-            .map(|k| BinMeasure {
-                angle_deg: k as f64 + 0.5,
-                crest_z_mm: 30.0 + 5.08 * (k as f64 + 0.5) / 360.0,
-                height_mm: Some(1.5),
-                crest_radius_mm: Some(57.0),
-                crest_gray: Some(if (100..200).contains(&k) { 0.05 } else { 0.5 }),
-            })
-            .collect();
-        let threads = vec![ThreadMeasure { index: 6, bins }];
+        let threads = vec![one_thread(6, 30.0, Some(57.0), |k| if (100..200).contains(&k) { 0.05 } else { 0.5 })];
         // Lc at z = 31.0 → θ = (31 − 30) / 5.08 · 360 = 70.9°: no dark crest within Lc.
         let findings = observations(&threads, 31.0, 5.08, 0.0, &CrestOptions::default());
         assert_eq!(findings.machined_crest_gray, 0.5);
