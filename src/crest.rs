@@ -65,11 +65,17 @@ pub struct CrestCone {
     pub extent_um: f64,
 }
 
-impl CrestCone {
-    pub fn radius_at(&self, z_mm: f64, theta_deg: f64) -> f64 {
-        let (sin, cos) = theta_deg.to_radians().sin_cos();
-        self.radius_at_end_mm + self.slope * z_mm + self.axis_offset_mm[0] * cos + self.axis_offset_mm[1] * sin
-    }
+/// The cone's basis at (z, θ): its radius there is this dotted with (a, b, c, d).
+fn cone_basis(z_mm: f64, theta_deg: f64) -> Vector4<f64> {
+    let (sin, cos) = theta_deg.to_radians().sin_cos();
+    Vector4::new(1.0, z_mm, cos, sin)
+}
+
+/// Robust scale of deviations from a centre (1.4826 × their median absolute value: σ for normal
+/// noise, blind to a minority of outliers).
+fn robust_scale(deviations: impl Iterator<Item = f64>) -> Option<f64> {
+    let mut abs: Vec<f64> = deviations.map(f64::abs).collect();
+    median(&mut abs).map(|m| 1.4826 * m)
 }
 
 /// What the crest stage hands on: the rule engine's input per thread, the reference (machined)
@@ -95,18 +101,13 @@ fn fit_cone(crests: &[(f64, f64, f64)], nominal_slope: f64) -> Option<(Vector4<f
     if crests.len() < 20 {
         return None;
     }
-    let row = |z: f64, theta_deg: f64| {
-        let (sin, cos) = theta_deg.to_radians().sin_cos();
-        Vector4::new(1.0, z, cos, sin)
-    };
     let mut offsets: Vec<f64> = crests.iter().map(|&(z, _, r)| r - nominal_slope * z).collect();
     let mut params = Vector4::new(median(&mut offsets)?, nominal_slope, 0.0, 0.0);
     let mut used = 0;
     for _ in 0..6 {
-        let residuals: Vec<f64> = crests.iter().map(|&(z, t, r)| r - row(z, t).dot(&params)).collect();
-        let mut abs: Vec<f64> = residuals.iter().map(|e| e.abs()).collect();
+        let residuals: Vec<f64> = crests.iter().map(|&(z, t, r)| r - cone_basis(z, t).dot(&params)).collect();
         // The median ignores the black minority: this is the machined crests' scatter.
-        let sigma = (1.4826 * median(&mut abs)?).max(1e-4);
+        let sigma = robust_scale(residuals.iter().copied())?.max(1e-4);
         let (mut ata, mut atb) = (Matrix4::<f64>::zeros(), Vector4::<f64>::zeros());
         used = 0;
         for (&(z, t, r), &e) in crests.iter().zip(&residuals) {
@@ -114,7 +115,7 @@ fn fit_cone(crests: &[(f64, f64, f64)], nominal_slope: f64) -> Option<(Vector4<f
             if e < -2.5 * sigma || e > 4.0 * sigma {
                 continue;
             }
-            let x = row(z, t);
+            let x = cone_basis(z, t);
             ata += x * x.transpose();
             atb += x * r;
             used += 1;
@@ -130,8 +131,7 @@ fn fit_cone(crests: &[(f64, f64, f64)], nominal_slope: f64) -> Option<(Vector4<f
 /// Robust scatter of the smoothed deficits (µm) and the onset and extent thresholds it implies.
 fn thresholds(smoothed: &[Option<f64>], options: &CrestOptions) -> (f64, f64, f64) {
     // Most crests are machined: their deficits scatter about zero, the black ones sit far out.
-    let mut abs: Vec<f64> = smoothed.iter().flatten().map(|d| d.abs()).collect();
-    let scatter_um = 1e3 * 1.4826 * median(&mut abs).unwrap_or(0.0);
+    let scatter_um = 1e3 * robust_scale(smoothed.iter().flatten().copied()).unwrap_or(0.0);
     (options.mill_onset_um.max(4.0 * scatter_um), options.mill_extent_um.max(1.5 * scatter_um), scatter_um)
 }
 
@@ -193,9 +193,9 @@ pub fn observations(
     // Machined crests scatter little about the reference; a thin strip of mill scale (a round
     // crest barely touched by the mill surface) darkens the centre line by less than half, but
     // far beyond that scatter.
-    let mut spread: Vec<f64> = grays.iter().map(|&g| (g - reference).abs() as f64).collect();
     // (Floored at 3% of the reference, so that noiseless data cannot call the median itself dark.)
-    let gray_scatter = ((1.4826 * median(&mut spread).unwrap_or(0.0)) as f32).max(0.03 * reference);
+    let gray_scatter =
+        (robust_scale(grays.iter().map(|&g| (g - reference) as f64)).unwrap_or(0.0) as f32).max(0.03 * reference);
     let dark_below = (options.dark_fraction * reference).max(reference - options.dark_sigmas * gray_scatter);
     // A sustained dip counts at a lower bar than a single bin: the median of five bins along the
     // helix below the reference by `dark_run_sigmas` scatters (one dark speck cannot make it).
@@ -220,11 +220,7 @@ pub fn observations(
         None => (vec![false; in_helix_order().count()], None),
         Some((params, used)) => {
             let deficits: Vec<Option<f64>> = in_helix_order()
-                .map(|b| {
-                    let (sin, cos) = b.angle_deg.to_radians().sin_cos();
-                    let cone = Vector4::new(1.0, b.crest_z_mm, cos, sin).dot(&params);
-                    b.crest_radius_mm.map(|r| cone - r)
-                })
+                .map(|b| b.crest_radius_mm.map(|r| cone_basis(b.crest_z_mm, b.angle_deg).dot(&params) - r))
                 .collect();
             let smoothed = crate::profile::median_along_helix(&deficits);
             let (onset_um, extent_um, scatter_um) = thresholds(&smoothed, options);

@@ -231,6 +231,25 @@ async fn receive_multipart(request: Request, files: &FileStore, limit: u64) -> R
     result
 }
 
+/// Reads a whole part into memory, counted against the upload's limit; `too_big` is the refusal
+/// once it passes `cap` bytes.
+async fn read_part(
+    field: &mut axum::extract::multipart::Field<'_>,
+    upload: &mut Upload,
+    cap: u64,
+    too_big: impl FnOnce() -> ApiError,
+) -> Result<Vec<u8>, ApiError> {
+    let mut data = Vec::new();
+    while let Some(chunk) = field.chunk().await.map_err(multipart_error)? {
+        upload.count(chunk.len())?;
+        data.extend_from_slice(&chunk);
+        if data.len() as u64 > cap {
+            return Err(too_big());
+        }
+    }
+    Ok(data)
+}
+
 async fn read_parts(multipart: &mut Multipart, files: &FileStore, limit: u64) -> Result<Received, ApiError> {
     let mut upload = Upload::start(files, limit)?;
     let mut options = None;
@@ -239,15 +258,12 @@ async fn read_parts(multipart: &mut Multipart, files: &FileStore, limit: u64) ->
         let name = field.name().unwrap_or("").to_string();
         match name.as_str() {
             "options" => {
-                let mut bytes = Vec::new();
-                while let Some(chunk) = field.chunk().await.map_err(multipart_error)? {
-                    upload.count(chunk.len())?;
-                    bytes.extend_from_slice(&chunk);
-                    if bytes.len() > 1 << 20 {
-                        return Err(ApiError::new("invalid_option", "the options part exceeds 1 MiB").with_culprit("options"));
-                    }
-                }
-                options = Some(bytes);
+                options = Some(
+                    read_part(&mut field, &mut upload, 1 << 20, || {
+                        ApiError::new("invalid_option", "the options part exceeds 1 MiB").with_culprit("options")
+                    })
+                    .await?,
+                );
             }
             "bundle" => {
                 if archive_part || manifest_part || frame_parts > 0 {
@@ -287,15 +303,11 @@ async fn read_parts(multipart: &mut Multipart, files: &FileStore, limit: u64) ->
                 // Parts are held in memory until written as tar entries: each is capped like a
                 // bundle file.
                 let max_part = crate::bundle::Limits::default().max_file_bytes;
-                let mut data = Vec::new();
-                while let Some(chunk) = field.chunk().await.map_err(multipart_error)? {
-                    upload.count(chunk.len())?;
-                    data.extend_from_slice(&chunk);
-                    if data.len() as u64 > max_part {
-                        return Err(ApiError::new("bundle_too_large", format!("part {path:?} exceeds the per-file cap of {max_part} bytes"))
-                            .with_culprit(path));
-                    }
-                }
+                let data = read_part(&mut field, &mut upload, max_part, || {
+                    ApiError::new("bundle_too_large", format!("part {path:?} exceeds the per-file cap of {max_part} bytes"))
+                        .with_culprit(path.clone())
+                })
+                .await?;
                 upload.send(Chunk::Entry { path, data }).await?;
             }
         }

@@ -58,12 +58,6 @@ impl FileStore {
         Ok(target)
     }
 
-    /// [`FileStore::prepare`] and [`FileStore::place`] at once.
-    pub fn commit(&self, file: tempfile::NamedTempFile, sha256: &str) -> io::Result<PathBuf> {
-        self.prepare(&file)?;
-        self.place(file, sha256)
-    }
-
     pub fn remove(&self, sha256: &str) -> io::Result<()> {
         match std::fs::remove_file(self.path_of(sha256)) {
             Err(e) if e.kind() != io::ErrorKind::NotFound => Err(e),
@@ -140,18 +134,20 @@ mod tests {
     use super::*;
 
     #[test]
-    fn commit_is_content_addressed_and_idempotent() {
+    fn placing_is_content_addressed_and_idempotent() {
         let dir = tempfile::tempdir().unwrap();
         let store = FileStore::open(&dir.path().join("uploads"), &dir.path().join("tmp")).unwrap();
         let mut w = HashingWriter::new(store.temp_file().unwrap());
         w.write_all(b"focal stack").unwrap();
         let (file, sha, n) = w.finish();
         assert_eq!((sha.as_str(), n), (sha256_hex(b"focal stack").as_str(), 11));
-        let path = store.commit(file, &sha).unwrap();
+        store.prepare(&file).unwrap();
+        let path = store.place(file, &sha).unwrap();
         assert_eq!(std::fs::read(&path).unwrap(), b"focal stack");
         assert!(path.starts_with(dir.path().join("uploads").join(&sha[..2])));
         let again = store.temp_file().unwrap();
-        assert_eq!(store.commit(again, &sha).unwrap(), path);
+        store.prepare(&again).unwrap();
+        assert_eq!(store.place(again, &sha).unwrap(), path);
         assert_eq!(std::fs::read_dir(dir.path().join("tmp")).unwrap().count(), 0, "temporaries are cleaned");
         store.remove(&sha).unwrap();
         assert!(!store.exists(&sha));
