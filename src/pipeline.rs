@@ -117,7 +117,15 @@ pub fn inspect(
     if cancelled() || depth_maps.iter().any(Option::is_none) {
         return Ok(None);
     }
-    let depth_maps: Vec<DepthMap> = depth_maps.into_iter().flatten().collect();
+    let mut depth_maps: Vec<DepthMap> = depth_maps.into_iter().flatten().collect();
+    if options.depth.equalize_phase && std::env::var_os("CRESTSCAN_NO_EQ").is_none() {
+        let grids: Vec<Option<(f64, f64)>> = bundle
+            .views
+            .iter()
+            .map(|v| crate::depth::even_frame_grid(&v.frames.iter().map(|f| f.offset_mm).collect::<Vec<_>>()))
+            .collect();
+        crate::depth::equalize_sub_frame_phase(&mut depth_maps, &grids, bundle.optics.focus_distance_mm);
+    }
     let depth_coverage =
         depth_maps.iter().map(|d| d.coverage()).sum::<f64>() / depth_maps.len().max(1) as f64;
     if depth_coverage == 0.0 {
