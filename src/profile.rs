@@ -208,41 +208,92 @@ fn windows(form: &ThreadForm) -> (f64, f64) {
     }
 }
 
-/// Value at x = 0 of a least-squares fit r = a + b·x (+ c·x² when `curved`) with one pass of
-/// outlier rejection (residuals beyond 3 MAD). None unless samples lie on both sides of the centre
-/// (`half` is the window's half width): an edge of the data would make it an extrapolation.
-fn fit_at_centre(samples: &[(f64, f64)], curved: bool, half: f64) -> Option<f64> {
+/// Nominal curvatures (c of r = c·x²) of a rounded form's crest and root: the arcs are tangent
+/// to the flanks, so a truncation t at flank angle α gives the radius ρ = t·sin α / (1 − sin α).
+/// None for a flat-crested form.
+fn nominal_curvatures(form: &ThreadForm) -> Option<(f64, f64)> {
+    match form.profile {
+        ProfileShape::Trapezoid { .. } => None,
+        ProfileShape::Rounded { flank_deg, crest_truncation_mm, root_truncation_mm } => {
+            let sin = flank_deg.to_radians().sin();
+            let radius = |t: f64| t * sin / (1.0 - sin);
+            Some((-0.5 / radius(crest_truncation_mm), 0.5 / radius(root_truncation_mm)))
+        }
+    }
+}
+
+/// The part of a crest's or root's section about its centre that is fitted once for the whole
+/// part rather than per bin: flat for a buttress, r = c·x² for a round thread.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Section {
+    Flat,
+    Parabola { c_per_mm: f64 },
+}
+
+impl Section {
+    fn offset_mm(self, x: f64) -> f64 {
+        match self {
+            Section::Flat => 0.0,
+            Section::Parabola { c_per_mm } => c_per_mm * x * x,
+        }
+    }
+}
+
+/// Least-squares curvature c of r = a + b·x + c·x² (None without enough samples spread in x).
+fn fit_curvature(pts: &[(f64, f64)]) -> Option<f64> {
+    if pts.len() < 9 {
+        return None;
+    }
+    let mut ata = nalgebra::Matrix3::<f64>::zeros();
+    let mut atb = nalgebra::Vector3::<f64>::zeros();
+    for &(x, r) in pts {
+        let row = nalgebra::Vector3::new(1.0, x, x * x);
+        ata += row * row.transpose();
+        atb += row * r;
+    }
+    ata.lu().solve(&atb).map(|sol| sol[2])
+}
+
+/// The section's curvature shared by all crests (or roots) of a round thread: the median of the
+/// windows' own curvatures. Measured rather than taken from the form because the fused surface is
+/// the true one smoothed by the focus window; fitted once, it costs each bin no variance, whereas a
+/// free curvature per bin more than doubles the variance of the height at the centre. Falls back
+/// to the form's nominal curvature when too few windows are usable.
+fn shared_section(windows: &[&[(f64, f64)]], nominal_c_per_mm: f64) -> Section {
+    let mut c: Vec<f64> = windows.iter().filter_map(|w| fit_curvature(w)).filter(|c| c.is_finite()).collect();
+    if c.len() < 30 {
+        return Section::Parabola { c_per_mm: nominal_c_per_mm };
+    }
+    let mid = c.len() / 2;
+    Section::Parabola { c_per_mm: *c.select_nth_unstable_by(mid, f64::total_cmp).1 }
+}
+
+/// Value at x = 0 of a least-squares fit r = a + b·x + section(x) with one pass of outlier rejection
+/// (residuals beyond 3 MAD). The section's shape is known from the form, so only its height and
+/// tilt are fitted: a free curvature term would more than double the variance of the height at
+/// the centre. None unless samples lie on both sides of the centre (`half` is the window's half
+/// width): an edge of the data would make it an extrapolation.
+fn fit_at_centre(samples: &[(f64, f64)], section: Section, half: f64) -> Option<f64> {
     let (lo, hi) = samples.iter().fold((f64::MAX, f64::MIN), |(l, h), s| (l.min(s.0), h.max(s.0)));
     if lo > -0.5 * half || hi < 0.5 * half {
         return None;
     }
-    let solve = |pts: &[(f64, f64)]| -> Option<(f64, f64, f64)> {
-        let n = if curved { 3 } else { 2 };
-        if pts.len() < 2 * n + 2 {
-            return None;
-        }
-        let mut ata = nalgebra::DMatrix::<f64>::zeros(n, n);
-        let mut atb = nalgebra::DVector::<f64>::zeros(n);
-        for &(x, r) in pts {
-            let row = [1.0, x, x * x];
-            for i in 0..n {
-                atb[i] += row[i] * r;
-                for j in 0..n {
-                    ata[(i, j)] += row[i] * row[j];
-                }
-            }
-        }
-        let sol = ata.lu().solve(&atb)?;
-        Some((sol[0], sol[1], if curved { sol[2] } else { 0.0 }))
-    };
-    let (a, b, c) = solve(samples)?;
-    let mut resid: Vec<f64> = samples.iter().map(|&(x, r)| (r - a - b * x - c * x * x).abs()).collect();
+    let levelled: Vec<(f64, f64)> = samples.iter().map(|&(x, r)| (x, r - section.offset_mm(x))).collect();
+    let (a, b) = fit_line_checked(&levelled)?;
+    let mut resid: Vec<f64> = levelled.iter().map(|&(x, r)| (r - a - b * x).abs()).collect();
     let mut sorted = resid.clone();
     sorted.sort_by(f64::total_cmp);
     let mad = sorted[sorted.len() / 2].max(1e-6);
     let kept: Vec<(f64, f64)> =
-        samples.iter().zip(resid.iter_mut()).filter(|(_, e)| **e <= 3.0 * 1.4826 * mad).map(|(s, _)| *s).collect();
-    solve(&kept).map(|(a, _, _)| a)
+        levelled.iter().zip(resid.iter_mut()).filter(|(_, e)| **e <= 3.0 * 1.4826 * mad).map(|(s, _)| *s).collect();
+    fit_line_checked(&kept).map(|(a, _)| a)
+}
+
+/// [`fit_line`] through at least six samples that spread in x.
+fn fit_line_checked(pts: &[(f64, f64)]) -> Option<(f64, f64)> {
+    let (x, r): (Vec<f64>, Vec<f64>) = pts.iter().copied().unzip();
+    let spread = x.iter().fold(f64::MAX, |m, &v| m.min(v)) < x.iter().fold(f64::MIN, |m, &v| m.max(v));
+    (pts.len() >= 6 && spread).then(|| fit_line(&x, &r))
 }
 
 /// Heights of every thread whose crest line starts within the map, per 1° bin.
@@ -251,7 +302,6 @@ pub fn measure_threads(map: &UnrolledMap, form: &ThreadForm, helix: &Helix) -> V
     let p = helix.pitch_mm;
     let (crest_half, root_half) = windows(form);
     let (before, after) = form.root_centres_mm();
-    let curved = matches!(form.profile, ProfileShape::Rounded { .. });
     let z_max = g.z0_mm + g.nz as f64 * g.dz_mm;
     let mut threads: Vec<ThreadMeasure> = Vec::new();
     let mut index = 1u32;
@@ -259,6 +309,17 @@ pub fn measure_threads(map: &UnrolledMap, form: &ThreadForm, helix: &Helix) -> V
         threads.push(ThreadMeasure { index, bins: Vec::with_capacity(360) });
         index += 1;
     }
+    /// One thread's windows in one bin, in thread coordinates (x = z − centre, r).
+    struct Pending {
+        thread: usize,
+        angle_deg: f64,
+        crest_z_mm: f64,
+        crest: Vec<(f64, f64)>,
+        root_before: Vec<(f64, f64)>,
+        root_after: Vec<(f64, f64)>,
+        crest_gray: Option<f32>,
+    }
+    let mut pending: Vec<Pending> = Vec::with_capacity(360 * threads.len());
     for bin in 0..360 {
         let centre_deg = bin as f64 + 0.5;
         // Samples of the bin in thread coordinates u = (z − z_h)/p − θ/360 (crest of thread i at u = i − 1).
@@ -280,30 +341,54 @@ pub fn measure_threads(map: &UnrolledMap, form: &ThreadForm, helix: &Helix) -> V
             let start = samples.partition_point(|s| s.0 < lo);
             samples[start..].iter().take_while(|s| s.0 <= hi).map(|&(u, r, g)| ((u - centre_u) * p, r, g)).collect()
         };
-        for thread in threads.iter_mut() {
+        for (t, thread) in threads.iter().enumerate() {
             let u_crest = (thread.index - 1) as f64;
             let crest_z = helix.z_h_mm + p * (u_crest + centre_deg / 360.0);
             let crest = window(u_crest, crest_half);
-            let root_b = window(u_crest + before / p, root_half);
-            let root_a = window(u_crest + after / p, root_half);
             let xy = |w: &[(f64, f64, f32)]| w.iter().map(|&(x, r, _)| (x, r)).collect::<Vec<_>>();
-            let crest_r = fit_at_centre(&xy(&crest), curved, crest_half);
-            let rb = fit_at_centre(&xy(&root_b), curved, root_half);
-            let ra = fit_at_centre(&xy(&root_a), curved, root_half);
-            // A root whose window reaches past the end face is not on the part (or is the chamfer):
-            // there is no adjacent root to measure from.
-            let root_on_part = crest_z + before - root_half > 0.0;
-            let height = match (crest_r, rb, ra) {
-                (Some(c), Some(b), Some(a)) if root_on_part => Some(c - (b + (a - b) * (0.0 - before) / (after - before))),
-                _ => None,
-            };
             // Black is defined on the crest centre line: its brightness, not the whole flat's (at
             // the onset of a black crest only a strip around the centre line keeps the mill scale).
             let centre_line: Vec<f32> = crest.iter().filter(|s| s.0.abs() <= CREST_LINE_HALF_MM).map(|s| s.2).collect();
             let crest_gray =
                 (!centre_line.is_empty()).then(|| centre_line.iter().sum::<f32>() / centre_line.len() as f32);
-            thread.bins.push(BinMeasure { angle_deg: centre_deg, crest_z_mm: crest_z, height_mm: height, crest_radius_mm: crest_r, crest_gray });
+            pending.push(Pending {
+                thread: t,
+                angle_deg: centre_deg,
+                crest_z_mm: crest_z,
+                crest: xy(&crest),
+                root_before: xy(&window(u_crest + before / p, root_half)),
+                root_after: xy(&window(u_crest + after / p, root_half)),
+                crest_gray,
+            });
         }
+    }
+    let (crest_section, root_section) = match nominal_curvatures(form) {
+        None => (Section::Flat, Section::Flat),
+        Some((crest_c, root_c)) => {
+            let crests: Vec<&[(f64, f64)]> = pending.iter().map(|w| w.crest.as_slice()).collect();
+            let roots: Vec<&[(f64, f64)]> =
+                pending.iter().flat_map(|w| [w.root_before.as_slice(), w.root_after.as_slice()]).collect();
+            (shared_section(&crests, crest_c), shared_section(&roots, root_c))
+        }
+    };
+    for w in pending {
+        let crest_r = fit_at_centre(&w.crest, crest_section, crest_half);
+        let rb = fit_at_centre(&w.root_before, root_section, root_half);
+        let ra = fit_at_centre(&w.root_after, root_section, root_half);
+        // A root whose window reaches past the end face is not on the part (or is the chamfer):
+        // there is no adjacent root to measure from.
+        let root_on_part = w.crest_z_mm + before - root_half > 0.0;
+        let height = match (crest_r, rb, ra) {
+            (Some(c), Some(b), Some(a)) if root_on_part => Some(c - (b + (a - b) * (0.0 - before) / (after - before))),
+            _ => None,
+        };
+        threads[w.thread].bins.push(BinMeasure {
+            angle_deg: w.angle_deg,
+            crest_z_mm: w.crest_z_mm,
+            height_mm: height,
+            crest_radius_mm: crest_r,
+            crest_gray: w.crest_gray,
+        });
     }
     // Along the helix, thread i's last bin (359.5°) is followed by thread i + 1's first (0.5°).
     let helix_order: Vec<Option<f64>> = threads.iter().flat_map(|t| t.bins.iter().map(|b| b.height_mm)).collect();
