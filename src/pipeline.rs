@@ -118,7 +118,7 @@ pub fn inspect(
         return Ok(None);
     }
     let mut depth_maps: Vec<DepthMap> = depth_maps.into_iter().flatten().collect();
-    if options.depth.equalize_phase && std::env::var_os("CRESTSCAN_NO_EQ").is_none() {
+    if options.depth.equalize_phase {
         let grids: Vec<Option<(f64, f64)>> = bundle
             .views
             .iter()
