@@ -41,11 +41,17 @@ pub struct CrestOptions {
     /// A run extends along the helix while the crest stays this far below the cone (or 1.5 times
     /// the scatter, when larger).
     pub mill_extent_um: f64,
+    /// A run on geometry alone (no dark bin) must span at least this many degrees along the
+    /// helix: the detection limit for polished crests. Depth errors on glossy round crests dip
+    /// the crest fit by more than the onset over a few degrees at a time; a polished (or
+    /// mill-surface) crest is a stretch of the crest, and mill scale is caught photometrically
+    /// at any length.
+    pub min_geometric_arc_deg: f64,
 }
 
 impl Default for CrestOptions {
     fn default() -> Self {
-        Self { dark_fraction: 0.45, dark_sigmas: 6.0, dark_run_sigmas: 4.0, mill_onset_um: 15.0, mill_extent_um: 5.0 }
+        Self { dark_fraction: 0.45, dark_sigmas: 6.0, dark_run_sigmas: 4.0, mill_onset_um: 15.0, mill_extent_um: 5.0, min_geometric_arc_deg: 10.0 }
     }
 }
 
@@ -178,6 +184,22 @@ fn defer_to_darkness(runs: &mut [bool], dark: &[bool]) {
     }
 }
 
+/// Removes runs without a dark bin that are shorter than `min_bins` 1° bins.
+fn drop_short_geometric_runs(runs: &mut [bool], dark: &[bool], min_bins: usize) {
+    let mut i = 0;
+    while i < runs.len() {
+        if !runs[i] {
+            i += 1;
+            continue;
+        }
+        let end = runs[i..].iter().position(|r| !r).map_or(runs.len(), |n| i + n);
+        if end - i < min_bins && !dark[i..end].iter().any(|&d| d) {
+            runs[i..end].iter_mut().for_each(|r| *r = false);
+        }
+        i = end;
+    }
+}
+
 /// The rule engine's input for each thread, the reference crest brightness and the crest cone.
 /// `nominal_slope` (half the nominal taper on diameter) seeds the cone fit.
 pub fn observations(
@@ -235,6 +257,7 @@ pub fn observations(
             };
             let mut runs = mill_runs(&smoothed, 1e-3 * onset_um, 1e-3 * extent_um);
             defer_to_darkness(&mut runs, &dark);
+            drop_short_geometric_runs(&mut runs, &dark, options.min_geometric_arc_deg.ceil() as usize);
             (runs, Some(cone))
         }
     };
@@ -374,6 +397,14 @@ mod tests {
         let mut gapped = d(&[0.020, 0.010, 0.010, 0.0]);
         gapped[1] = None;
         assert_eq!(mill_runs(&gapped, 0.015, 0.005), [true, false, false, false]);
+    }
+
+    #[test]
+    fn short_runs_on_geometry_alone_are_dropped() {
+        let mut runs = vec![false, true, true, true, false, true, true, false, true, true, true, true, true];
+        let dark = [false, false, false, false, false, false, true, false, false, false, false, false, false];
+        drop_short_geometric_runs(&mut runs, &dark, 4);
+        assert_eq!(runs, [false, false, false, false, false, true, true, false, true, true, true, true, true]);
     }
 
     #[test]
