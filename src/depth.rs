@@ -7,7 +7,9 @@
 //! (d + o = F), so the measure is scaled about the principal point by F / (F − o). (Resampling the
 //! smooth measure rather than the image keeps interpolation from blurring some frames more than
 //! others, which would bias the peak.) Each pixel's focus curve is located between frames by the
-//! centroid of its flat top (see [`peak_offset`]) and turned into depth through the optics: in focus at offset o* means depth F − o* at offset 0. The confidence
+//! midpoint of its shoulders (see [`peak_offset`]), the bundle's sub-frame phases are equalised
+//! (see [`equalize_sub_frame_phase`]), and the result is turned into depth through the optics: in
+//! focus at offset o* means depth F − o* at offset 0. The confidence
 //! says how sharply the measure peaks above its floor, so that texture-less and saturated pixels
 //! are recognised rather than trusted. The all-in-focus image keeps each pixel's sharpest colour.
 
@@ -22,7 +24,7 @@ pub struct DepthOptions {
     pub window_radius_px: usize,
     /// Pixels whose peak-to-floor ratio is below this are not trusted (depth NaN).
     pub min_peak_ratio: f32,
-    /// The focus curve's centre is the centroid of the frames above this fraction of its peak.
+    /// The focus curve's centre is the midpoint of its crossings of this fraction of its height.
     pub peak_fraction: f32,
     /// Undo the sub-frame phase bias over the bundle ([`equalize_sub_frame_phase`]).
     #[serde(default = "yes")]
@@ -38,7 +40,7 @@ impl Default for DepthOptions {
         Self {
             window_radius_px: 4,
             min_peak_ratio: 1.6,
-            peak_fraction: 0.2,
+            peak_fraction: 0.3,
             equalize_phase: true,
         }
     }
@@ -139,10 +141,12 @@ fn focus_measure(gray: &[f32], w: usize, h: usize, r: usize, scratch: &mut [f32]
 }
 
 /// The in-focus offset of one pixel's focus curve. The curve is flat-topped (within the depth of
-/// field the image is as sharp as the pixels allow) and falls off symmetrically, so its centre is
-/// taken as the centroid, above the floor, of the contiguous run of frames around the maximum whose
-/// measure exceeds `fraction` of the peak height; the run's edge frames are weighted by how far
-/// they rise above the cut, which makes the centroid move smoothly with the true focus.
+/// field the image is as sharp as the pixels allow: two frames or so at the presets' step) and
+/// falls off symmetrically, so the top says little about where focus lies and the shoulders say
+/// it: the centre is the midpoint of the two points where the curve, linearly interpolated between
+/// frames, crosses `fraction` of its height above the floor on either side of the maximum. (A
+/// centroid of the frames above a cut has about twice this estimator's sub-frame phase bias on
+/// the sharp plateaus of glossy crests, and no less noise.)
 fn peak_offset(column: &[f32], offsets: &[f64], k_best: usize, floor: f32, fraction: f32) -> Option<f64> {
     let peak = column[k_best];
     let cut = floor + fraction * (peak - floor);
@@ -156,13 +160,12 @@ fn peak_offset(column: &[f32], offsets: &[f64], k_best: usize, floor: f32, fract
     if lo == 0 || hi + 1 == column.len() {
         return None; // the peak runs off the stack: focus not bracketed
     }
-    let (mut sw, mut swx) = (0.0, 0.0);
-    for k in lo..=hi {
-        let w = (column[k] - cut) as f64;
-        sw += w;
-        swx += w * offsets[k];
-    }
-    (sw > 0.0).then(|| swx / sw)
+    let cross = |outside: usize, inside: usize| -> f64 {
+        let (a, b) = (column[outside] as f64, column[inside] as f64);
+        let t = if b > a { (cut as f64 - a) / (b - a) } else { 0.5 };
+        offsets[outside] + t * (offsets[inside] - offsets[outside])
+    };
+    Some(0.5 * (cross(lo - 1, lo) + cross(hi + 1, hi)))
 }
 
 /// Runs depth from focus over one view. `frame_at(k)` decodes frame k (called once per frame, in
@@ -285,10 +288,10 @@ const PHASE_BINS: usize = 64;
 
 /// Removes the sub-frame phase bias ("peak locking") of the in-focus estimates.
 ///
-/// The centroid of a few samples of a flat-topped focus curve is pulled towards frames or
-/// half-frames depending on where the true focus falls between two frames (about ±10 µm at a
-/// 0.25 mm step on textured metal, ±20 µm on the sharp highlights of round crests; see
-/// `sub_frame_bias_depends_on_the_frame_step`). Over a whole bundle the surface's
+/// The estimate from a few samples of a flat-topped focus curve is pulled towards frames or
+/// half-frames depending on where the true focus falls between two frames (on a model curve about
+/// ±20 µm at a 0.25 mm step, see `sub_frame_bias_depends_on_the_frame_step`; on the sharp
+/// highlights of glossy crests more than on textured flanks). Over a whole bundle the surface's
 /// depths fall at every phase equally often, so the estimated phases should be uniform; their
 /// cumulative histogram is the estimator's phase response, and mapping each estimate through it
 /// undoes the bias (as done for sub-pixel peak locking in particle image velocimetry). The
@@ -350,17 +353,18 @@ mod tests {
         for c in [-0.4, -0.33, -0.2, 0.0, 0.11, 0.3] {
             let column = curve(c);
             let k_best = (0..column.len()).max_by(|&a, &b| column[a].total_cmp(&column[b])).unwrap();
-            let got = peak_offset(&column, &offsets, k_best, 0.05, 0.2).unwrap();
+            let got = peak_offset(&column, &offsets, k_best, 0.05, 0.3).unwrap();
             assert!((got - c).abs() < 0.03, "centre {c}: {got}");
         }
         // A peak at the end of the stack is not bracketed.
         let column = curve(1.4);
-        assert!(peak_offset(&column, &offsets, 11, 0.05, 0.2).is_none());
+        assert!(peak_offset(&column, &offsets, 11, 0.05, 0.3).is_none());
     }
 
-    /// The centroid's error depends on where the true focus falls between two frames. This pins
-    /// down its size (the README's reading of the round thread's per-thread height pattern): about
-    /// ±10 µm at the presets' 0.25 mm frame step, under 1 µm at 0.1 mm.
+    /// The estimate's error depends on where the true focus falls between two frames. This pins
+    /// down its size on a model curve (plateau ±0.25 mm, Lorentzian shoulders): about ±20 µm at the
+    /// presets' 0.25 mm frame step, under 3 µm at 0.1 mm: what [`equalize_sub_frame_phase`] exists
+    /// to remove.
     #[test]
     fn sub_frame_bias_depends_on_the_frame_step() {
         let shape = |o: f64, c: f64| (1.0 / (1.0 + (((o - c).abs() - 0.25).max(0.0) / 0.2).powi(2))) as f32 + 0.05;
@@ -371,13 +375,13 @@ mod tests {
                 .map(|c| {
                     let column: Vec<f32> = offsets.iter().map(|&o| shape(o, c)).collect();
                     let k_best = (0..column.len()).max_by(|&a, &b| column[a].total_cmp(&column[b])).unwrap();
-                    (peak_offset(&column, &offsets, k_best, 0.05, 0.2).unwrap() - c).abs()
+                    (peak_offset(&column, &offsets, k_best, 0.05, 0.3).unwrap() - c).abs()
                 })
                 .fold(0.0, f64::max)
         };
         let (coarse, fine) = (worst(0.25), worst(0.1));
-        assert!((0.005..0.012).contains(&coarse), "0.25 mm step: {coarse}");
-        assert!(fine < 0.001, "0.1 mm step: {fine}");
+        assert!((0.015..0.03).contains(&coarse), "0.25 mm step: {coarse}");
+        assert!(fine < 0.003, "0.1 mm step: {fine}");
     }
 
     #[test]
