@@ -168,36 +168,36 @@ fn mill_runs(smoothed: &[Option<f64>], onset_mm: f64, extent_mm: f64) -> Vec<boo
 /// early on that side; the brightness is read on the centre line itself. A run with no dark bin
 /// (a polished crest) stands on its geometry alone.
 fn defer_to_darkness(runs: &mut [bool], dark: &[bool]) {
-    let mut i = 0;
-    while i < runs.len() {
-        if !runs[i] {
-            i += 1;
-            continue;
+    for span in run_spans(runs) {
+        if dark[span.clone()].iter().any(|&d| d) {
+            runs[span.clone()].copy_from_slice(&dark[span]);
         }
-        let end = runs[i..].iter().position(|r| !r).map_or(runs.len(), |n| i + n);
-        if dark[i..end].iter().any(|&d| d) {
-            for k in i..end {
-                runs[k] = dark[k];
-            }
-        }
-        i = end;
     }
 }
 
 /// Removes runs without a dark bin that are shorter than `min_bins` 1° bins.
 fn drop_short_geometric_runs(runs: &mut [bool], dark: &[bool], min_bins: usize) {
+    for span in run_spans(runs) {
+        if span.len() < min_bins && !dark[span.clone()].iter().any(|&d| d) {
+            runs[span].fill(false);
+        }
+    }
+}
+
+/// The maximal runs of set bins, as index ranges.
+fn run_spans(runs: &[bool]) -> Vec<std::ops::Range<usize>> {
+    let mut spans = Vec::new();
     let mut i = 0;
     while i < runs.len() {
-        if !runs[i] {
+        if runs[i] {
+            let end = runs[i..].iter().position(|r| !r).map_or(runs.len(), |n| i + n);
+            spans.push(i..end);
+            i = end;
+        } else {
             i += 1;
-            continue;
         }
-        let end = runs[i..].iter().position(|r| !r).map_or(runs.len(), |n| i + n);
-        if end - i < min_bins && !dark[i..end].iter().any(|&d| d) {
-            runs[i..end].iter_mut().for_each(|r| *r = false);
-        }
-        i = end;
     }
+    spans
 }
 
 /// The rule engine's input for each thread, the reference crest brightness and the crest cone.
