@@ -128,15 +128,23 @@ impl Source {
     }
 
     fn open_tar(file: File, limits: Limits, display: String) -> Result<Self, BundleError> {
+        let file_len = file.metadata().map_err(|e| io_err(&display, e))?.len();
         let mut archive = tar::Archive::new(file);
         let mut index = HashMap::new();
         let mut total = 0u64;
         let entries = archive
             .entries()
             .map_err(|e| BundleError::Archive { message: format!("{display}: not a readable tar: {e}") })?;
+        // An archive that ends inside an entry's data fails when the next entry is sought: that
+        // entry (name, end of its data) is the damaged one.
+        let mut previous: Option<(String, u64)> = None;
         for (i, entry) in entries.enumerate() {
-            let entry =
-                entry.map_err(|e| BundleError::Archive { message: format!("{display}: entry {i}: {e}") })?;
+            let entry = entry.map_err(|e| match &previous {
+                Some((name, end)) if *end > file_len => {
+                    damaged_entry(name, format!("the archive {display} ends inside this entry"))
+                }
+                _ => BundleError::Archive { message: format!("{display}: entry {i}: {e}") },
+            })?;
             if index.len() >= limits.max_files {
                 return Err(too_many_files(index.len() + 1, limits));
             }
@@ -161,6 +169,7 @@ impl Source {
                 return Err(too_many_bytes(total, limits));
             }
             let name = name.trim_start_matches("./").to_string();
+            previous = Some((name.clone(), entry.raw_file_position().saturating_add(size)));
             index.insert(name, TarEntry { data_offset: entry.raw_file_position(), size, regular: kind.is_file() });
         }
         let prefix = bundle_prefix(index.keys().map(String::as_str))?;

@@ -355,3 +355,35 @@ fn gray_rgb_png_and_tiff_in_8_and_16_bits() {
     image::RgbaImage::new(64, 48).save(s.path().join(&name)).unwrap();
     expect_error(open(s.path()), "unreadable_frame", &[&name, "gray or RGB"]);
 }
+
+/// A zip entry whose bytes no longer match its CRC, and a tar cut inside an entry, are the
+/// client's damaged archive (`invalid_archive`, naming the file), not a server I/O failure.
+#[test]
+fn damaged_archive_entries_are_the_clients_error() {
+    let s = Scratch::new();
+    let out = tempfile::tempdir().unwrap();
+    let file = s.manifest()["views"][2]["frames"][7]["file"].as_str().unwrap().to_string();
+    let frame_bytes = std::fs::read(s.path().join(&file)).unwrap();
+    // A run of bytes from the middle of the frame (past the PNG headers) locates it in the archive.
+    let probe = &frame_bytes[frame_bytes.len() / 2..frame_bytes.len() / 2 + 64];
+    let find = |haystack: &[u8]| haystack.windows(probe.len()).position(|w| w == probe).expect("frame bytes in the archive");
+
+    let zip_path = out.path().join("b.zip");
+    zip_dir(s.path(), &zip_path, None);
+    let mut bytes = std::fs::read(&zip_path).unwrap();
+    let at = find(&bytes);
+    bytes[at + 10] ^= 0x5a;
+    std::fs::write(&zip_path, &bytes).unwrap();
+    // Opening reads every frame (whatever the frame check), so the damage is found there, named.
+    expect_error(open(&zip_path), "invalid_archive", &[&file, "damaged"]);
+    expect_error(open_with(&zip_path, Limits::default()), "invalid_archive", &[&file, "damaged"]);
+
+    let tar_path = out.path().join("b.tar");
+    tar_dir(s.path(), &tar_path, None);
+    let bytes = std::fs::read(&tar_path).unwrap();
+    let cut = find(&bytes);
+    let short = out.path().join("short.tar");
+    std::fs::write(&short, &bytes[..cut]).unwrap();
+    // Indexing skips over the cut frame's data and runs out: the message names that frame.
+    expect_error(open(&short), "invalid_archive", &[&file, "damaged", "ends inside"]);
+}
