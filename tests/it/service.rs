@@ -406,6 +406,55 @@ async fn idempotent_retry_and_cancel() {
     // A finished inspection cannot be canceled.
     let response = app.client.post(app.url(&format!("/v1/inspections/{}/cancel", claimed.id))).send().await.unwrap();
     assert_eq!(response.status(), StatusCode::OK, "canceling a canceled inspection is a no-op");
+
+    // Cancel requested while running, then the worker gives the job back (a retryable failure or
+    // a release at shutdown): it ends canceled, not queued (claims skip canceled-requested jobs,
+    // so a queued one would wait forever).
+    let third: Value = send("station-7-run-44", "").await.unwrap().json().await.unwrap();
+    let claimed = store.claim("test-worker", Duration::from_secs(30)).await.unwrap().expect("one queued");
+    assert_eq!(claimed.id, third["id"].as_str().unwrap());
+    let response = app.client.post(app.url(&format!("/v1/inspections/{}/cancel", claimed.id))).send().await.unwrap();
+    assert_eq!(response.status(), StatusCode::ACCEPTED);
+    assert!(store.requeue(&claimed.id, "test-worker", Duration::ZERO, None, true).await.unwrap());
+    let v: Value = app.get(&format!("/v1/inspections/{}", claimed.id)).await.json().await.unwrap();
+    assert_eq!(v["status"], "canceled");
+    assert!(v["finished_at"].is_string(), "{v}");
+    assert!(store.claim("test-worker", Duration::from_secs(30)).await.unwrap().is_none(), "nothing left queued");
+    app.stop().await;
+}
+
+/// Uploaded bundles are deleted once every inspection that uses them finished before the cutoff;
+/// one still shared by an unfinished inspection is kept, and the records stay readable.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn finished_uploads_are_purged_and_shared_ones_kept() {
+    let app = spawn_app_with(|s| s.workers = 0).await;
+    let store = app.store().await;
+    let later_ms = || {
+        (std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_millis() as i64) + 3_600_000
+    };
+    let cancel = |id: String| {
+        let request = app.client.post(app.url(&format!("/v1/inspections/{id}/cancel")));
+        async move { assert_eq!(request.send().await.unwrap().status(), StatusCode::OK) }
+    };
+    let first: Value = app.submit(ci_tar(), "").await.json().await.unwrap();
+    let first = first["id"].as_str().unwrap().to_string();
+    cancel(first.clone()).await;
+    // The same bundle again: the same content-addressed upload, now in use by a queued inspection.
+    let second: Value = app.submit(ci_tar(), "").await.json().await.unwrap();
+    let second = second["id"].as_str().unwrap().to_string();
+    assert_eq!(app.uploads(), 1);
+    assert_eq!(store.purge_uploads(later_ms()).await.unwrap(), 0, "an unfinished inspection still needs it");
+    assert_eq!(app.uploads(), 1);
+    cancel(second.clone()).await;
+    // Finished, but after the cutoff: kept.
+    assert_eq!(store.purge_uploads(later_ms() - 7_200_000).await.unwrap(), 0);
+    assert_eq!(store.purge_uploads(later_ms()).await.unwrap(), 1);
+    assert_eq!(app.uploads(), 0);
+    assert_eq!(store.purge_uploads(later_ms()).await.unwrap(), 0, "purged once");
+    for id in [&first, &second] {
+        let v: Value = app.get(&format!("/v1/inspections/{id}")).await.json().await.unwrap();
+        assert_eq!(v["status"], "canceled", "{v}");
+    }
     app.stop().await;
 }
 
