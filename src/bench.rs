@@ -50,7 +50,13 @@ pub fn compare(report: &Report, truth: &Truth) -> Accuracy {
             let reported = report.threads.iter().find(|r| r.index == t.index).map_or(0.0, |r| r.black_crest_length_mm);
             (reported - t.black_crest_length_mm).abs()
         })
-        .chain(report.threads.iter().filter(|r| truth.threads.iter().all(|t| t.index != r.index)).map(|r| r.black_crest_length_mm))
+        .chain(
+            report
+                .threads
+                .iter()
+                .filter(|r| truth.threads.iter().all(|t| t.index != r.index))
+                .map(|r| r.black_crest_length_mm),
+        )
         .fold(0.0, f64::max);
     Accuracy {
         bins_compared: errors.len(),
@@ -167,12 +173,14 @@ pub fn run_case(case: &Case, work: &std::path::Path) -> Result<CaseResult, Bench
     let dir = work.join(format!("{}-{}", case.preset, case.seed));
     // A finished rendering leaves its summary (render time, size) beside the bundle.
     let done = dir.join("render-summary.json");
-    let rendered: crate::sim::SimSummary = match std::fs::read(&done).ok().and_then(|b| serde_json::from_slice(&b).ok()) {
+    let rendered: crate::sim::SimSummary = match std::fs::read(&done).ok().and_then(|b| serde_json::from_slice(&b).ok())
+    {
         Some(summary) => summary,
         None => {
             let _ = std::fs::remove_dir_all(&dir);
             let summary = crate::sim::simulate(&spec, case.seed, &dir)?;
-            std::fs::write(&done, serde_json::to_vec(&summary).expect("serialises")).map_err(|e| BenchError::Other(e.to_string()))?;
+            std::fs::write(&done, serde_json::to_vec(&summary).expect("serialises"))
+                .map_err(|e| BenchError::Other(e.to_string()))?;
             summary
         }
     };
@@ -201,7 +209,8 @@ pub fn run_case(case: &Case, work: &std::path::Path) -> Result<CaseResult, Bench
     let accuracy = compare(&inspection.report, &truth);
     let (mut sq, mut errors, mut seen, mut total) = (0.0, Vec::new(), 0usize, 0usize);
     for (view, depth) in bundle.views.iter().zip(&inspection.depth_maps) {
-        let bytes = std::fs::read(dir.join(format!("truth/{}.depth.pfm", view.id))).map_err(|e| BenchError::Other(e.to_string()))?;
+        let bytes = std::fs::read(dir.join(format!("truth/{}.depth.pfm", view.id)))
+            .map_err(|e| BenchError::Other(e.to_string()))?;
         let (_, _, t) = crate::sim::pfm::read(&bytes).map_err(BenchError::Other)?;
         for (d, t) in depth.depth_mm.iter().zip(&t) {
             if t.is_finite() {
@@ -219,7 +228,13 @@ pub fn run_case(case: &Case, work: &std::path::Path) -> Result<CaseResult, Bench
     let truth_poses = bundle
         .views
         .iter()
-        .map(|v| truth.true_poses.get(&v.id).copied().ok_or_else(|| BenchError::Other(format!("truth lacks the pose of {}", v.id))))
+        .map(|v| {
+            truth
+                .true_poses
+                .get(&v.id)
+                .copied()
+                .ok_or_else(|| BenchError::Other(format!("truth lacks the pose of {}", v.id)))
+        })
         .collect::<Result<Vec<_>, _>>()?;
     let encoder: Vec<_> = bundle.views.iter().map(|v| v.pose).collect();
     let table1 = if case.preset == "seed-table1" {
@@ -302,7 +317,14 @@ pub fn table(results: &[CaseResult]) -> String {
     out.push_str(&format!("\nStage times (s):\n  {}\n", stages.join("\n  ")));
     out.push_str("\nRenderings (this machine, when first rendered): preset, frames, MB, seconds\n");
     for r in results {
-        out.push_str(&format!("  {} seed {}: {} frames, {:.0} MB, {:.1} s\n", r.preset, r.seed, r.render.frames, r.render.bytes as f64 / 1e6, r.render.seconds));
+        out.push_str(&format!(
+            "  {} seed {}: {} frames, {:.0} MB, {:.1} s\n",
+            r.preset,
+            r.seed,
+            r.render.frames,
+            r.render.bytes as f64 / 1e6,
+            r.render.seconds
+        ));
     }
     out
 }

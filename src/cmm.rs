@@ -55,7 +55,10 @@ impl CmmMeasurements {
         let mut reader = csv::ReaderBuilder::new().trim(csv::Trim::All).from_reader(bytes);
         let headers = reader.headers().map_err(|e| err("header", e.to_string()))?.clone();
         let column = |name: &str| {
-            headers.iter().position(|h| h == name).ok_or_else(|| err("header", format!("missing column {name:?} (expected thread,angle_deg,height_mm)")))
+            headers
+                .iter()
+                .position(|h| h == name)
+                .ok_or_else(|| err("header", format!("missing column {name:?} (expected thread,angle_deg,height_mm)")))
         };
         let (thread_col, angle_col, height_col) = (column("thread")?, column("angle_deg")?, column("height_mm")?);
         let mut points = Vec::new();
@@ -63,15 +66,20 @@ impl CmmMeasurements {
             let line = i + 2;
             let record = record.map_err(|e| err(format!("line {line}"), e.to_string()))?;
             let get = |c: usize| record.get(c).unwrap_or("");
-            let thread = get(thread_col)
-                .parse::<u32>()
-                .map_err(|_| err(format!("line {line}, thread"), format!("{:?} is not a thread number", get(thread_col))))?;
+            let thread = get(thread_col).parse::<u32>().map_err(|_| {
+                err(format!("line {line}, thread"), format!("{:?} is not a thread number", get(thread_col)))
+            })?;
             let angle_deg = match get(angle_col) {
                 "" => None,
-                a => Some(a.parse::<f64>().map_err(|_| err(format!("line {line}, angle_deg"), format!("{a:?} is not a number")))?),
+                a => Some(
+                    a.parse::<f64>()
+                        .map_err(|_| err(format!("line {line}, angle_deg"), format!("{a:?} is not a number")))?,
+                ),
             };
             let h = get(height_col);
-            let height_mm = h.parse::<f64>().map_err(|_| err(format!("line {line}, height_mm"), format!("{h:?} is not a number")))?;
+            let height_mm = h
+                .parse::<f64>()
+                .map_err(|_| err(format!("line {line}, height_mm"), format!("{h:?} is not a number")))?;
             points.push(CmmPoint { thread, angle_deg, height_mm });
         }
         let parsed = Self { instrument: None, measured_at: None, points };
@@ -100,7 +108,10 @@ impl CmmMeasurements {
                 return Err(err(format!("points[{i}].angle_deg"), format!("{a} is outside [0, 360)")));
             }
             if !(p.height_mm.is_finite() && p.height_mm >= 0.0 && p.height_mm < 25.0) {
-                return Err(err(format!("points[{i}].height_mm"), format!("{} is not a thread height in mm", p.height_mm)));
+                return Err(err(
+                    format!("points[{i}].height_mm"),
+                    format!("{} is not a thread height in mm", p.height_mm),
+                ));
             }
         }
         Ok(())
@@ -192,7 +203,9 @@ pub fn compare(report: &Report, cmm: &CmmMeasurements, tolerance_mm: f64) -> Com
     let mean = (n > 0).then(|| deviations.iter().sum::<f64>() / n as f64);
     let rms = (n > 0).then(|| (deviations.iter().map(|d| d * d).sum::<f64>() / n as f64).sqrt());
     let max_abs = deviations.iter().map(|d| d.abs()).fold(None, |m: Option<f64>, d| Some(m.map_or(d, |m| m.max(d))));
-    let sd = mean.filter(|_| n > 1).map(|m| (deviations.iter().map(|d| (d - m).powi(2)).sum::<f64>() / (n - 1) as f64).sqrt());
+    let sd = mean
+        .filter(|_| n > 1)
+        .map(|m| (deviations.iter().map(|d| (d - m).powi(2)).sum::<f64>() / (n - 1) as f64).sqrt());
     let limits = mean.zip(sd).map(|(m, s)| [m - 1.96 * s, m + 1.96 * s]);
     Comparison {
         agreement: Agreement {
@@ -225,7 +238,8 @@ mod tests {
         assert_eq!(a.points, b.points);
         let e = CmmMeasurements::from_csv(b"thread,angle_deg,height_mm\n3,90,abc\n").unwrap_err();
         assert_eq!(e.field, "line 2, height_mm");
-        let e = CmmMeasurements::from_json(br#"{"points":[{"thread":3,"angle_deg":400,"height_mm":1.0}]}"#).unwrap_err();
+        let e =
+            CmmMeasurements::from_json(br#"{"points":[{"thread":3,"angle_deg":400,"height_mm":1.0}]}"#).unwrap_err();
         assert_eq!(e.field, "points[0].angle_deg");
         let e = CmmMeasurements::from_json(br#"{"points":[{"thread":"x","height_mm":1.0}]}"#).unwrap_err();
         assert_eq!(e.field, "points[0].thread");

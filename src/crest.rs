@@ -51,7 +51,14 @@ pub struct CrestOptions {
 
 impl Default for CrestOptions {
     fn default() -> Self {
-        Self { dark_fraction: 0.45, dark_sigmas: 6.0, dark_run_sigmas: 4.0, mill_onset_um: 15.0, mill_extent_um: 5.0, min_geometric_arc_deg: 10.0 }
+        Self {
+            dark_fraction: 0.45,
+            dark_sigmas: 6.0,
+            dark_run_sigmas: 4.0,
+            mill_onset_um: 15.0,
+            mill_extent_um: 5.0,
+            min_geometric_arc_deg: 10.0,
+        }
     }
 }
 
@@ -385,7 +392,10 @@ mod tests {
             height_tolerance_mm: 0.05,
             threads: findings.observations,
         };
-        assert_eq!(crate::rules::assess(&input, crate::rules::ArcRule::PerThread).verdict, crate::rules::Verdict::Accept);
+        assert_eq!(
+            crate::rules::assess(&input, crate::rules::ArcRule::PerThread).verdict,
+            crate::rules::Verdict::Accept
+        );
     }
 
     #[test]

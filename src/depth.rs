@@ -37,12 +37,7 @@ fn yes() -> bool {
 
 impl Default for DepthOptions {
     fn default() -> Self {
-        Self {
-            window_radius_px: 4,
-            min_peak_ratio: 1.6,
-            peak_fraction: 0.3,
-            equalize_phase: true,
-        }
+        Self { window_radius_px: 4, min_peak_ratio: 1.6, peak_fraction: 0.3, equalize_phase: true }
     }
 }
 
@@ -227,47 +222,43 @@ pub fn depth_from_focus(
     let border = options.window_radius_px + 1 + breathing_px;
     let mut depth_mm = vec![f32::NAN; w * h];
     let mut peak_ratio = vec![1f32; w * h];
-    depth_mm
-        .par_chunks_mut(w)
-        .zip(peak_ratio.par_chunks_mut(w))
-        .enumerate()
-        .for_each(|(y, (depth_row, ratio_row))| {
-            let mut sorted = vec![0u32; n];
-            let mut curves = vec![0f32; w * n];
-            for k in 0..n {
-                let row = &volume[k * plane + y * w..k * plane + (y + 1) * w];
-                for (x, &m) in row.iter().enumerate() {
-                    curves[x * n + k] = m;
+    depth_mm.par_chunks_mut(w).zip(peak_ratio.par_chunks_mut(w)).enumerate().for_each(|(y, (depth_row, ratio_row))| {
+        let mut sorted = vec![0u32; n];
+        let mut curves = vec![0f32; w * n];
+        for k in 0..n {
+            let row = &volume[k * plane + y * w..k * plane + (y + 1) * w];
+            for (x, &m) in row.iter().enumerate() {
+                curves[x * n + k] = m;
+            }
+        }
+        for x in 0..w {
+            let column = &curves[x * n..(x + 1) * n];
+            // The last maximum, as `max_by` would give.
+            let (mut k_best, mut peak) = (0, column[0]);
+            for (k, &m) in column.iter().enumerate().skip(1) {
+                if m >= peak {
+                    (k_best, peak) = (k, m);
                 }
             }
-            for x in 0..w {
-                let column = &curves[x * n..(x + 1) * n];
-                // The last maximum, as `max_by` would give.
-                let (mut k_best, mut peak) = (0, column[0]);
-                for (k, &m) in column.iter().enumerate().skip(1) {
-                    if m >= peak {
-                        (k_best, peak) = (k, m);
-                    }
-                }
-                // Focus measures are ≥ 0, and non-negative floats order like their bit patterns:
-                // an integer selection finds the same median without a comparison closure.
-                for (b, &m) in sorted.iter_mut().zip(column) {
-                    *b = m.to_bits() & 0x7fff_ffff;
-                }
-                let floor = f32::from_bits(*sorted.select_nth_unstable(n / 2).1).max(1e-12);
-                let ratio = peak / floor;
-                ratio_row[x] = ratio;
-                if x < border || y < border || x + border >= w || y + border >= h {
-                    continue; // the focus window or the breathing correction runs off the frame
-                }
-                if ratio < options.min_peak_ratio || k_best == 0 || k_best + 1 == n {
-                    continue;
-                }
-                if let Some(in_focus_offset) = peak_offset(column, &offsets, k_best, floor, options.peak_fraction) {
-                    depth_row[x] = (big_f - in_focus_offset) as f32;
-                }
+            // Focus measures are ≥ 0, and non-negative floats order like their bit patterns:
+            // an integer selection finds the same median without a comparison closure.
+            for (b, &m) in sorted.iter_mut().zip(column) {
+                *b = m.to_bits() & 0x7fff_ffff;
             }
-        });
+            let floor = f32::from_bits(*sorted.select_nth_unstable(n / 2).1).max(1e-12);
+            let ratio = peak / floor;
+            ratio_row[x] = ratio;
+            if x < border || y < border || x + border >= w || y + border >= h {
+                continue; // the focus window or the breathing correction runs off the frame
+            }
+            if ratio < options.min_peak_ratio || k_best == 0 || k_best + 1 == n {
+                continue;
+            }
+            if let Some(in_focus_offset) = peak_offset(column, &offsets, k_best, floor, options.peak_fraction) {
+                depth_row[x] = (big_f - in_focus_offset) as f32;
+            }
+        }
+    });
     Ok(Some(DepthMap { width: w, height: h, depth_mm, peak_ratio, all_in_focus }))
 }
 
@@ -348,7 +339,10 @@ mod tests {
         let offsets: Vec<f64> = (0..12).map(|k| -1.5 + 0.25 * k as f64).collect();
         // A plateau 0.5 mm wide with symmetric shoulders, centred at `c`.
         let curve = |c: f64| -> Vec<f32> {
-            offsets.iter().map(|&o| (1.0 / (1.0 + (((o - c).abs() - 0.25).max(0.0) / 0.2).powi(2))) as f32 + 0.05).collect()
+            offsets
+                .iter()
+                .map(|&o| (1.0 / (1.0 + (((o - c).abs() - 0.25).max(0.0) / 0.2).powi(2))) as f32 + 0.05)
+                .collect()
         };
         for c in [-0.4, -0.33, -0.2, 0.0, 0.11, 0.3] {
             let column = curve(c);
@@ -424,7 +418,13 @@ mod tests {
             0.012 * (std::f64::consts::TAU * phase).sin()
         };
         let depth: Vec<f32> = (0..w * h).map(|i| (big_f - true_offset(i) - bias(true_offset(i))) as f32).collect();
-        let map = DepthMap { width: w, height: h, depth_mm: depth, peak_ratio: vec![5.0; w * h], all_in_focus: vec![0.5; 3 * w * h] };
+        let map = DepthMap {
+            width: w,
+            height: h,
+            depth_mm: depth,
+            peak_ratio: vec![5.0; w * h],
+            all_in_focus: vec![0.5; 3 * w * h],
+        };
         let worst = |maps: &[DepthMap]| {
             (0..w * h).map(|i| (maps[0].depth_mm[i] as f64 - (big_f - true_offset(i))).abs()).fold(0.0, f64::max)
         };

@@ -41,24 +41,23 @@ pub fn mosaic_png(map: &UnrolledMap) -> Result<Vec<u8>, ImageError> {
 
 /// Radius relative to its range, 16-bit; unseen cells are 0.
 fn height_map(map: &UnrolledMap) -> image::DynamicImage {
-    let (lo, hi) = map
-        .radius_mm
-        .iter()
-        .filter(|r| r.is_finite())
-        .fold((f32::MAX, f32::MIN), |(l, h), &r| (l.min(r), h.max(r)));
+    let (lo, hi) =
+        map.radius_mm.iter().filter(|r| r.is_finite()).fold((f32::MAX, f32::MIN), |(l, h), &r| (l.min(r), h.max(r)));
     let span = (hi - lo).max(1e-6);
     let pixels: Vec<u16> = map
         .radius_mm
         .iter()
         .map(|&r| if r.is_finite() { (1.0 + (r - lo) / span * 65534.0) as u16 } else { 0 })
         .collect();
-    let buffer = image::ImageBuffer::<image::Luma<u16>, _>::from_raw(map.grid.ntheta as u32, map.grid.nz as u32, pixels)
-        .expect("one value per cell");
+    let buffer =
+        image::ImageBuffer::<image::Luma<u16>, _>::from_raw(map.grid.ntheta as u32, map.grid.nz as u32, pixels)
+            .expect("one value per cell");
     buffer.into()
 }
 
 fn mosaic(map: &UnrolledMap) -> image::DynamicImage {
     let pixels: Vec<u8> = map.rgb.iter().flat_map(|c| c.map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)).collect();
-    let buffer = image::RgbImage::from_raw(map.grid.ntheta as u32, map.grid.nz as u32, pixels).expect("one colour per cell");
+    let buffer =
+        image::RgbImage::from_raw(map.grid.ntheta as u32, map.grid.nz as u32, pixels).expect("one colour per cell");
     buffer.into()
 }

@@ -137,7 +137,8 @@ async fn process(ctx: &WorkerContext, job: Claimed, lease_token: &str, shutdown:
     beat.tick().await;
     let mut grace_deadline: Option<tokio::time::Instant> = None;
     let outcome = loop {
-        let deadline = grace_deadline.unwrap_or_else(|| tokio::time::Instant::now() + Duration::from_secs(86_400 * 365));
+        let deadline =
+            grace_deadline.unwrap_or_else(|| tokio::time::Instant::now() + Duration::from_secs(86_400 * 365));
         tokio::select! {
             result = &mut task => break result,
             _ = beat.tick() => {
@@ -168,7 +169,8 @@ async fn process(ctx: &WorkerContext, job: Claimed, lease_token: &str, shutdown:
             }
         }
     };
-    let outcome = outcome.unwrap_or_else(|e| Outcome::Fail(problem("pipeline_panic", format!("worker task failed: {e}"))));
+    let outcome =
+        outcome.unwrap_or_else(|e| Outcome::Fail(problem("pipeline_panic", format!("worker task failed: {e}"))));
     if lease_lost.load(Ordering::Relaxed) {
         return;
     }
@@ -180,7 +182,9 @@ async fn process(ctx: &WorkerContext, job: Claimed, lease_token: &str, shutdown:
             }
             ("succeeded", ctx.store.complete_success(&job.id, lease_token, &results).await)
         }
-        Outcome::Canceled => ("canceled", ctx.store.complete_without_results(&job.id, lease_token, Status::Canceled, None).await),
+        Outcome::Canceled => {
+            ("canceled", ctx.store.complete_without_results(&job.id, lease_token, Status::Canceled, None).await)
+        }
         Outcome::Fail(p) => {
             let json = serde_json::to_string(&p).expect("problem serialises");
             ("failed", ctx.store.complete_without_results(&job.id, lease_token, Status::Failed, Some(&json)).await)
@@ -202,7 +206,9 @@ async fn process(ctx: &WorkerContext, job: Claimed, lease_token: &str, shutdown:
             tracing::info!(inspection = %job.id, outcome = label, seconds = elapsed, "job done");
         }
         Ok(false) => tracing::warn!(inspection = %job.id, "job was re-claimed elsewhere; result dropped"),
-        Err(e) => tracing::error!(inspection = %job.id, error = %e, "could not record the outcome; the lease will lapse and the job re-run"),
+        Err(e) => {
+            tracing::error!(inspection = %job.id, error = %e, "could not record the outcome; the lease will lapse and the job re-run")
+        }
     }
 }
 
@@ -227,7 +233,10 @@ fn run_job(ctx: &WorkerContext, job: &Claimed, cancel: &AtomicBool, progress: &M
     };
     let path = ctx.store.files.path_of(&job.upload_sha256);
     if !path.is_file() {
-        return Outcome::Fail(problem("upload_missing", format!("the uploaded bundle {} is no longer in the store", job.upload_sha256)));
+        return Outcome::Fail(problem(
+            "upload_missing",
+            format!("the uploaded bundle {} is no longer in the store", job.upload_sha256),
+        ));
     }
     let limits = bundle_limits(ctx.settings.max_upload_bytes());
     let bundle = match Bundle::open(&path, &ctx.table, OpenOptions { limits, ..OpenOptions::default() }) {
@@ -259,7 +268,9 @@ fn bundle_outcome(e: BundleError) -> Outcome {
     }
 }
 
-pub fn encode_results(inspection: &pipeline::Inspection) -> Result<JobResults, Box<dyn std::error::Error + Send + Sync>> {
+pub fn encode_results(
+    inspection: &pipeline::Inspection,
+) -> Result<JobResults, Box<dyn std::error::Error + Send + Sync>> {
     let report = &inspection.report;
     let mut ply = Vec::new();
     mesh::write_ply(&inspection.mesh, &mut ply)?;
@@ -275,8 +286,16 @@ pub fn encode_results(inspection: &pipeline::Inspection) -> Result<JobResults, B
         artifacts: vec![
             Artifact { kind: "mesh.ply", content_type: "application/x-ply", body: ply },
             Artifact { kind: "mesh.stl", content_type: "model/stl", body: stl },
-            Artifact { kind: "height-map.png", content_type: "image/png", body: images::height_map_png(&inspection.map)? },
-            Artifact { kind: "all-in-focus.png", content_type: "image/png", body: images::mosaic_png(&inspection.map)? },
+            Artifact {
+                kind: "height-map.png",
+                content_type: "image/png",
+                body: images::height_map_png(&inspection.map)?,
+            },
+            Artifact {
+                kind: "all-in-focus.png",
+                content_type: "image/png",
+                body: images::mosaic_png(&inspection.map)?,
+            },
         ],
     })
 }
@@ -299,7 +318,10 @@ mod tests {
 
     #[test]
     fn io_errors_retry_and_bad_input_fails() {
-        assert!(matches!(bundle_outcome(BundleError::Io { path: "x".into(), message: "EIO".into() }), Outcome::Retry(_)));
+        assert!(matches!(
+            bundle_outcome(BundleError::Io { path: "x".into(), message: "EIO".into() }),
+            Outcome::Retry(_)
+        ));
         let Outcome::Fail(p) = bundle_outcome(BundleError::MissingFile { path: "a/0.png".into() }) else { panic!() };
         assert_eq!(p.code, "missing_file");
     }

@@ -3,10 +3,10 @@ use clap::{Parser, Subcommand};
 use crestscan::bundle::{Bundle, FrameCheck, OpenOptions};
 use crestscan::pipeline::{self, PipelineOptions};
 use crestscan::rules::ArcRule;
-use crestscan::{images, sim};
-use std::sync::atomic::AtomicBool;
 use crestscan::thread::ConnectionTable;
+use crestscan::{images, sim};
 use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
 
 #[derive(Parser)]
 #[command(name = "crestscan", version, about = "Thread geometry from focal stacks, and API 5B black-crest acceptance")]
@@ -96,7 +96,8 @@ fn healthcheck(addr: Option<std::net::SocketAddr>) -> Result<()> {
         std::net::SocketAddr::from(([127, 0, 0, 1], port))
     });
     let timeout = std::time::Duration::from_secs(3);
-    let mut stream = std::net::TcpStream::connect_timeout(&addr, timeout).with_context(|| format!("connecting to {addr}"))?;
+    let mut stream =
+        std::net::TcpStream::connect_timeout(&addr, timeout).with_context(|| format!("connecting to {addr}"))?;
     stream.set_read_timeout(Some(timeout))?;
     write!(stream, "GET /healthz HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n")?;
     let mut head = [0u8; 12];
@@ -159,8 +160,20 @@ impl ServeArgs {
         macro_rules! set {
             ($($field:ident),*) => { $( if let Some(v) = self.$field { s.$field = v; } )* };
         }
-        set!(bind, data_dir, workers, compute_threads, max_upload_mb, lease_seconds, heartbeat_seconds, max_attempts,
-             shutdown_grace_seconds, poll_interval_ms, upload_retention_days, log);
+        set!(
+            bind,
+            data_dir,
+            workers,
+            compute_threads,
+            max_upload_mb,
+            lease_seconds,
+            heartbeat_seconds,
+            max_attempts,
+            shutdown_grace_seconds,
+            poll_interval_ms,
+            upload_retention_days,
+            log
+        );
         s.validate()?;
         Ok(s)
     }
@@ -222,7 +235,8 @@ fn main() -> Result<()> {
         }
         Command::Inspect { bundle, out, json, arc_rule } => {
             let table = ConnectionTable::api5b();
-            let b = Bundle::open(&bundle, &table, OpenOptions::default()).map_err(|e| anyhow::anyhow!("[{}] {e}", e.code()))?;
+            let b = Bundle::open(&bundle, &table, OpenOptions::default())
+                .map_err(|e| anyhow::anyhow!("[{}] {e}", e.code()))?;
             let options = PipelineOptions {
                 arc_rule: match arc_rule {
                     ArcRuleArg::PerThread => ArcRule::PerThread,
@@ -240,12 +254,17 @@ fn main() -> Result<()> {
                 images::write_height_map(&inspection.map, &dir.join("height-map.png"))?;
                 images::write_mosaic(&inspection.map, &dir.join("all-in-focus.png"))?;
                 for (name, write) in [
-                    ("mesh.ply", crestscan::mesh::write_ply as fn(&crestscan::mesh::Mesh, std::io::BufWriter<std::fs::File>) -> std::io::Result<()>),
+                    (
+                        "mesh.ply",
+                        crestscan::mesh::write_ply
+                            as fn(&crestscan::mesh::Mesh, std::io::BufWriter<std::fs::File>) -> std::io::Result<()>,
+                    ),
                     ("mesh.stl", crestscan::mesh::write_stl),
                 ] {
                     let path = dir.join(name);
                     let file = std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?;
-                    write(&inspection.mesh, std::io::BufWriter::new(file)).with_context(|| format!("writing {}", path.display()))?;
+                    write(&inspection.mesh, std::io::BufWriter::new(file))
+                        .with_context(|| format!("writing {}", path.display()))?;
                 }
             }
             if json {
@@ -267,7 +286,10 @@ fn main() -> Result<()> {
                 bail!("unknown suite {suite:?}; suites: accuracy");
             }
             let mut results = Vec::new();
-            for case in crestscan::bench::ACCURACY_SUITE.iter().filter(|c| only.is_empty() || only.iter().any(|o| o == c.preset)) {
+            for case in crestscan::bench::ACCURACY_SUITE
+                .iter()
+                .filter(|c| only.is_empty() || only.iter().any(|o| o == c.preset))
+            {
                 eprintln!("bench: {} (seed {})", case.preset, case.seed);
                 results.push(crestscan::bench::run_case(case, &work)?);
             }

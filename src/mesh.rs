@@ -73,7 +73,11 @@ pub fn build(map: &UnrolledMap, options: &MeshOptions) -> Result<Mesh, MeshError
     let mut stride = 1;
     let count = |s: usize| {
         let keep = |&&(iz, it): &&(usize, usize)| iz % s == 0 && it % s == 0;
-        let fs = if features.len() > options.max_vertices / 2 { features.iter().filter(keep).count() } else { features.len() };
+        let fs = if features.len() > options.max_vertices / 2 {
+            features.iter().filter(keep).count()
+        } else {
+            features.len()
+        };
         fs + flats.iter().filter(keep).count()
     };
     while count(stride) > options.max_vertices {

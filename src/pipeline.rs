@@ -37,7 +37,9 @@ impl Default for PipelineOptions {
             crest: CrestOptions::default(),
             register: RegisterOptions::default(),
             mesh: MeshOptions::default(),
-            arc_rule: ArcRule::PerThread, cell_px: 1.5 }
+            arc_rule: ArcRule::PerThread,
+            cell_px: 1.5,
+        }
     }
 }
 
@@ -126,8 +128,7 @@ pub fn inspect(
             .collect();
         crate::depth::equalize_sub_frame_phase(&mut depth_maps, &grids, bundle.optics.focus_distance_mm);
     }
-    let depth_coverage =
-        depth_maps.iter().map(|d| d.coverage()).sum::<f64>() / depth_maps.len().max(1) as f64;
+    let depth_coverage = depth_maps.iter().map(|d| d.coverage()).sum::<f64>() / depth_maps.len().max(1) as f64;
     if depth_coverage == 0.0 {
         return Err(PipelineError::NoDepth);
     }
@@ -137,7 +138,11 @@ pub fn inspect(
     let part = &bundle.part;
     let encoder_poses: Vec<ViewPose> = bundle.views.iter().map(|v| v.pose).collect();
     let project = |poses: &[ViewPose]| -> Vec<Vec<cloud::SurfacePoint>> {
-        poses.par_iter().zip(&depth_maps).map(|(pose, depth)| cloud::back_project(&bundle.optics, pose, depth)).collect()
+        poses
+            .par_iter()
+            .zip(&depth_maps)
+            .map(|(pose, depth)| cloud::back_project(&bundle.optics, pose, depth))
+            .collect()
     };
     let encoder_clouds = project(&encoder_poses);
     let pixel_mm = bundle.optics.object_pixel_mm(bundle.optics.focus_distance_mm);
@@ -152,8 +157,7 @@ pub fn inspect(
         &RegisterOptions { cell_mm: pixel_mm, ..options.register.clone() },
     );
     drop(encoder_clouds);
-    let poses: Vec<ViewPose> =
-        encoder_poses.iter().zip(&registration.corrections).map(|(p, c)| c.apply(p)).collect();
+    let poses: Vec<ViewPose> = encoder_poses.iter().zip(&registration.corrections).map(|(p, c)| c.apply(p)).collect();
     lap(Stage::Register, &mut timings);
     if cancelled() {
         return Ok(None);
@@ -233,7 +237,10 @@ pub fn inspect(
                 height_mm: HeightSeries { angles_deg: t.bins.iter().map(|b| b.angle_deg).collect(), values },
                 black_crest_arcs_deg: black.map(|b| b.arcs_deg.clone()).unwrap_or_default(),
                 black_crest_length_mm: black.map_or(0.0, |b| b.length_mm),
-                crest_z_mm: [t.bins[0].crest_z_mm - 0.5 * helix.pitch_mm / 360.0, t.bins[359].crest_z_mm + 0.5 * helix.pitch_mm / 360.0],
+                crest_z_mm: [
+                    t.bins[0].crest_z_mm - 0.5 * helix.pitch_mm / 360.0,
+                    t.bins[359].crest_z_mm + 0.5 * helix.pitch_mm / 360.0,
+                ],
                 min_height_mm: measured.iter().copied().reduce(f64::min),
                 mean_height_mm: (!measured.is_empty()).then(|| measured.iter().sum::<f64>() / measured.len() as f64),
                 max_height_mm: measured.iter().copied().reduce(f64::max),

@@ -149,9 +149,8 @@ pub fn estimate_helix(map: &UnrolledMap, form: &ThreadForm) -> Option<Helix> {
         }
         // Phase at exactly 1/pitch (direct DFT), then the crest position.
         let theta_deg = bin as f64 + 0.5;
-        let x: Complex<f64> = (0..g.nz)
-            .map(|k| Complex::from_polar(profile[k] - a - slope * z[k], -TAU * z[k] / p))
-            .sum();
+        let x: Complex<f64> =
+            (0..g.nz).map(|k| Complex::from_polar(profile[k] - a - slope * z[k], -TAU * z[k] / p)).sum();
         let z_crest = (phase_form - x.arg()) * p / TAU;
         let z_h = (z_crest - p * theta_deg / 360.0).rem_euclid(p);
         sum_vec += Complex::from_polar(1.0, TAU * z_h / p);
@@ -525,10 +524,8 @@ mod tests {
         let radius = 0.45;
         let section = Section::Parabola { c_per_mm: -0.5 / radius };
         // An arc seen from x = −0.25 … 0.25 mm, tilted by the taper.
-        let pts: Vec<(f64, f64)> = (0..=50)
-            .map(|i| -0.25 + 0.01 * i as f64)
-            .map(|x| (x, 10.0 + 0.03 * x - x * x / (2.0 * radius)))
-            .collect();
+        let pts: Vec<(f64, f64)> =
+            (0..=50).map(|i| -0.25 + 0.01 * i as f64).map(|x| (x, 10.0 + 0.03 * x - x * x / (2.0 * radius))).collect();
         let centre = fit_at_centre(&pts, section, 0.25).unwrap();
         assert!((centre - 10.0).abs() < 1e-9, "{centre}");
         let measured = fit_curvature(&pts).unwrap();

@@ -411,9 +411,8 @@ pub fn register(
         p.residual_axial_um = 1e3 * (axial[p.b] - axial[p.a] - p.shift_axial_mm);
         p.residual_radius_um = 1e3 * (radial[p.b] - radial[p.a] - p.shift_radius_mm);
     }
-    let corrections = (0..n)
-        .map(|v| PoseCorrection { angle_deg: angle[v], axial_mm: axial[v], lens_radius_mm: radial[v] })
-        .collect();
+    let corrections =
+        (0..n).map(|v| PoseCorrection { angle_deg: angle[v], axial_mm: axial[v], lens_radius_mm: radial[v] }).collect();
     Registration { corrections, pairs }
 }
 
@@ -426,7 +425,8 @@ mod tests {
         // Four views in a ring with true corrections (0.3, −0.1, 0.2, −0.4): measured differences
         // c_b − c_a, one of them corrupted; Huber weighting keeps the corrupt one from spreading.
         let truth = [0.3, -0.1, 0.2, -0.4];
-        let mut pairs: Vec<(usize, usize, f64)> = (0..4).map(|a| (a, (a + 1) % 4, truth[(a + 1) % 4] - truth[a])).collect();
+        let mut pairs: Vec<(usize, usize, f64)> =
+            (0..4).map(|a| (a, (a + 1) % 4, truth[(a + 1) % 4] - truth[a])).collect();
         pairs.push((0, 2, truth[2] - truth[0]));
         pairs.push((1, 3, truth[3] - truth[1]));
         pairs[1].2 += 0.5;
@@ -438,9 +438,8 @@ mod tests {
 
     #[test]
     fn neighbours_include_the_wrap_around_pair() {
-        let poses: Vec<ViewPose> = (0..8)
-            .map(|i| ViewPose { angle_deg: i as f64 * 45.0, axial_mm: 10.0, lens_radius_mm: 200.0 })
-            .collect();
+        let poses: Vec<ViewPose> =
+            (0..8).map(|i| ViewPose { angle_deg: i as f64 * 45.0, axial_mm: 10.0, lens_radius_mm: 200.0 }).collect();
         let pairs = overlapping_pairs(&poses, 30.0, 15.0);
         assert_eq!(pairs.len(), 8);
         assert!(pairs.contains(&(0, 7)));

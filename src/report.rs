@@ -65,7 +65,8 @@ pub struct Report {
 impl Report {
     /// A short human summary: verdict, the reasons, thread height statistics.
     pub fn summary(&self) -> String {
-        let heights: Vec<f64> = self.threads.iter().flat_map(|t| t.height_mm.values.iter().flatten().copied()).collect();
+        let heights: Vec<f64> =
+            self.threads.iter().flat_map(|t| t.height_mm.values.iter().flatten().copied()).collect();
         let full: Vec<f64> = heights
             .iter()
             .copied()

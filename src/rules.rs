@@ -387,11 +387,7 @@ mod tests {
     }
 
     fn dark(index: u32, length_mm: f64) -> ThreadObservation {
-        ThreadObservation {
-            index,
-            black_crest_arcs_deg: vec![arc_of(length_mm, 40.0, SEED_CIRC)],
-            bins: vec![],
-        }
+        ThreadObservation { index, black_crest_arcs_deg: vec![arc_of(length_mm, 40.0, SEED_CIRC)], bins: vec![] }
     }
 
     /// Full machined bins everywhere except `low` (start, end) degrees, where the height is `height`
@@ -481,7 +477,8 @@ mod tests {
     fn black_crests_only_beyond_lc_accept() {
         // Thread whose crest z runs from 36 to 41 mm, beyond Lc 35.8: low heights there are imperfect
         // threads, not black crests within Lc; photometric arcs arrive already clipped (none left).
-        let mut t = ThreadObservation { index: 8, black_crest_arcs_deg: vec![], bins: bins(36.0, 5.08, (0, 360), 0.6, false) };
+        let mut t =
+            ThreadObservation { index: 8, black_crest_arcs_deg: vec![], bins: bins(36.0, 5.08, (0, 360), 0.6, false) };
         let a = assess(&buttress(vec![t.clone()]), ArcRule::PerThread);
         assert_eq!(a.verdict, Verdict::Accept);
         assert_eq!(a.reasons[0].code, ReasonCode::NoBlackCrestWithinLc);
@@ -498,7 +495,11 @@ mod tests {
     #[test]
     fn polished_crest_is_black_by_its_geometry() {
         // Bright crest (no photometric arc) on the mill surface over 30°.
-        let t = ThreadObservation { index: 4, black_crest_arcs_deg: vec![], bins: bins(18.0, 5.08, (100, 130), 0.95, false) };
+        let t = ThreadObservation {
+            index: 4,
+            black_crest_arcs_deg: vec![],
+            bins: bins(18.0, 5.08, (100, 130), 0.95, false),
+        };
         let mut input = buttress(vec![t]);
         input.family = Family::Round;
         let a = assess(&input, ArcRule::PerThread);
@@ -524,7 +525,11 @@ mod tests {
     #[test]
     fn geometric_arc_is_clipped_at_lc() {
         // Crest z crosses Lc = 35.8 at θ = (35.8 − 33.0) / 5.08 · 360 = 198.4°.
-        let t = ThreadObservation { index: 7, black_crest_arcs_deg: vec![], bins: bins(33.0, 5.08, (150, 260), 0.5, false) };
+        let t = ThreadObservation {
+            index: 7,
+            black_crest_arcs_deg: vec![],
+            bins: bins(33.0, 5.08, (150, 260), 0.5, false),
+        };
         let a = assess(&buttress(vec![t]), ArcRule::PerThread);
         let arc = a.black_threads[0].arcs_deg[0];
         assert_eq!(arc[0], 150.0);

@@ -47,7 +47,13 @@ impl Application {
         let metrics = Arc::new(Metrics::new());
         let wake = Arc::new(Notify::new());
         let settings = Arc::new(settings);
-        let state = AppState { store: store.clone(), table: table.clone(), metrics: metrics.clone(), settings: settings.clone(), wake: wake.clone() };
+        let state = AppState {
+            store: store.clone(),
+            table: table.clone(),
+            metrics: metrics.clone(),
+            settings: settings.clone(),
+            wake: wake.clone(),
+        };
         let worker = WorkerContext {
             store,
             table,

@@ -74,9 +74,17 @@ impl Metrics {
         let job_seconds: HistogramFamily<OutcomeLabels> = Family::new_with_constructor(job_histogram);
         let queue = Family::<StateLabels, Gauge>::default();
         registry.register("http_requests", "HTTP requests by method, matched route and status", requests.clone());
-        registry.register("http_request_duration_seconds", "HTTP request latency by matched route", request_seconds.clone());
+        registry.register(
+            "http_request_duration_seconds",
+            "HTTP request latency by matched route",
+            request_seconds.clone(),
+        );
         registry.register("pipeline_stage_duration_seconds", "Pipeline stage durations", stage_seconds.clone());
-        registry.register("jobs_finished", "Jobs finished by outcome (succeeded, failed, canceled, retry)", jobs.clone());
+        registry.register(
+            "jobs_finished",
+            "Jobs finished by outcome (succeeded, failed, canceled, retry)",
+            jobs.clone(),
+        );
         registry.register("job_duration_seconds", "Job durations by outcome", job_seconds.clone());
         registry.register("queue_jobs", "Inspections queued and running", queue.clone());
         Self { registry, requests, request_seconds, stage_seconds, jobs, job_seconds, queue }
@@ -111,6 +119,7 @@ impl Metrics {
 
 /// Installs the log subscriber once per process (later calls are no-ops, as in tests).
 pub fn init_logging(filter: &str) {
-    let filter = tracing_subscriber::EnvFilter::try_new(filter).unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    let filter =
+        tracing_subscriber::EnvFilter::try_new(filter).unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
     let _ = tracing_subscriber::fmt().with_env_filter(filter).with_target(false).try_init();
 }

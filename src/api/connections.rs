@@ -52,13 +52,8 @@ pub async fn list_connections(
     {
         return Err(ApiError::new("invalid_query", format!("kind: {k:?} is not BC, LC or STC")).with_culprit("kind"));
     }
-    let items = state
-        .table
-        .all()
-        .iter()
-        .filter(|c| kind.as_deref().is_none_or(|k| c.kind.prefix() == k))
-        .cloned()
-        .collect();
+    let items =
+        state.table.all().iter().filter(|c| kind.as_deref().is_none_or(|k| c.kind.prefix() == k)).cloned().collect();
     Ok(Json(ConnectionList { items }))
 }
 
@@ -75,7 +70,10 @@ pub async fn list_connections(
         (status = 404, description = "Unknown designation", body = Problem, content_type = "application/problem+json"),
     )
 )]
-pub async fn get_connection(State(state): State<AppState>, Path(designation): Path<String>) -> Result<Json<Connection>, ApiError> {
+pub async fn get_connection(
+    State(state): State<AppState>,
+    Path(designation): Path<String>,
+) -> Result<Json<Connection>, ApiError> {
     state.table.get(&designation).cloned().map(Json).ok_or_else(|| {
         ApiError::new("unknown_designation", format!("no connection {designation:?}; GET /v1/connections lists them"))
             .with_culprit("designation")

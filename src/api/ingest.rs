@@ -151,13 +151,10 @@ fn too_large(limit: u64) -> ApiError {
 
 /// Streams the request body into the file store's temporary area.
 pub async fn receive(request: Request, files: &FileStore, limit: u64) -> Result<Received, ApiError> {
-    let content_type = request
-        .headers()
-        .get(header::CONTENT_TYPE)
-        .and_then(|v| v.to_str().ok())
-        .unwrap_or("")
-        .to_ascii_lowercase();
-    if let Some(length) = request.headers().get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()?.parse::<u64>().ok())
+    let content_type =
+        request.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_ascii_lowercase();
+    if let Some(length) =
+        request.headers().get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()?.parse::<u64>().ok())
         && length > limit
     {
         // Read (and drop) a moderate excess so that clients without `Expect: 100-continue` see the
@@ -170,7 +167,10 @@ pub async fn receive(request: Request, files: &FileStore, limit: u64) -> Result<
     let essence = content_type.split(';').next().unwrap_or("").trim().to_string();
     match essence.as_str() {
         "multipart/form-data" => receive_multipart(request, files, limit).await,
-        "application/zip" | "application/x-zip-compressed" | "application/x-tar" | "application/tar"
+        "application/zip"
+        | "application/x-zip-compressed"
+        | "application/x-tar"
+        | "application/tar"
         | "application/octet-stream" => receive_raw(request.into_body(), files, limit).await,
         other => {
             let error = ApiError::new(
@@ -212,9 +212,8 @@ fn multipart_error(e: axum::extract::multipart::MultipartError) -> ApiError {
 }
 
 async fn receive_multipart(request: Request, files: &FileStore, limit: u64) -> Result<Received, ApiError> {
-    let mut multipart = Multipart::from_request(request, &())
-        .await
-        .map_err(|e| ApiError::new("invalid_multipart", e.body_text()))?;
+    let mut multipart =
+        Multipart::from_request(request, &()).await.map_err(|e| ApiError::new("invalid_multipart", e.body_text()))?;
     let result = read_parts(&mut multipart, files, limit).await;
     if result.is_err() {
         // As for raw bodies: read (and drop) a moderate rest so the client sees the problem.
@@ -304,8 +303,11 @@ async fn read_parts(multipart: &mut Multipart, files: &FileStore, limit: u64) ->
                 // bundle file.
                 let max_part = crate::bundle::Limits::default().max_file_bytes;
                 let data = read_part(&mut field, &mut upload, max_part, || {
-                    ApiError::new("bundle_too_large", format!("part {path:?} exceeds the per-file cap of {max_part} bytes"))
-                        .with_culprit(path.clone())
+                    ApiError::new(
+                        "bundle_too_large",
+                        format!("part {path:?} exceeds the per-file cap of {max_part} bytes"),
+                    )
+                    .with_culprit(path.clone())
                 })
                 .await?;
                 upload.send(Chunk::Entry { path, data }).await?;

@@ -102,7 +102,12 @@ impl From<InspectionRow> for Inspection {
             finished_at: r.finished_at.map(rfc3339),
             attempts: r.attempts,
             cancel_requested: r.cancel_requested,
-            bundle: BundleSummary { sha256: r.upload_sha256, size_bytes: r.size_bytes, views: r.views, frames: r.frames },
+            bundle: BundleSummary {
+                sha256: r.upload_sha256,
+                size_bytes: r.size_bytes,
+                views: r.views,
+                frames: r.frames,
+            },
             options: serde_json::from_str(&r.options_json).unwrap_or(serde_json::Value::Null),
             error: r.error_json.as_deref().and_then(|e| serde_json::from_str(e).ok()),
             links: Links {
@@ -155,7 +160,10 @@ pub struct BundleForm {
 /// Idempotency-Key: 1–255 visible ASCII characters.
 fn idempotency_key(headers: &HeaderMap) -> Result<Option<String>, ApiError> {
     let Some(v) = headers.get("idempotency-key") else { return Ok(None) };
-    let bad = || ApiError::new("invalid_header", "Idempotency-Key must be 1–255 visible ASCII characters").with_culprit("Idempotency-Key");
+    let bad = || {
+        ApiError::new("invalid_header", "Idempotency-Key must be 1–255 visible ASCII characters")
+            .with_culprit("Idempotency-Key")
+    };
     let s = v.to_str().map_err(|_| bad())?.trim();
     if s.is_empty() || s.len() > 255 || !s.bytes().all(|b| b.is_ascii_graphic()) {
         return Err(bad());
@@ -165,11 +173,10 @@ fn idempotency_key(headers: &HeaderMap) -> Result<Option<String>, ApiError> {
 
 fn client_reference(value: Option<String>) -> Result<Option<String>, ApiError> {
     match value {
-        Some(r) if r.is_empty() || r.chars().count() > 200 || r.chars().any(char::is_control) => Err(ApiError::new(
-            "invalid_option",
-            "client_reference must be 1–200 characters without control characters",
-        )
-        .with_culprit("client_reference")),
+        Some(r) if r.is_empty() || r.chars().count() > 200 || r.chars().any(char::is_control) => {
+            Err(ApiError::new("invalid_option", "client_reference must be 1–200 characters without control characters")
+                .with_culprit("client_reference"))
+        }
         other => Ok(other),
     }
 }
@@ -276,7 +283,9 @@ pub async fn create_inspection(
     headers: HeaderMap,
     request: Request,
 ) -> Result<Response, ApiError> {
-    let early = query.map_err(|e| ApiError::new("invalid_query", e.body_text())).and_then(|q| Ok((q.0, idempotency_key(&headers)?)));
+    let early = query
+        .map_err(|e| ApiError::new("invalid_query", e.body_text()))
+        .and_then(|q| Ok((q.0, idempotency_key(&headers)?)));
     let (query, key) = match early {
         Ok(ok) => ok,
         Err(e) => {
@@ -287,9 +296,8 @@ pub async fn create_inspection(
     let received = ingest::receive(request, &state.store.files, state.settings.max_upload_bytes()).await?;
     let (reference, options) = resolve_options(query, received.options_part.as_deref())?;
     let options_json = serde_json::to_string(&options).expect("options serialise");
-    let request_sha256 = sha256_hex(
-        format!("{}\n{}\n{}", received.sha256, options_json, reference.as_deref().unwrap_or("")).as_bytes(),
-    );
+    let request_sha256 =
+        sha256_hex(format!("{}\n{}\n{}", received.sha256, options_json, reference.as_deref().unwrap_or("")).as_bytes());
     if let Some(key) = &key
         && let Some(existing) = state.store.by_idempotency_key(key).await?
     {
@@ -314,7 +322,12 @@ pub async fn create_inspection(
         let bundle = Bundle::open(file.path(), &table, OpenOptions { limits, frame_check: FrameCheck::Headers })?;
         let serial = bundle.manifest.part.serial.clone();
         let connection = bundle.manifest.part.connection.clone();
-        let summary = crate::store::UploadInfo { sha256: sha256.clone(), size_bytes, views: bundle.views.len(), frames: bundle.frame_count() };
+        let summary = crate::store::UploadInfo {
+            sha256: sha256.clone(),
+            size_bytes,
+            views: bundle.views.len(),
+            frames: bundle.frame_count(),
+        };
         drop(bundle);
         // Durable now; placed under its hash inside the database transaction.
         files.prepare(&file).map_err(ApiError::internal)?;
@@ -391,7 +404,9 @@ pub async fn list_inspections(
     query: Result<Query<ListQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Json<InspectionPage>, ApiError> {
     let Query(q) = query.map_err(|e| ApiError::new("invalid_query", e.body_text()))?;
-    let invalid = |field: &str, message: String| ApiError::new("invalid_query", format!("{field}: {message}")).with_culprit(field);
+    let invalid = |field: &str, message: String| {
+        ApiError::new("invalid_query", format!("{field}: {message}")).with_culprit(field)
+    };
     let status = q.status.as_deref().map(str::parse::<Status>).transpose().map_err(|e| invalid("status", e))?;
     if let Some(v) = q.verdict.as_deref()
         && v != "accept"
@@ -399,7 +414,9 @@ pub async fn list_inspections(
     {
         return Err(invalid("verdict", format!("{v:?} is neither accept nor reject")));
     }
-    let time = |field: &str, v: &Option<String>| v.as_deref().map(|t| parse_rfc3339(t).map_err(|e| invalid(field, e))).transpose();
+    let time = |field: &str, v: &Option<String>| {
+        v.as_deref().map(|t| parse_rfc3339(t).map_err(|e| invalid(field, e))).transpose()
+    };
     let limit = q.limit.unwrap_or(50);
     if !(1..=200).contains(&limit) {
         return Err(invalid("limit", format!("{limit} is outside 1–200")));
@@ -441,7 +458,10 @@ pub async fn list_inspections(
         (status = 404, description = "No such inspection", body = Problem, content_type = "application/problem+json"),
     )
 )]
-pub async fn get_inspection(State(state): State<AppState>, Path(id): Path<String>) -> Result<Json<Inspection>, ApiError> {
+pub async fn get_inspection(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Json<Inspection>, ApiError> {
     let id = InspectionId::parse(&id)?;
     let row = state.store.inspection(&id.0).await.map_err(|e| super::missing_inspection(e, &id.0))?;
     Ok(Json(row.into()))

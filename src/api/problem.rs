@@ -139,9 +139,9 @@ impl From<BundleError> for ApiError {
     fn from(e: BundleError) -> Self {
         let culprit = match &e {
             BundleError::FormatVersion { .. } => Some("manifest.json: format".to_string()),
-            BundleError::Manifest { field, .. } | BundleError::TooFewFrames { field, .. } | BundleError::Offsets { field, .. } => {
-                Some(format!("manifest.json: {field}"))
-            }
+            BundleError::Manifest { field, .. }
+            | BundleError::TooFewFrames { field, .. }
+            | BundleError::Offsets { field, .. } => Some(format!("manifest.json: {field}")),
             BundleError::Optics { field, .. } => Some(format!("manifest.json: optics.{field}")),
             BundleError::Thread { field, .. } => Some(format!("manifest.json: part.thread.{field}")),
             BundleError::UnknownConnection { .. } => Some("manifest.json: part.connection".into()),
@@ -176,7 +176,8 @@ pub struct RequestPath(pub String);
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
         let status = self.status();
-        let mut response = (status, serde_json::to_vec(&self.problem(None)).expect("problem serialises")).into_response();
+        let mut response =
+            (status, serde_json::to_vec(&self.problem(None)).expect("problem serialises")).into_response();
         response.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(PROBLEM_JSON));
         // Lets the middleware fill `instance` without re-parsing.
         response.extensions_mut().insert(self);

@@ -50,7 +50,10 @@ fn immutable(headers: &HeaderMap, etag: &str, content_type: &str, body: impl Int
     let cache = HeaderValue::from_static("private, max-age=31536000, immutable");
     let vary = HeaderValue::from_static("Accept");
     if matches {
-        return (StatusCode::NOT_MODIFIED, [(header::ETAG, etag_value), (header::CACHE_CONTROL, cache), (header::VARY, vary)])
+        return (
+            StatusCode::NOT_MODIFIED,
+            [(header::ETAG, etag_value), (header::CACHE_CONTROL, cache), (header::VARY, vary)],
+        )
             .into_response();
     }
     (
@@ -81,7 +84,11 @@ fn immutable(headers: &HeaderMap, etag: &str, content_type: &str, body: impl Int
         (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
     )
 )]
-pub async fn get_report(State(state): State<AppState>, Path(id): Path<String>, headers: HeaderMap) -> Result<Response, ApiError> {
+pub async fn get_report(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
     let id = succeeded(&state, &id).await?;
     let (json, etag) = state.store.report(&id.0).await?;
     Ok(immutable(&headers, &etag, "application/json", json))
@@ -131,26 +138,34 @@ fn negotiate(
     if let Some(f) = format {
         return offered.iter().find(|o| o.0.eq_ignore_ascii_case(f)).copied().ok_or_else(|| {
             let names: Vec<&str> = offered.iter().map(|o| o.0).collect();
-            ApiError::new("not_acceptable", format!("format {f:?}: offered {}", names.join(", "))).with_culprit("format")
+            ApiError::new("not_acceptable", format!("format {f:?}: offered {}", names.join(", ")))
+                .with_culprit("format")
         });
     }
     let accept = headers.get(header::ACCEPT).and_then(|v| v.to_str().ok()).unwrap_or("*/*");
     // Media ranges in the client's order; `q=0` means "not this one".
-    let refused = |range: &str| range.split(';').skip(1).any(|p| matches!(p.trim().replace(' ', "").as_str(), "q=0" | "q=0.0" | "q=0.00" | "q=0.000"));
-    for wanted in accept
-        .split(',')
-        .filter(|a| !refused(a))
-        .map(|a| a.split(';').next().unwrap_or("").trim().to_ascii_lowercase())
+    let refused = |range: &str| {
+        range
+            .split(';')
+            .skip(1)
+            .any(|p| matches!(p.trim().replace(' ', "").as_str(), "q=0" | "q=0.0" | "q=0.00" | "q=0.000"))
+    };
+    for wanted in
+        accept.split(',').filter(|a| !refused(a)).map(|a| a.split(';').next().unwrap_or("").trim().to_ascii_lowercase())
     {
         if wanted == "*/*" || wanted.is_empty() {
             return Ok(offered[0]);
         }
-        if let Some(o) = offered.iter().find(|o| o.1 == wanted || wanted.ends_with("/*") && o.1.starts_with(wanted.trim_end_matches('*'))) {
+        if let Some(o) = offered
+            .iter()
+            .find(|o| o.1 == wanted || wanted.ends_with("/*") && o.1.starts_with(wanted.trim_end_matches('*')))
+        {
             return Ok(*o);
         }
     }
     let types: Vec<&str> = offered.iter().map(|o| o.1).collect();
-    Err(ApiError::new("not_acceptable", format!("Accept {accept:?}: offered {}", types.join(", "))).with_culprit("Accept"))
+    Err(ApiError::new("not_acceptable", format!("Accept {accept:?}: offered {}", types.join(", ")))
+        .with_culprit("Accept"))
 }
 
 /// The per-thread height table: JSON, or CSV (`thread,angle_deg,height_mm`, the CMM upload's
@@ -178,19 +193,28 @@ pub async fn get_threads(
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
     let id = succeeded(&state, &id).await?;
-    let (format, media) = negotiate(&headers, q.format.as_deref(), &[("json", "application/json"), ("csv", "text/csv")])?;
+    let (format, media) =
+        negotiate(&headers, q.format.as_deref(), &[("json", "application/json"), ("csv", "text/csv")])?;
     let (threads, heights) = state.store.threads(&id.0).await?;
     if format == "csv" {
         let mut out = String::from("thread,angle_deg,height_mm\n");
         for h in &heights {
-            out.push_str(&format!("{},{},{}\n", h.thread_index, h.angle_deg, h.height_mm.map(|v| format!("{v:.6}")).unwrap_or_default()));
+            out.push_str(&format!(
+                "{},{},{}\n",
+                h.thread_index,
+                h.angle_deg,
+                h.height_mm.map(|v| format!("{v:.6}")).unwrap_or_default()
+            ));
         }
         let etag = crate::store::etag_of(out.as_bytes());
         return Ok(immutable(&headers, &etag, "text/csv; charset=utf-8", out));
     }
     let mut by_thread: std::collections::BTreeMap<i64, Vec<AngleHeight>> = Default::default();
     for h in heights {
-        by_thread.entry(h.thread_index).or_default().push(AngleHeight { angle_deg: h.angle_deg, height_mm: h.height_mm });
+        by_thread
+            .entry(h.thread_index)
+            .or_default()
+            .push(AngleHeight { angle_deg: h.angle_deg, height_mm: h.height_mm });
     }
     let table = ThreadTable {
         inspection_id: id.0.clone(),
@@ -274,7 +298,8 @@ pub async fn get_image(
         "height-map" => "height-map.png",
         "all-in-focus" => "all-in-focus.png",
         other => {
-            return Err(ApiError::new("not_found", format!("no image {other:?}: height-map or all-in-focus")).with_culprit("kind"));
+            return Err(ApiError::new("not_found", format!("no image {other:?}: height-map or all-in-focus"))
+                .with_culprit("kind"));
         }
     };
     let id = succeeded(&state, &id).await?;
@@ -328,14 +353,18 @@ pub async fn put_cmm(
             ApiError::new("bad_request", format!("reading the body: {e}"))
         }
     })?;
-    let content_type = headers.get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_ascii_lowercase();
+    let content_type =
+        headers.get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_ascii_lowercase();
     let essence = content_type.split(';').next().unwrap_or("").trim();
     let parsed = match essence {
         "application/json" => CmmMeasurements::from_json(&body),
         "text/csv" => CmmMeasurements::from_csv(&body),
         other => {
-            return Err(ApiError::new("unsupported_media_type", format!("Content-Type {other:?}: send application/json or text/csv"))
-                .with_culprit("Content-Type"));
+            return Err(ApiError::new(
+                "unsupported_media_type",
+                format!("Content-Type {other:?}: send application/json or text/csv"),
+            )
+            .with_culprit("Content-Type"));
         }
     }
     .map_err(|e| ApiError::new("invalid_cmm", e.to_string()).with_culprit(e.field.clone()))?;
@@ -359,7 +388,9 @@ pub async fn get_cmm(State(state): State<AppState>, Path(id): Path<String>) -> R
     let id = InspectionId::parse(&id)?;
     state.store.inspection(&id.0).await.map_err(|e| super::missing_inspection(e, &id.0))?;
     let row = state.store.cmm(&id.0).await.map_err(|e| match e {
-        StoreError::NotFound => ApiError::new("cmm_not_found", format!("no CMM measurements for {}; PUT them first", id.0)),
+        StoreError::NotFound => {
+            ApiError::new("cmm_not_found", format!("no CMM measurements for {}; PUT them first", id.0))
+        }
         other => other.into(),
     })?;
     Ok(Json(StoredCmm {
@@ -414,14 +445,19 @@ pub async fn get_cmm_comparison(
     if let Some(t) = q.tolerance_mm
         && !(t.is_finite() && t > 0.0)
     {
-        return Err(ApiError::new("invalid_query", format!("tolerance_mm: {t} must be a positive number")).with_culprit("tolerance_mm"));
+        return Err(ApiError::new("invalid_query", format!("tolerance_mm: {t} must be a positive number"))
+            .with_culprit("tolerance_mm"));
     }
     let id = succeeded(&state, &id).await?;
     let Json(stored) = get_cmm(State(state.clone()), Path(id.0.clone())).await?;
     let (json, _) = state.store.report(&id.0).await?;
     let report: Report = serde_json::from_str(&json).map_err(ApiError::internal)?;
     let tolerance = q.tolerance_mm.unwrap_or_else(|| cmm::default_tolerance_mm(&report));
-    let measurements = CmmMeasurements { instrument: stored.instrument.clone(), measured_at: stored.measured_at.clone(), points: stored.points };
+    let measurements = CmmMeasurements {
+        instrument: stored.instrument.clone(),
+        measured_at: stored.measured_at.clone(),
+        points: stored.points,
+    };
     Ok(Json(CmmComparison {
         inspection_id: id.0,
         instrument: stored.instrument,

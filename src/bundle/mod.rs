@@ -24,7 +24,9 @@ pub enum BundleError {
     Manifest { field: String, message: String },
     #[error("manifest.json: optics.{field}: {message}")]
     Optics { field: String, message: String },
-    #[error("manifest.json: part.connection: unknown connection {designation:?}; see `crestscan connections` (tubing and premium threads need part.thread)")]
+    #[error(
+        "manifest.json: part.connection: unknown connection {designation:?}; see `crestscan connections` (tubing and premium threads need part.thread)"
+    )]
     UnknownConnection { designation: String },
     #[error("manifest.json: part.thread.{field}: {message}")]
     Thread { field: String, message: String },
@@ -177,10 +179,7 @@ impl Bundle {
         let manifest_bytes = source.read("manifest.json")?;
         let manifest = parse_manifest(&manifest_bytes)?;
         let part = resolve_part(&manifest.part, table)?;
-        manifest
-            .optics
-            .validate()
-            .map_err(|(field, message)| BundleError::Optics { field: field.into(), message })?;
+        manifest.optics.validate().map_err(|(field, message)| BundleError::Optics { field: field.into(), message })?;
         let views = validate_views(&manifest, &source, options.frame_check)?;
         let optics = manifest.optics.clone();
         Ok(Self { manifest, part, optics, views, source })
@@ -259,9 +258,9 @@ pub fn resolve_part(part: &PartManifest, table: &ConnectionTable) -> Result<Part
         }
     };
     let need = |value: Option<f64>, from_row: Option<f64>, field: &'static str| {
-        value.or(from_row).ok_or_else(|| {
-            thread_err(field, "is required when part.connection is not in the connection table")
-        })
+        value
+            .or(from_row)
+            .ok_or_else(|| thread_err(field, "is required when part.connection is not in the connection table"))
     };
     let family = custom
         .family
@@ -339,9 +338,9 @@ fn build_form(
 
 fn form_error_to_bundle(e: &FormError) -> BundleError {
     let field = match e {
-        FormError::NotPositive { field, .. } | FormError::Negative { field, .. } | FormError::OutOfRange { field, .. } => {
-            field.to_string()
-        }
+        FormError::NotPositive { field, .. }
+        | FormError::Negative { field, .. }
+        | FormError::OutOfRange { field, .. } => field.to_string(),
         FormError::DoesNotFit(_) => "thread_height_mm".to_string(),
     };
     thread_err(&field, e.to_string())
@@ -366,9 +365,14 @@ fn validate_views(manifest: &Manifest, source: &Source, check: FrameCheck) -> Re
             return Err(BundleError::Manifest { field: at(".id"), message: format!("{:?} is used twice", view.id) });
         }
         let pose = &view.pose;
-        for (name, value) in [("angle_deg", pose.angle_deg), ("axial_mm", pose.axial_mm), ("lens_radius_mm", pose.lens_radius_mm)] {
+        for (name, value) in
+            [("angle_deg", pose.angle_deg), ("axial_mm", pose.axial_mm), ("lens_radius_mm", pose.lens_radius_mm)]
+        {
             if !value.is_finite() {
-                return Err(BundleError::Manifest { field: at(&format!(".pose.{name}")), message: format!("must be finite, got {value}") });
+                return Err(BundleError::Manifest {
+                    field: at(&format!(".pose.{name}")),
+                    message: format!("must be finite, got {value}"),
+                });
             }
         }
         if pose.lens_radius_mm <= 0.0 {
@@ -383,12 +387,18 @@ fn validate_views(manifest: &Manifest, source: &Source, check: FrameCheck) -> Re
         for (k, frame) in view.frames.iter().enumerate() {
             let field = at(&format!(".frames[{k}].offset_mm"));
             if !frame.offset_mm.is_finite() {
-                return Err(BundleError::Offsets { field, message: format!("must be finite, got {}", frame.offset_mm) });
+                return Err(BundleError::Offsets {
+                    field,
+                    message: format!("must be finite, got {}", frame.offset_mm),
+                });
             }
             if k > 0 {
                 let prev = view.frames[k - 1].offset_mm;
                 if frame.offset_mm == prev {
-                    return Err(BundleError::Offsets { field, message: format!("duplicates the previous offset {prev} mm") });
+                    return Err(BundleError::Offsets {
+                        field,
+                        message: format!("duplicates the previous offset {prev} mm"),
+                    });
                 }
                 if frame.offset_mm < prev {
                     return Err(BundleError::Offsets {

@@ -86,9 +86,7 @@ impl Source {
         } else if n >= 262 && &head[257..262] == b"ustar" {
             Self::open_tar(file, limits, display)
         } else {
-            Err(BundleError::Archive {
-                message: format!("{display}: neither a directory, a zip nor a tar archive"),
-            })
+            Err(BundleError::Archive { message: format!("{display}: neither a directory, a zip nor a tar archive") })
         }
     }
 
@@ -231,7 +229,10 @@ impl Source {
         let mut current = root.to_path_buf();
         for component in Path::new(path).components() {
             let Component::Normal(part) = component else {
-                return Err(BundleError::UnsafePath { path: path.into(), message: "is not a plain relative path".into() });
+                return Err(BundleError::UnsafePath {
+                    path: path.into(),
+                    message: "is not a plain relative path".into(),
+                });
             };
             current.push(part);
             match std::fs::symlink_metadata(&current) {
@@ -305,9 +306,7 @@ fn read_capped(
     let mut bytes = Vec::new();
     reader.take(max + 1).read_to_end(&mut bytes).map_err(|e| on_error(path, e))?;
     if bytes.len() as u64 > max {
-        return Err(BundleError::Limit {
-            message: format!("{path}: larger than the per-file cap of {max} bytes"),
-        });
+        return Err(BundleError::Limit { message: format!("{path}: larger than the per-file cap of {max} bytes") });
     }
     Ok(bytes)
 }
@@ -328,7 +327,10 @@ fn too_many_bytes(total: u64, limits: Limits) -> BundleError {
 
 fn file_too_large(name: &str, size: u64, limits: Limits) -> BundleError {
     BundleError::Limit {
-        message: format!("{name}: uncompressed size {size} exceeds the per-file cap of {} bytes", limits.max_file_bytes),
+        message: format!(
+            "{name}: uncompressed size {size} exceeds the per-file cap of {} bytes",
+            limits.max_file_bytes
+        ),
     }
 }
 

@@ -187,7 +187,11 @@ impl SimSpec {
     pub fn raw_bytes(&self) -> u64 {
         let bytes_per_sample = if self.sensor.bit_depth > 8 { 2 } else { 1 };
         let channels = if self.sensor.monochrome { 1 } else { 3 };
-        self.views.len() as u64 * self.offsets_mm.len() as u64 * self.width as u64 * self.height as u64 * channels
+        self.views.len() as u64
+            * self.offsets_mm.len() as u64
+            * self.width as u64
+            * self.height as u64
+            * channels
             * bytes_per_sample
     }
 }

@@ -249,7 +249,8 @@ impl PartModel {
         };
         let (rb, ra) = (root_r(before), root_r(after));
         let root = rb + (ra - rb) * (0.0 - before) / (after - before);
-        let cut = (self.root_cone_radius(z) + self.form.height_at(self.helix_offset(z, theta))).min(self.turned_blank_radius(z));
+        let cut = (self.root_cone_radius(z) + self.form.height_at(self.helix_offset(z, theta)))
+            .min(self.turned_blank_radius(z));
         let chamfered = material == Material::Machined && self.chamfer_radius(z) < cut;
         CrestTruth { z_mm: z, height_mm: crest_r - root, material, chamfered }
     }

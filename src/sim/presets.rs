@@ -16,17 +16,50 @@ pub struct PresetInfo {
 }
 
 pub const PRESETS: &[PresetInfo] = &[
-    PresetInfo { name: "ci", description: "BC 4-1/2, 3 views over 13° near Lc, 18 frames of 384×160 RGB; a black crest within Lc across threads 6–7 (accept)" },
-    PresetInfo { name: "ci-telecentric", description: "LC 5-1/2 through a 0.2× telecentric lens, 3 views of 320×160, 16-bit gray; full crests within Lc (accept)" },
-    PresetInfo { name: "standard", description: "BC 4-1/2 pin end, whole circumference (45 views × 19 frames, 864×320 RGB), z 0–35 mm; black crests only beyond Lc (accept)" },
-    PresetInfo { name: "bc-black-1", description: "standard optics; 0.1 mm eccentric thread: one black-crested thread within Lc (accept)" },
-    PresetInfo { name: "bc-black-2", description: "standard optics; undersize pipe: two black-crested threads within Lc, each under 25% (accept)" },
-    PresetInfo { name: "bc-black-3", description: "standard optics; undersize, eccentric pipe: three black-crested threads within Lc (reject)" },
-    PresetInfo { name: "bc-arc-over-25", description: "standard optics; a thread black over more than 25% of the circumference within Lc (reject)" },
-    PresetInfo { name: "lc-round-black", description: "LC 4-1/2 round thread, oval pipe: a small black arc within Lc (reject)" },
-    PresetInfo { name: "bc-polished", description: "standard optics; a black crest within Lc polished to look machined (found only by its geometry)" },
-    PresetInfo { name: "lc-accept", description: "LC 4-1/2 round thread, nominal pipe: black crests only beyond Lc (accept)" },
-    PresetInfo { name: "seed-table1", description: "the seed's Table 1: custom 1.000 ± 0.030 mm buttress-type form, ten threads 0.9825 … 0.4216 mm high toward the vanish end, 5 views over 40°" },
+    PresetInfo {
+        name: "ci",
+        description: "BC 4-1/2, 3 views over 13° near Lc, 18 frames of 384×160 RGB; a black crest within Lc across threads 6–7 (accept)",
+    },
+    PresetInfo {
+        name: "ci-telecentric",
+        description: "LC 5-1/2 through a 0.2× telecentric lens, 3 views of 320×160, 16-bit gray; full crests within Lc (accept)",
+    },
+    PresetInfo {
+        name: "standard",
+        description: "BC 4-1/2 pin end, whole circumference (45 views × 19 frames, 864×320 RGB), z 0–35 mm; black crests only beyond Lc (accept)",
+    },
+    PresetInfo {
+        name: "bc-black-1",
+        description: "standard optics; 0.1 mm eccentric thread: one black-crested thread within Lc (accept)",
+    },
+    PresetInfo {
+        name: "bc-black-2",
+        description: "standard optics; undersize pipe: two black-crested threads within Lc, each under 25% (accept)",
+    },
+    PresetInfo {
+        name: "bc-black-3",
+        description: "standard optics; undersize, eccentric pipe: three black-crested threads within Lc (reject)",
+    },
+    PresetInfo {
+        name: "bc-arc-over-25",
+        description: "standard optics; a thread black over more than 25% of the circumference within Lc (reject)",
+    },
+    PresetInfo {
+        name: "lc-round-black",
+        description: "LC 4-1/2 round thread, oval pipe: a small black arc within Lc (reject)",
+    },
+    PresetInfo {
+        name: "bc-polished",
+        description: "standard optics; a black crest within Lc polished to look machined (found only by its geometry)",
+    },
+    PresetInfo {
+        name: "lc-accept",
+        description: "LC 4-1/2 round thread, nominal pipe: black crests only beyond Lc (accept)",
+    },
+    PresetInfo {
+        name: "seed-table1",
+        description: "the seed's Table 1: custom 1.000 ± 0.030 mm buttress-type form, ten threads 0.9825 … 0.4216 mm high toward the vanish end, 5 views over 40°",
+    },
 ];
 
 /// The standard camera: 50 mm f/1.4 focused at 220 mm (magnification 0.29), 12 µm pixels (a 6 µm
@@ -56,11 +89,16 @@ fn nominal_mill(od_mm: f64) -> MillSurface {
 }
 
 /// A table connection's part with its cone placed by the gauge plane (E7 at L7, E1 at L1).
-fn connection_part(designation: &str, mill: impl FnOnce(&mut MillSurface), helix_z_h_mm: f64) -> (PartManifest, PartModel) {
+fn connection_part(
+    designation: &str,
+    mill: impl FnOnce(&mut MillSurface),
+    helix_z_h_mm: f64,
+) -> (PartManifest, PartModel) {
     let table = ConnectionTable::api5b();
     let conn = table.get(designation).expect("preset designations are in the table");
     let form = conn.form().clone();
-    let root_at_end = conn.gauge.pitch_diameter_mm / 2.0 - form.pitch_line_height_mm() - conn.gauge.z_mm * form.radius_slope();
+    let root_at_end =
+        conn.gauge.pitch_diameter_mm / 2.0 - form.pitch_line_height_mm() - conn.gauge.z_mm * form.radius_slope();
     let mut mill_surface = nominal_mill(conn.pipe_od_mm);
     mill(&mut mill_surface);
     let part = PartModel {
@@ -286,7 +324,8 @@ pub fn preset(name: &str) -> Option<SimSpec> {
 
 /// The seed's Table 1 crest heights (reconstruction = CMM within 0.3 µm), read from the vanish end:
 /// thread 10 is the shallowest.
-pub const SEED_TABLE1_HEIGHTS_MM: [f64; 10] = [0.9825, 0.9823, 0.9792, 0.9799, 0.9828, 0.9486, 0.8211, 0.6655, 0.5129, 0.4216];
+pub const SEED_TABLE1_HEIGHTS_MM: [f64; 10] =
+    [0.9825, 0.9823, 0.9792, 0.9799, 0.9828, 0.9486, 0.8211, 0.6655, 0.5129, 0.4216];
 
 /// The seed's premium example as a custom form (BGT2-like buttress, 1.000 ± 0.030 mm, Lc 35.8 mm)
 /// whose crests are cut by a turned blank so that, at θ = 0.5°, threads 1…10 have exactly the

@@ -237,7 +237,15 @@ fn near_depth(depth: &[f32], w: usize, h: usize, reach: usize) -> Vec<f32> {
     if depth.is_empty() {
         return vec![f32::NAN; w * h];
     }
-    let fmin = |a: f32, b: f32| if a.is_nan() { b } else if b.is_nan() { a } else { a.min(b) };
+    let fmin = |a: f32, b: f32| {
+        if a.is_nan() {
+            b
+        } else if b.is_nan() {
+            a
+        } else {
+            a.min(b)
+        }
+    };
     let mut rows = vec![f32::NAN; w * h];
     for y in 0..h {
         for x in 0..w {

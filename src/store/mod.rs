@@ -164,7 +164,9 @@ pub struct Claimed {
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Heartbeat {
-    Held { cancel_requested: bool },
+    Held {
+        cancel_requested: bool,
+    },
     /// The lease expired and another worker (or nobody) owns the job now.
     Lost,
 }
@@ -265,7 +267,11 @@ impl Store {
     /// (prepared, i.e. fsynced) upload file under its hash while the transaction holds the write
     /// lock: the retention sweep deletes files under the same lock, so a committed row always has
     /// its file.
-    pub async fn insert_inspection(&self, new: &NewInspection, file: tempfile::NamedTempFile) -> Result<Inserted, StoreError> {
+    pub async fn insert_inspection(
+        &self,
+        new: &NewInspection,
+        file: tempfile::NamedTempFile,
+    ) -> Result<Inserted, StoreError> {
         let now = now_ms();
         let mut tx = self.pool.begin().await?;
         // A write first, so the transaction holds the write lock before it reads the key.
@@ -630,11 +636,13 @@ impl Store {
     }
 
     pub async fn cmm(&self, id: &str) -> Result<CmmRow, StoreError> {
-        sqlx::query_as("SELECT instrument, measured_at, points_json, uploaded_at FROM cmm_measurements WHERE inspection_id = ?")
-            .bind(id)
-            .fetch_optional(&self.pool)
-            .await?
-            .ok_or(StoreError::NotFound)
+        sqlx::query_as(
+            "SELECT instrument, measured_at, points_json, uploaded_at FROM cmm_measurements WHERE inspection_id = ?",
+        )
+        .bind(id)
+        .fetch_optional(&self.pool)
+        .await?
+        .ok_or(StoreError::NotFound)
     }
 
     /// Jobs waiting (queued) and running.

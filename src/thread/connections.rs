@@ -170,13 +170,9 @@ impl ConnectionTable {
         let height_mm = height_in * MM_PER_INCH;
         let tolerance_mm = HEIGHT_TOLERANCE_IN * MM_PER_INCH;
         let form = match family {
-            Family::Round => ThreadForm::api_round(
-                pitch_mm,
-                height_mm,
-                tolerance_mm,
-                taper,
-                row.srn.map(|s| s * MM_PER_INCH),
-            ),
+            Family::Round => {
+                ThreadForm::api_round(pitch_mm, height_mm, tolerance_mm, taper, row.srn.map(|s| s * MM_PER_INCH))
+            }
             Family::Buttress => ThreadForm::api_buttress(pitch_mm, height_mm, tolerance_mm, taper),
         }
         .map_err(|source| TableError::Form { file, d: row.d, source })?;

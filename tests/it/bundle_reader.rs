@@ -41,7 +41,11 @@ fn the_ci_bundle_opens_as_a_directory_and_decodes() {
     let frame = bundle.read_frame(0, 0).unwrap();
     assert_eq!((frame.width, frame.height, frame.channels), (384, 160, 3));
     assert!(frame.pixels.iter().all(|v| (0.0..=1.0).contains(v)));
-    let full = Bundle::open(ci_bundle(), &ConnectionTable::api5b(), OpenOptions { frame_check: FrameCheck::Decode, ..Default::default() });
+    let full = Bundle::open(
+        ci_bundle(),
+        &ConnectionTable::api5b(),
+        OpenOptions { frame_check: FrameCheck::Decode, ..Default::default() },
+    );
     assert!(full.is_ok());
 }
 
@@ -83,7 +87,11 @@ fn unreadable_frame() {
     let err = bundle.read_frame(0, 0).unwrap_err();
     assert_eq!(err.code(), "unreadable_frame");
     assert!(err.to_string().contains(&file));
-    let full = Bundle::open(s.path(), &ConnectionTable::api5b(), OpenOptions { frame_check: FrameCheck::Decode, ..Default::default() });
+    let full = Bundle::open(
+        s.path(),
+        &ConnectionTable::api5b(),
+        OpenOptions { frame_check: FrameCheck::Decode, ..Default::default() },
+    );
     expect_error(full, "unreadable_frame", &[&file]);
 }
 
@@ -91,10 +99,26 @@ fn write_png(path: &Path, width: u32, height: u32, sixteen: bool, gray: bool) {
     let channels = if gray { 1 } else { 3 };
     let n = (width * height * channels) as usize;
     let image: image::DynamicImage = match (sixteen, gray) {
-        (false, false) => image::RgbImage::from_raw(width, height, (0..n).map(|i| (i % 251) as u8).collect()).unwrap().into(),
-        (false, true) => image::GrayImage::from_raw(width, height, (0..n).map(|i| (i % 251) as u8).collect()).unwrap().into(),
-        (true, false) => image::ImageBuffer::<image::Rgb<u16>, _>::from_raw(width, height, (0..n).map(|i| (i * 97 % 65521) as u16).collect()).unwrap().into(),
-        (true, true) => image::ImageBuffer::<image::Luma<u16>, _>::from_raw(width, height, (0..n).map(|i| (i * 97 % 65521) as u16).collect()).unwrap().into(),
+        (false, false) => {
+            image::RgbImage::from_raw(width, height, (0..n).map(|i| (i % 251) as u8).collect()).unwrap().into()
+        }
+        (false, true) => {
+            image::GrayImage::from_raw(width, height, (0..n).map(|i| (i % 251) as u8).collect()).unwrap().into()
+        }
+        (true, false) => image::ImageBuffer::<image::Rgb<u16>, _>::from_raw(
+            width,
+            height,
+            (0..n).map(|i| (i * 97 % 65521) as u16).collect(),
+        )
+        .unwrap()
+        .into(),
+        (true, true) => image::ImageBuffer::<image::Luma<u16>, _>::from_raw(
+            width,
+            height,
+            (0..n).map(|i| (i * 97 % 65521) as u16).collect(),
+        )
+        .unwrap()
+        .into(),
     };
     image.save(path).unwrap();
 }
@@ -366,7 +390,8 @@ fn damaged_archive_entries_are_the_clients_error() {
     let frame_bytes = std::fs::read(s.path().join(&file)).unwrap();
     // A run of bytes from the middle of the frame (past the PNG headers) locates it in the archive.
     let probe = &frame_bytes[frame_bytes.len() / 2..frame_bytes.len() / 2 + 64];
-    let find = |haystack: &[u8]| haystack.windows(probe.len()).position(|w| w == probe).expect("frame bytes in the archive");
+    let find =
+        |haystack: &[u8]| haystack.windows(probe.len()).position(|w| w == probe).expect("frame bytes in the archive");
 
     let zip_path = out.path().join("b.zip");
     zip_dir(s.path(), &zip_path, None);

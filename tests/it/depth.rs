@@ -11,9 +11,10 @@ fn depth_errors(preset: &'static str) -> (Vec<f64>, Vec<f64>, f64) {
     let bundle = Bundle::open(dir, &ConnectionTable::api5b(), OpenOptions::default()).unwrap();
     let (mut all, mut smooth, mut pixels) = (Vec::new(), Vec::new(), 0);
     for (v, view) in bundle.views.iter().enumerate() {
-        let map = depth_from_focus(&bundle.optics, view, &DepthOptions::default(), |k| bundle.read_frame(v, k), &|| false)
-            .unwrap()
-            .expect("not cancelled");
+        let map =
+            depth_from_focus(&bundle.optics, view, &DepthOptions::default(), |k| bundle.read_frame(v, k), &|| false)
+                .unwrap()
+                .expect("not cancelled");
         let truth_pfm = std::fs::read(dir.join(format!("truth/{}.depth.pfm", view.id))).unwrap();
         let (w, h, truth) = pfm::read(&truth_pfm).unwrap();
         assert_eq!((w, h), (map.width, map.height));

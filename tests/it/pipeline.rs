@@ -93,8 +93,20 @@ fn cli_inspect_writes_the_report_in_the_contract_shape() {
     assert!(status.status.success(), "{}", String::from_utf8_lossy(&status.stderr));
     let summary = String::from_utf8(status.stdout).unwrap();
     assert!(summary.contains("ACCEPT") || summary.contains("REJECT"), "{summary}");
-    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(out.path().join("report.json")).unwrap()).unwrap();
-    for field in ["connection", "family", "pipe_od_mm", "lc_mm", "circumference_mm", "pitch_mm", "nominal_height_mm", "threads", "verdict", "reasons"] {
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.path().join("report.json")).unwrap()).unwrap();
+    for field in [
+        "connection",
+        "family",
+        "pipe_od_mm",
+        "lc_mm",
+        "circumference_mm",
+        "pitch_mm",
+        "nominal_height_mm",
+        "threads",
+        "verdict",
+        "reasons",
+    ] {
         assert!(report.get(field).is_some(), "report lacks {field}");
     }
     let thread = &report["threads"][0];

@@ -112,7 +112,14 @@ pub async fn spawn_app_in(data: &Path, edit: impl FnOnce(&mut Settings)) -> Test
         .await
         .unwrap();
     });
-    TestApp { base, client: reqwest::Client::new(), data: data.to_path_buf(), dir: None, stop: Some(tx), server: Some(server) }
+    TestApp {
+        base,
+        client: reqwest::Client::new(),
+        data: data.to_path_buf(),
+        dir: None,
+        stop: Some(tx),
+        server: Some(server),
+    }
 }
 
 pub async fn spawn_app() -> TestApp {
@@ -181,7 +188,8 @@ async fn round_trip_on_the_ci_preset() {
     assert!(etag.starts_with('"') && !etag.starts_with("W/"));
     let report: crestscan::report::Report = response.json().await.unwrap();
     assert_eq!(report.verdict, truth.verdict);
-    let again = app.client.get(app.url(&format!("{location}/report"))).header("if-none-match", &etag).send().await.unwrap();
+    let again =
+        app.client.get(app.url(&format!("{location}/report"))).header("if-none-match", &etag).send().await.unwrap();
     assert_eq!(again.status(), StatusCode::NOT_MODIFIED);
 
     // Per-thread table: JSON and CSV carry the same heights.
@@ -189,7 +197,8 @@ async fn round_trip_on_the_ci_preset() {
     let threads = table["threads"].as_array().unwrap();
     assert_eq!(threads.len(), report.threads.len());
     let json_bins: usize = threads.iter().map(|t| t["heights"].as_array().unwrap().len()).sum();
-    let csv = app.client.get(app.url(&format!("{location}/threads"))).header("accept", "text/csv").send().await.unwrap();
+    let csv =
+        app.client.get(app.url(&format!("{location}/threads"))).header("accept", "text/csv").send().await.unwrap();
     assert!(csv.headers()["content-type"].to_str().unwrap().starts_with("text/csv"));
     let csv = csv.text().await.unwrap();
     let mut lines = csv.lines();
@@ -225,7 +234,9 @@ async fn round_trip_on_the_ci_preset() {
     let mut cmm_csv = String::from("thread,angle_deg,height_mm\n");
     for t in &report.threads {
         let truth_thread = truth.threads.iter().find(|u| u.index == t.index).expect("same numbering");
-        for ((a, ours), theirs) in t.height_mm.angles_deg.iter().zip(&t.height_mm.values).zip(&truth_thread.height_mm.values) {
+        for ((a, ours), theirs) in
+            t.height_mm.angles_deg.iter().zip(&t.height_mm.values).zip(&truth_thread.height_mm.values)
+        {
             if let (Some(_), Some(v)) = (ours, theirs) {
                 cmm_csv.push_str(&format!("{},{a},{}\n", t.index, v + 0.005));
             }
@@ -256,12 +267,16 @@ async fn round_trip_on_the_ci_preset() {
     assert!((agreement["bias_mm"].as_f64().unwrap() - bias).abs() < 1e-12);
     assert!((agreement["rms_mm"].as_f64().unwrap() - rms).abs() < 1e-12);
     assert!(bias < -0.005 + 0.015 && bias > -0.005 - 0.015, "bias {bias}: crestscan's own error is within 15 µm");
-    let [lo, hi] = [agreement["limits_of_agreement_mm"][0].as_f64().unwrap(), agreement["limits_of_agreement_mm"][1].as_f64().unwrap()];
+    let [lo, hi] = [
+        agreement["limits_of_agreement_mm"][0].as_f64().unwrap(),
+        agreement["limits_of_agreement_mm"][1].as_f64().unwrap(),
+    ];
     assert!(lo < bias && bias < hi);
     // Default tolerance: a tenth of the ±tolerance band.
     let tol = cmp["height_tolerance_mm"].as_f64().unwrap();
     assert!((agreement["tolerance_mm"].as_f64().unwrap() - 2.0 * tol / 10.0).abs() < 1e-12);
-    let strict: Value = app.get(&format!("{location}/cmm-comparison?tolerance_mm=0.000001")).await.json().await.unwrap();
+    let strict: Value =
+        app.get(&format!("{location}/cmm-comparison?tolerance_mm=0.000001")).await.json().await.unwrap();
     assert_eq!(strict["agreement"]["within_tolerance"], false);
     let loose: Value = app.get(&format!("{location}/cmm-comparison?tolerance_mm=1")).await.json().await.unwrap();
     assert_eq!(loose["agreement"]["within_tolerance"], true);
@@ -282,29 +297,57 @@ async fn bad_requests_get_their_problem_codes_and_store_nothing() {
     let post = |ct: &'static str, body: Vec<u8>| {
         app.client.post(app.url("/v1/inspections")).header("content-type", ct).body(body).send()
     };
-    problem(post("application/json", b"{}".to_vec()).await.unwrap(), StatusCode::UNSUPPORTED_MEDIA_TYPE, "unsupported_media_type").await;
-    problem(post("application/zip", Vec::new()).await.unwrap(), StatusCode::UNPROCESSABLE_ENTITY, "invalid_archive").await;
-    problem(post("application/zip", b"not a zip at all".to_vec()).await.unwrap(), StatusCode::UNPROCESSABLE_ENTITY, "invalid_archive").await;
+    problem(
+        post("application/json", b"{}".to_vec()).await.unwrap(),
+        StatusCode::UNSUPPORTED_MEDIA_TYPE,
+        "unsupported_media_type",
+    )
+    .await;
+    problem(post("application/zip", Vec::new()).await.unwrap(), StatusCode::UNPROCESSABLE_ENTITY, "invalid_archive")
+        .await;
+    problem(
+        post("application/zip", b"not a zip at all".to_vec()).await.unwrap(),
+        StatusCode::UNPROCESSABLE_ENTITY,
+        "invalid_archive",
+    )
+    .await;
     // A frame missing from the archive: named.
-    let files: Vec<String> = walk(ci_bundle()).iter().map(|p| p.strip_prefix(ci_bundle()).unwrap().to_string_lossy().into_owned()).collect();
+    let files: Vec<String> =
+        walk(ci_bundle()).iter().map(|p| p.strip_prefix(ci_bundle()).unwrap().to_string_lossy().into_owned()).collect();
     let victim = files.iter().find(|f| f.ends_with(".png")).unwrap().clone();
     let missing_victim = bundle_tar(ci_bundle(), &|rel| rel != victim);
-    let v = problem(post("application/x-tar", missing_victim).await.unwrap(), StatusCode::UNPROCESSABLE_ENTITY, "missing_file").await;
+    let v = problem(
+        post("application/x-tar", missing_victim).await.unwrap(),
+        StatusCode::UNPROCESSABLE_ENTITY,
+        "missing_file",
+    )
+    .await;
     assert_eq!(v["culprit"], victim.as_str());
     assert_eq!(v["instance"], "/v1/inspections");
     // A broken manifest: the JSON path is named.
     let dir = tempfile::tempdir().unwrap();
     crate::common::copy_tree(ci_bundle(), dir.path(), &|p| !p.starts_with("truth"));
-    let mut manifest: Value = serde_json::from_slice(&std::fs::read(dir.path().join("manifest.json")).unwrap()).unwrap();
+    let mut manifest: Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("manifest.json")).unwrap()).unwrap();
     manifest["optics"]["f_number"] = Value::from(-2.0);
     std::fs::write(dir.path().join("manifest.json"), serde_json::to_vec(&manifest).unwrap()).unwrap();
-    let v = problem(post("application/x-tar", bundle_tar(dir.path(), &|_| true)).await.unwrap(), StatusCode::UNPROCESSABLE_ENTITY, "invalid_optics").await;
+    let v = problem(
+        post("application/x-tar", bundle_tar(dir.path(), &|_| true)).await.unwrap(),
+        StatusCode::UNPROCESSABLE_ENTITY,
+        "invalid_optics",
+    )
+    .await;
     assert!(v["culprit"].as_str().unwrap().contains("optics."), "{v}");
     // Options: unknown pipeline option, bad arc rule, bad query.
     let form = reqwest::multipart::Form::new()
         .part("bundle", reqwest::multipart::Part::bytes(ci_tar()))
         .text("options", r#"{"pipeline": {"depth": {"no_such_knob": 1}}}"#);
-    let v = problem(app.client.post(app.url("/v1/inspections")).multipart(form).send().await.unwrap(), StatusCode::UNPROCESSABLE_ENTITY, "invalid_option").await;
+    let v = problem(
+        app.client.post(app.url("/v1/inspections")).multipart(form).send().await.unwrap(),
+        StatusCode::UNPROCESSABLE_ENTITY,
+        "invalid_option",
+    )
+    .await;
     assert_eq!(v["culprit"], "pipeline.depth.no_such_knob");
     problem(app.submit(ci_tar(), "?arc_rule=sometimes").await, StatusCode::BAD_REQUEST, "invalid_query").await;
     let bad_multipart = app
@@ -321,7 +364,12 @@ async fn bad_requests_get_their_problem_codes_and_store_nothing() {
         .part("../etc/passwd", reqwest::multipart::Part::bytes(b"x".to_vec()))
         // More after the refused part: the server reads the rest, so the client gets the answer.
         .part("views/a000-z00/000.png", reqwest::multipart::Part::bytes(vec![0u8; 48 << 20]));
-    problem(app.client.post(app.url("/v1/inspections")).multipart(traversal).send().await.unwrap(), StatusCode::UNPROCESSABLE_ENTITY, "unsafe_path").await;
+    problem(
+        app.client.post(app.url("/v1/inspections")).multipart(traversal).send().await.unwrap(),
+        StatusCode::UNPROCESSABLE_ENTITY,
+        "unsafe_path",
+    )
+    .await;
     // Too large for the configured limit.
     let small = spawn_app_with(|s| {
         s.workers = 0;
@@ -334,9 +382,15 @@ async fn bad_requests_get_their_problem_codes_and_store_nothing() {
 
     // Routing and ids.
     problem(app.get("/v2/nothing").await, StatusCode::NOT_FOUND, "route_not_found").await;
-    problem(app.client.delete(app.url("/v1/inspections")).send().await.unwrap(), StatusCode::METHOD_NOT_ALLOWED, "method_not_allowed").await;
+    problem(
+        app.client.delete(app.url("/v1/inspections")).send().await.unwrap(),
+        StatusCode::METHOD_NOT_ALLOWED,
+        "method_not_allowed",
+    )
+    .await;
     problem(app.get("/v1/inspections/not-an-id").await, StatusCode::NOT_FOUND, "invalid_id").await;
-    problem(app.get("/v1/inspections/01890a5d-ac96-774b-bcce-b302099a8057").await, StatusCode::NOT_FOUND, "invalid_id").await;
+    problem(app.get("/v1/inspections/01890a5d-ac96-774b-bcce-b302099a8057").await, StatusCode::NOT_FOUND, "invalid_id")
+        .await;
     problem(app.get("/v1/inspections?status=done").await, StatusCode::BAD_REQUEST, "invalid_query").await;
     problem(app.get("/v1/inspections?limit=0").await, StatusCode::BAD_REQUEST, "invalid_query").await;
     problem(app.get("/v1/inspections?created_after=yesterday").await, StatusCode::BAD_REQUEST, "invalid_query").await;
@@ -349,7 +403,8 @@ async fn bad_requests_get_their_problem_codes_and_store_nothing() {
 
     // Results of an inspection that has none yet, and bad CMM data, once one exists.
     let id = app.submit(ci_tar(), "").await.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
-    problem(app.get(&format!("/v1/inspections/{id}/report")).await, StatusCode::CONFLICT, "inspection_not_succeeded").await;
+    problem(app.get(&format!("/v1/inspections/{id}/report")).await, StatusCode::CONFLICT, "inspection_not_succeeded")
+        .await;
     problem(app.get(&format!("/v1/inspections/{id}/cmm")).await, StatusCode::NOT_FOUND, "cmm_not_found").await;
     let connection: Value = app.get("/v1/connections/BC%204-1%2F2").await.json().await.unwrap();
     assert_eq!(connection["designation"], "BC 4-1/2");
@@ -399,8 +454,16 @@ async fn idempotent_retry_and_cancel() {
     assert_eq!((v["status"].as_str(), v["cancel_requested"].as_bool()), (Some("running"), Some(true)));
     let beat = store.heartbeat(&claimed.id, "test-worker", Duration::from_secs(30), None).await.unwrap();
     assert_eq!(beat, crestscan::store::Heartbeat::Held { cancel_requested: true });
-    assert_eq!(store.heartbeat(&claimed.id, "someone-else", Duration::from_secs(30), None).await.unwrap(), crestscan::store::Heartbeat::Lost);
-    assert!(store.complete_without_results(&claimed.id, "test-worker", crestscan::store::Status::Canceled, None).await.unwrap());
+    assert_eq!(
+        store.heartbeat(&claimed.id, "someone-else", Duration::from_secs(30), None).await.unwrap(),
+        crestscan::store::Heartbeat::Lost
+    );
+    assert!(
+        store
+            .complete_without_results(&claimed.id, "test-worker", crestscan::store::Status::Canceled, None)
+            .await
+            .unwrap()
+    );
     let v: Value = app.get(&format!("/v1/inspections/{}", claimed.id)).await.json().await.unwrap();
     assert_eq!(v["status"], "canceled");
     // A finished inspection cannot be canceled.
@@ -429,9 +492,8 @@ async fn idempotent_retry_and_cancel() {
 async fn finished_uploads_are_purged_and_shared_ones_kept() {
     let app = spawn_app_with(|s| s.workers = 0).await;
     let store = app.store().await;
-    let later_ms = || {
-        (std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_millis() as i64) + 3_600_000
-    };
+    let later_ms =
+        || (std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_millis() as i64) + 3_600_000;
     let cancel = |id: String| {
         let request = app.client.post(app.url(&format!("/v1/inspections/{id}/cancel")));
         async move { assert_eq!(request.send().await.unwrap().status(), StatusCode::OK) }
@@ -496,7 +558,8 @@ async fn openapi_is_served_and_matches_the_committed_file() {
     let generated: Value = serde_json::from_str(&crestscan::api::openapi().to_pretty_json().unwrap()).unwrap();
     assert_eq!(served, generated);
     let committed: Value = serde_json::from_slice(
-        &std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("openapi/openapi.json")).expect("openapi/openapi.json committed"),
+        &std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("openapi/openapi.json"))
+            .expect("openapi/openapi.json committed"),
     )
     .unwrap();
     assert!(committed == generated, "openapi/openapi.json is stale: run `cargo run -- openapi > openapi/openapi.json`");
@@ -506,7 +569,10 @@ async fn openapi_is_served_and_matches_the_committed_file() {
             assert!(op["operationId"].is_string(), "{method} {path}");
             let codes: Vec<&String> = op["responses"].as_object().unwrap().keys().collect();
             if !["/healthz", "/metrics"].contains(&path.as_str()) {
-                assert!(codes.iter().any(|c| c.starts_with('4') || c.starts_with('5')), "{method} {path} documents no error");
+                assert!(
+                    codes.iter().any(|c| c.starts_with('4') || c.starts_with('5')),
+                    "{method} {path} documents no error"
+                );
             }
         }
     }
@@ -527,7 +593,19 @@ async fn kill_9_loses_no_accepted_inspection() {
     let data = tempfile::tempdir().unwrap();
     let start = |data: &Path| {
         let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_crestscan"))
-            .args(["serve", "--bind", "127.0.0.1:0", "--lease-seconds", "1", "--heartbeat-seconds", "0.2", "--poll-interval-ms", "50", "--log", "warn"])
+            .args([
+                "serve",
+                "--bind",
+                "127.0.0.1:0",
+                "--lease-seconds",
+                "1",
+                "--heartbeat-seconds",
+                "0.2",
+                "--poll-interval-ms",
+                "50",
+                "--log",
+                "warn",
+            ])
             .arg("--data-dir")
             .arg(data)
             .stdout(std::process::Stdio::piped())
@@ -542,14 +620,21 @@ async fn kill_9_loses_no_accepted_inspection() {
     let (mut child, base) = start(data.path());
     let mut ids = Vec::new();
     for _ in 0..3 {
-        let r = client.post(format!("{base}/v1/inspections")).header("content-type", "application/x-tar").body(ci_tar()).send().await.unwrap();
+        let r = client
+            .post(format!("{base}/v1/inspections"))
+            .header("content-type", "application/x-tar")
+            .body(ci_tar())
+            .send()
+            .await
+            .unwrap();
         assert_eq!(r.status(), StatusCode::ACCEPTED);
         ids.push(r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string());
     }
     // Kill it while the first is running.
     let deadline = Instant::now() + Duration::from_secs(60);
     loop {
-        let v: Value = client.get(format!("{base}/v1/inspections/{}", ids[0])).send().await.unwrap().json().await.unwrap();
+        let v: Value =
+            client.get(format!("{base}/v1/inspections/{}", ids[0])).send().await.unwrap().json().await.unwrap();
         if v["status"] == "running" {
             break;
         }
@@ -563,7 +648,8 @@ async fn kill_9_loses_no_accepted_inspection() {
     let deadline = Instant::now() + Duration::from_secs(300);
     for id in &ids {
         loop {
-            let v: Value = client.get(format!("{base}/v1/inspections/{id}")).send().await.unwrap().json().await.unwrap();
+            let v: Value =
+                client.get(format!("{base}/v1/inspections/{id}")).send().await.unwrap().json().await.unwrap();
             if v["status"] == "succeeded" {
                 break;
             }
@@ -572,7 +658,8 @@ async fn kill_9_loses_no_accepted_inspection() {
             tokio::time::sleep(Duration::from_millis(100)).await;
         }
     }
-    let first: Value = client.get(format!("{base}/v1/inspections/{}", ids[0])).send().await.unwrap().json().await.unwrap();
+    let first: Value =
+        client.get(format!("{base}/v1/inspections/{}", ids[0])).send().await.unwrap().json().await.unwrap();
     assert_eq!(first["attempts"], 2, "the killed run and the one that finished");
     child.kill().unwrap();
     child.wait().unwrap();

@@ -86,7 +86,9 @@ fn presets_carry_the_defects_they_promise() {
     let t = truth("standard");
     assert_eq!((t.verdict, black(&t)), (Verdict::Accept, 0));
     let beyond_lc = t.threads.iter().any(|th| {
-        (0..360).any(|k| sim::preset("standard").unwrap().part.crest_at(th.index, k as f64 + 0.5).material == Material::MillScale)
+        (0..360).any(|k| {
+            sim::preset("standard").unwrap().part.crest_at(th.index, k as f64 + 0.5).material == Material::MillScale
+        })
     });
     assert!(beyond_lc, "standard shows imperfect (black) threads beyond Lc");
 
@@ -286,7 +288,10 @@ fn focus_peaks_match_truth(preset: &'static str) {
     signed.sort_by(f64::total_cmp);
     eprintln!("signed deciles {:?}", (0..=10).map(|i| signed[(i * (signed.len() - 1)) / 10]).collect::<Vec<_>>());
     let fraction = within as f64 / checked as f64;
-    eprintln!("{preset}: focus peak within one frame step ({step} mm): {within}/{checked}; median |error| {:.3} mm", errors[checked / 2]);
+    eprintln!(
+        "{preset}: focus peak within one frame step ({step} mm): {within}/{checked}; median |error| {:.3} mm",
+        errors[checked / 2]
+    );
     assert!(checked > 250, "{checked}");
     assert!(fraction >= 0.95, "{fraction}");
     // No bias: as many peaks before as after the truth.
@@ -295,7 +300,8 @@ fn focus_peaks_match_truth(preset: &'static str) {
 
 #[test]
 fn cli_lists_presets_one_per_line() {
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_crestscan")).args(["simulate", "--list"]).output().unwrap();
+    let out =
+        std::process::Command::new(env!("CARGO_BIN_EXE_crestscan")).args(["simulate", "--list"]).output().unwrap();
     assert!(out.status.success());
     let text = String::from_utf8(out.stdout).unwrap();
     let lines: Vec<&str> = text.lines().collect();
