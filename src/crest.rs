@@ -18,7 +18,7 @@
 //! machined: crests within 1.5 pitches of the end face that look machined are flagged as chamfer,
 //! never as black.
 
-use crate::profile::ThreadMeasure;
+use crate::profile::{ThreadMeasure, median};
 use crate::rules::{CrestBin, ThreadObservation};
 use nalgebra::{Matrix4, Vector4};
 use serde::{Deserialize, Serialize};
@@ -98,14 +98,6 @@ pub struct CrestFindings {
     pub observations: Vec<ThreadObservation>,
     pub machined_crest_gray: f32,
     pub cone: Option<CrestCone>,
-}
-
-fn median(values: &mut [f64]) -> Option<f64> {
-    if values.is_empty() {
-        return None;
-    }
-    let mid = values.len() / 2;
-    Some(*values.select_nth_unstable_by(mid, f64::total_cmp).1)
 }
 
 /// Least-squares cone through (z, θ°, r), trimmed one-sidedly from an initial guess at the nominal

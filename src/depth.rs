@@ -308,12 +308,17 @@ pub fn equalize_sub_frame_phase(maps: &mut [DepthMap], grids: &[Option<(f64, f64
         (whole, p - whole)
     };
     let mut histogram = [0f64; PHASE_BINS];
-    let mut per_frame = std::collections::BTreeMap::<i64, f64>::new();
+    // Estimates per whole frame index (an estimate lies within the stack, so the index is ≥ 0).
+    let mut per_frame: Vec<f64> = Vec::new();
     for (map, grid) in maps.iter().zip(grids) {
         let origin = grid.expect("checked above").0;
         for &d in map.depth_mm.iter().filter(|d| d.is_finite()) {
             let (whole, phase) = phase_of(d, origin);
-            *per_frame.entry(whole as i64).or_default() += 1.0;
+            let k = whole.max(0.0) as usize;
+            if k >= per_frame.len() {
+                per_frame.resize(k + 1, 0.0);
+            }
+            per_frame[k] += 1.0;
             let bin = ((phase * PHASE_BINS as f64) as usize).min(PHASE_BINS - 1);
             histogram[bin] += 1.0;
             histogram[PHASE_BINS - 1 - bin] += 1.0;
@@ -325,7 +330,7 @@ pub fn equalize_sub_frame_phase(maps: &mut [DepthMap], grids: &[Option<(f64, f64
     }
     // The phases are only uniform if the surface spans several frame steps of depth (a flat
     // plate square to the camera sits at one phase: equalising would smear it over a frame).
-    let spanned = per_frame.values().filter(|&&n| n >= 0.01 * total / 2.0).count();
+    let spanned = per_frame.iter().filter(|&&n| n >= 0.01 * total / 2.0).count();
     if spanned < MIN_FRAMES_SPANNED {
         return;
     }

@@ -199,26 +199,19 @@ fn windows(form: &ThreadForm) -> (f64, f64) {
                 - form.height_mm * (load_flank_deg.to_radians().tan() + stab_flank_deg.to_radians().tan());
             (0.6 * crest_width_mm / 2.0, 0.6 * root / 2.0)
         }
-        ProfileShape::Rounded { flank_deg, crest_truncation_mm, root_truncation_mm } => {
-            let (sin, cos) = flank_deg.to_radians().sin_cos();
-            let arc = |t: f64| t * sin / (1.0 - sin) * cos;
-            (0.6 * arc(crest_truncation_mm), 0.6 * arc(root_truncation_mm))
+        ProfileShape::Rounded { flank_deg, .. } => {
+            // An arc meets its flanks at ρ·cos α either side of its centre.
+            let cos = flank_deg.to_radians().cos();
+            let (crest, root) = form.arc_radii_mm().expect("a rounded form");
+            (0.6 * (crest * cos), 0.6 * (root * cos))
         }
     }
 }
 
-/// Nominal curvatures (c of r = c·x²) of a rounded form's crest and root: the arcs are tangent
-/// to the flanks, so a truncation t at flank angle α gives the radius ρ = t·sin α / (1 − sin α).
-/// None for a flat-crested form.
+/// Nominal curvatures (c of r = c·x²) of a rounded form's crest and root arcs (∓1/2ρ); None for
+/// a flat-crested form.
 fn nominal_curvatures(form: &ThreadForm) -> Option<(f64, f64)> {
-    match form.profile {
-        ProfileShape::Trapezoid { .. } => None,
-        ProfileShape::Rounded { flank_deg, crest_truncation_mm, root_truncation_mm } => {
-            let sin = flank_deg.to_radians().sin();
-            let radius = |t: f64| t * sin / (1.0 - sin);
-            Some((-0.5 / radius(crest_truncation_mm), 0.5 / radius(root_truncation_mm)))
-        }
-    }
+    form.arc_radii_mm().map(|(crest, root)| (-0.5 / crest, 0.5 / root))
 }
 
 /// The part of a crest's or root's section about its centre that is fitted once for the whole
@@ -260,11 +253,17 @@ fn fit_curvature(pts: &[(f64, f64)]) -> Option<f64> {
 /// to the form's nominal curvature when too few windows are usable.
 fn shared_section(windows: &[&[(f64, f64)]], nominal_c_per_mm: f64) -> Section {
     let mut c: Vec<f64> = windows.iter().filter_map(|w| fit_curvature(w)).filter(|c| c.is_finite()).collect();
-    if c.len() < 30 {
-        return Section::Parabola { c_per_mm: nominal_c_per_mm };
+    let measured = if c.len() < 30 { None } else { median(&mut c) };
+    Section::Parabola { c_per_mm: measured.unwrap_or(nominal_c_per_mm) }
+}
+
+/// The median (the upper one of an even count), reordering `values`; None when empty.
+pub(crate) fn median(values: &mut [f64]) -> Option<f64> {
+    if values.is_empty() {
+        return None;
     }
-    let mid = c.len() / 2;
-    Section::Parabola { c_per_mm: *c.select_nth_unstable_by(mid, f64::total_cmp).1 }
+    let mid = values.len() / 2;
+    Some(*values.select_nth_unstable_by(mid, f64::total_cmp).1)
 }
 
 /// Value at x = 0 of a least-squares fit r = a + b·x + section(x) with one pass of outlier rejection

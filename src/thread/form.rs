@@ -222,18 +222,26 @@ impl ThreadForm {
         self.kernel().height_at(x_mm)
     }
 
+    /// Radii of a rounded form's crest and root arcs (None for a flat-crested form): the arcs are
+    /// tangent to the flanks, so a truncation t at flank half angle α gives ρ = t·sin α / (1 − sin α).
+    pub fn arc_radii_mm(&self) -> Option<(f64, f64)> {
+        match self.profile {
+            ProfileShape::Rounded { flank_deg, crest_truncation_mm, root_truncation_mm } => {
+                let sin = flank_deg.to_radians().sin();
+                let radius = |t: f64| t * sin / (1.0 - sin);
+                Some((radius(crest_truncation_mm), radius(root_truncation_mm)))
+            }
+            ProfileShape::Trapezoid { .. } => None,
+        }
+    }
+
     /// The profile with its trigonometry done once, for evaluating many points.
     pub fn kernel(&self) -> ProfileKernel {
         let shape = match self.profile {
-            ProfileShape::Rounded { flank_deg, crest_truncation_mm, root_truncation_mm } => {
+            ProfileShape::Rounded { flank_deg, crest_truncation_mm, .. } => {
                 let (sin, cos) = flank_deg.to_radians().sin_cos();
-                KernelShape::Rounded {
-                    cos,
-                    cot: cos / sin,
-                    rho_crest: crest_truncation_mm * sin / (1.0 - sin),
-                    rho_root: root_truncation_mm * sin / (1.0 - sin),
-                    crest_truncation_mm,
-                }
+                let (rho_crest, rho_root) = self.arc_radii_mm().expect("a rounded form");
+                KernelShape::Rounded { cos, cot: cos / sin, rho_crest, rho_root, crest_truncation_mm }
             }
             ProfileShape::Trapezoid { load_flank_deg, stab_flank_deg, crest_width_mm } => KernelShape::Trapezoid {
                 half_crest: crest_width_mm / 2.0,
