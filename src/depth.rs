@@ -73,64 +73,124 @@ fn axis_taps(len: usize, centre: f64, scale: f64) -> Vec<(usize, usize, f32)> {
         .collect()
 }
 
-/// Bilinear sample of channel `ch` of interleaved `src` at the taps.
-#[inline]
-fn sample(src: &[f32], channels: usize, w: usize, t: (usize, usize, f32, usize, usize, f32), ch: usize) -> f32 {
-    let (x0, x1, fx, y0, y1, fy) = t;
-    let a = src[(y0 * w + x0) * channels + ch] * (1.0 - fx) + src[(y0 * w + x1) * channels + ch] * fx;
-    let b = src[(y1 * w + x0) * channels + ch] * (1.0 - fx) + src[(y1 * w + x1) * channels + ch] * fx;
-    a * (1.0 - fy) + b * fy
-}
-
 /// Squared Laplacian, box-summed over (2r+1)², written into `out`; `scratch` is reused.
+///
+/// Every pass runs along whole rows so that it vectorises: the Laplacian, a running sum of rows
+/// (the vertical box), then the horizontal box as 2r+1 shifted row additions (a running sum along
+/// a row is one long dependency chain).
 fn focus_measure(gray: &[f32], w: usize, h: usize, r: usize, scratch: &mut [f32], out: &mut [f32]) {
-    for y in 0..h {
-        for x in 0..w {
-            let i = y * w + x;
-            let v = if x == 0 || y == 0 || x + 1 == w || y + 1 == h {
-                0.0
-            } else {
-                let lap = 4.0 * gray[i] - gray[i - 1] - gray[i + 1] - gray[i - w] - gray[i + w];
-                lap * lap
-            };
-            out[i] = v;
+    out[..w].fill(0.0);
+    out[(h - 1) * w..].fill(0.0);
+    for y in 1..h.saturating_sub(1) {
+        let (up, mid, down) = (&gray[(y - 1) * w..y * w], &gray[y * w..(y + 1) * w], &gray[(y + 1) * w..(y + 2) * w]);
+        let row = &mut out[y * w..(y + 1) * w];
+        row[0] = 0.0;
+        row[w - 1] = 0.0;
+        let inner = w.saturating_sub(2);
+        let (left, centre, right) = (&mid[..inner], &mid[1..inner + 1], &mid[2..inner + 2]);
+        let (up, down) = (&up[1..inner + 1], &down[1..inner + 1]);
+        for (i, o) in row[1..inner + 1].iter_mut().enumerate() {
+            let lap = 4.0 * centre[i] - left[i] - right[i] - up[i] - down[i];
+            *o = lap * lap;
         }
     }
-    // Separable running sums: rows into scratch, then columns back into out.
-    for y in 0..h {
-        let row = &out[y * w..(y + 1) * w];
-        let mut acc: f32 = row[..r.min(w)].iter().sum();
-        for x in 0..w {
-            if x + r < w {
-                acc += row[x + r];
-            }
-            if x > r {
-                acc -= row[x - r - 1];
-            }
-            scratch[y * w + x] = acc;
-        }
-    }
-    // Columns as whole rows: a running sum of rows (the same additions, in the same order, as a
-    // per-column running sum, but streaming through memory instead of striding down columns).
+    // Vertical box: a running sum of rows, out → scratch.
     let mut acc = vec![0f32; w];
     for y in 0..r.min(h) {
-        for (a, &v) in acc.iter_mut().zip(&scratch[y * w..(y + 1) * w]) {
+        for (a, &v) in acc.iter_mut().zip(&out[y * w..(y + 1) * w]) {
             *a += v;
         }
     }
     for y in 0..h {
         if y + r < h {
-            for (a, &v) in acc.iter_mut().zip(&scratch[(y + r) * w..(y + r + 1) * w]) {
+            for (a, &v) in acc.iter_mut().zip(&out[(y + r) * w..(y + r + 1) * w]) {
                 *a += v;
             }
         }
         if y > r {
-            for (a, &v) in acc.iter_mut().zip(&scratch[(y - r - 1) * w..(y - r) * w]) {
+            for (a, &v) in acc.iter_mut().zip(&out[(y - r - 1) * w..(y - r) * w]) {
                 *a -= v;
             }
         }
-        for (o, &a) in out[y * w..(y + 1) * w].iter_mut().zip(&acc) {
-            *o = a.max(0.0);
+        scratch[y * w..(y + 1) * w].copy_from_slice(&acc);
+    }
+    // Horizontal box, scratch → out.
+    for y in 0..h {
+        let (src, dst) = (&scratch[y * w..(y + 1) * w], &mut out[y * w..(y + 1) * w]);
+        dst.fill(0.0);
+        for d in 0..=2 * r {
+            // dst[x] += src[x + d − r] wherever both are in the row.
+            let (from, to) = if d >= r { (d - r, 0) } else { (0, r - d) };
+            let len = w.saturating_sub(from.max(to));
+            for (o, &v) in dst[to..to + len].iter_mut().zip(&src[from..from + len]) {
+                *o += v;
+            }
+        }
+        for o in dst.iter_mut() {
+            *o = o.max(0.0);
+        }
+    }
+}
+
+/// A comparator network that leaves the median (the element of rank `n / 2`, as
+/// `select_nth_unstable(n / 2)` finds) of `n` values at that index: Batcher's odd–even merge sort
+/// pruned to the comparators the median depends on. Applied to `n` rows of pixels at once, each
+/// comparator is a min and a max over whole rows, which vectorise; a selection per pixel does not.
+#[derive(Clone, Debug)]
+struct MedianNetwork {
+    pairs: Vec<(usize, usize)>,
+    rank: usize,
+}
+
+impl MedianNetwork {
+    fn new(n: usize) -> Self {
+        // Batcher's odd–even merge sort for any n (Knuth, TAOCP 5.3.4, the merge-exchange form).
+        let mut pairs = Vec::new();
+        let mut p = 1;
+        while p < n {
+            let mut k = p;
+            while k >= 1 {
+                let mut j = k % p;
+                while j + k < n {
+                    for i in 0..k.min(n - j - k) {
+                        if (i + j) / (2 * p) == (i + j + k) / (2 * p) {
+                            pairs.push((i + j, i + j + k));
+                        }
+                    }
+                    j += 2 * k;
+                }
+                k /= 2;
+            }
+            p *= 2;
+        }
+        // Keep only comparators whose outputs reach the median's position.
+        let rank = n / 2;
+        let mut needed = vec![false; n];
+        if n > 0 {
+            needed[rank] = true;
+        }
+        let mut kept: Vec<(usize, usize)> = Vec::new();
+        for &(a, b) in pairs.iter().rev() {
+            if needed[a] || needed[b] {
+                needed[a] = true;
+                needed[b] = true;
+                kept.push((a, b));
+            }
+        }
+        kept.reverse();
+        Self { pairs: kept, rank }
+    }
+
+    /// `rows` holds n rows of `w` values; afterwards row `rank` holds each column's median (the
+    /// other rows are left partly ordered).
+    fn apply(&self, rows: &mut [f32], w: usize) {
+        for &(a, b) in &self.pairs {
+            let (low, high) = rows.split_at_mut(b * w);
+            let (low, high) = (&mut low[a * w..(a + 1) * w], &mut high[..w]);
+            for (u, v) in low.iter_mut().zip(high.iter_mut()) {
+                let (x, y) = (*u, *v);
+                (*u, *v) = (x.min(y), x.max(y));
+            }
         }
     }
 }
@@ -169,6 +229,19 @@ pub fn depth_from_focus(
     optics: &Optics,
     view: &View,
     options: &DepthOptions,
+    frame_at: impl FnMut(usize) -> Result<Frame, BundleError>,
+    cancelled: &dyn Fn() -> bool,
+) -> Result<Option<DepthMap>, BundleError> {
+    depth_from_focus_in(&mut Vec::new(), optics, view, options, frame_at, cancelled)
+}
+
+/// [`depth_from_focus`] with the focus volume (frames × pixels, tens of MB) in a buffer the caller
+/// keeps from view to view: a fresh one costs a page fault per 4 kB.
+pub fn depth_from_focus_in(
+    volume: &mut Vec<f32>,
+    optics: &Optics,
+    view: &View,
+    options: &DepthOptions,
     mut frame_at: impl FnMut(usize) -> Result<Frame, BundleError>,
     cancelled: &dyn Fn() -> bool,
 ) -> Result<Option<DepthMap>, BundleError> {
@@ -180,10 +253,11 @@ pub fn depth_from_focus(
     // pixel-major layout would scatter every write to its own cache line); the peak search gathers
     // a row's curves from the n planes.
     let plane = w * h;
-    let mut volume = vec![0f32; plane * n];
+    // Every cell is written before it is read (each frame fills its whole plane).
+    volume.resize(plane * n, 0.0);
     let mut best = vec![f32::MIN; w * h];
     let mut all_in_focus = vec![0f32; w * h * 3];
-    let (mut native, mut scratch) = (vec![0f32; w * h], vec![0f32; w * h]);
+    let (mut gray, mut native, mut scratch) = (Vec::with_capacity(w * h), vec![0f32; w * h], vec![0f32; w * h]);
     for (k, entry) in view.frames.iter().enumerate() {
         if cancelled() {
             return Ok(None);
@@ -193,20 +267,32 @@ pub fn depth_from_focus(
             Projection::Perspective => (big_f - entry.offset_mm) / big_f,
             Projection::Telecentric => 1.0,
         };
-        focus_measure(&frame.gray(), w, h, options.window_radius_px, &mut scratch, &mut native);
+        frame.gray_into(&mut gray);
+        focus_measure(&gray, w, h, options.window_radius_px, &mut scratch, &mut native);
         let channels = frame.channels as usize;
         let (xs, ys) = (axis_taps(w, principal[0], scale), axis_taps(h, principal[1], scale));
         for (y, &(y0, y1, fy)) in ys.iter().enumerate() {
-            for (x, &(x0, x1, fx)) in xs.iter().enumerate() {
-                let i = y * w + x;
-                let t = (x0, x1, fx, y0, y1, fy);
-                let m = sample(&native, 1, w, t, 0);
-                volume[k * plane + i] = m;
-                if m > best[i] {
+            let (above, below) = (&native[y0 * w..(y0 + 1) * w], &native[y1 * w..(y1 + 1) * w]);
+            let measures = &mut volume[k * plane + y * w..k * plane + (y + 1) * w];
+            for (m, &(x0, x1, fx)) in measures.iter_mut().zip(&xs) {
+                let a = above[x0] * (1.0 - fx) + above[x1] * fx;
+                let b = below[x0] * (1.0 - fx) + below[x1] * fx;
+                *m = a * (1.0 - fy) + b * fy;
+            }
+            let best_row = &mut best[y * w..(y + 1) * w];
+            for (x, (&m, best)) in measures.iter().zip(best_row.iter_mut()).enumerate() {
+                if m > *best {
                     // Colour only where this frame is the sharpest so far.
-                    best[i] = m;
-                    for c in 0..3 {
-                        all_in_focus[3 * i + c] = sample(&frame.pixels, channels, w, t, c.min(channels - 1));
+                    *best = m;
+                    let (x0, x1, fx) = xs[x];
+                    let colour = &mut all_in_focus[3 * (y * w + x)..3 * (y * w + x) + 3];
+                    let corner = |yy: usize, xx: usize| &frame.pixels[(yy * w + xx) * channels..][..channels];
+                    let (p00, p01, p10, p11) = (corner(y0, x0), corner(y0, x1), corner(y1, x0), corner(y1, x1));
+                    for (c, out) in colour.iter_mut().enumerate() {
+                        let c = c.min(channels - 1);
+                        let a = p00[c] * (1.0 - fx) + p01[c] * fx;
+                        let b = p10[c] * (1.0 - fx) + p11[c] * fx;
+                        *out = a * (1.0 - fy) + b * fy;
                     }
                 }
             }
@@ -222,43 +308,51 @@ pub fn depth_from_focus(
     let border = options.window_radius_px + 1 + breathing_px;
     let mut depth_mm = vec![f32::NAN; w * h];
     let mut peak_ratio = vec![1f32; w * h];
-    depth_mm.par_chunks_mut(w).zip(peak_ratio.par_chunks_mut(w)).enumerate().for_each(|(y, (depth_row, ratio_row))| {
-        let mut sorted = vec![0u32; n];
-        let mut curves = vec![0f32; w * n];
-        for k in 0..n {
-            let row = &volume[k * plane + y * w..k * plane + (y + 1) * w];
-            for (x, &m) in row.iter().enumerate() {
-                curves[x * n + k] = m;
+    let network = MedianNetwork::new(n);
+    // Per row: the n frames' rows are copied out of the volume (frame-major, so each is one
+    // contiguous run), the maximum and the median are found for all of the row's pixels at once,
+    // and only trusted pixels' curves are walked one by one.
+    let init = || (vec![0f32; n * w], vec![0f32; n * w], vec![0f32; w], vec![0u32; w], vec![0f32; n]);
+    depth_mm.par_chunks_mut(w).zip(peak_ratio.par_chunks_mut(w)).enumerate().for_each_init(
+        init,
+        |(rows, sorted, peak, k_best, column), (y, (depth_row, ratio_row))| {
+            for k in 0..n {
+                rows[k * w..(k + 1) * w].copy_from_slice(&volume[k * plane + y * w..k * plane + (y + 1) * w]);
             }
-        }
-        for x in 0..w {
-            let column = &curves[x * n..(x + 1) * n];
+            sorted.copy_from_slice(rows);
             // The last maximum, as `max_by` would give.
-            let (mut k_best, mut peak) = (0, column[0]);
-            for (k, &m) in column.iter().enumerate().skip(1) {
-                if m >= peak {
-                    (k_best, peak) = (k, m);
+            peak.copy_from_slice(&rows[..w]);
+            k_best.fill(0);
+            for k in 1..n {
+                for ((p, b), &m) in peak.iter_mut().zip(k_best.iter_mut()).zip(&rows[k * w..(k + 1) * w]) {
+                    if m >= *p {
+                        *p = m;
+                        *b = k as u32;
+                    }
                 }
             }
-            // Focus measures are ≥ 0, and non-negative floats order like their bit patterns:
-            // an integer selection finds the same median without a comparison closure.
-            for (b, &m) in sorted.iter_mut().zip(column) {
-                *b = m.to_bits() & 0x7fff_ffff;
+            network.apply(sorted, w);
+            let floors = &sorted[network.rank * w..(network.rank + 1) * w];
+            for x in 0..w {
+                let floor = floors[x].max(1e-12);
+                let (peak, k_best) = (peak[x], k_best[x] as usize);
+                let ratio = peak / floor;
+                ratio_row[x] = ratio;
+                if x < border || y < border || x + border >= w || y + border >= h {
+                    continue; // the focus window or the breathing correction runs off the frame
+                }
+                if ratio < options.min_peak_ratio || k_best == 0 || k_best + 1 == n {
+                    continue;
+                }
+                for (k, c) in column.iter_mut().enumerate() {
+                    *c = rows[k * w + x];
+                }
+                if let Some(in_focus_offset) = peak_offset(column, &offsets, k_best, floor, options.peak_fraction) {
+                    depth_row[x] = (big_f - in_focus_offset) as f32;
+                }
             }
-            let floor = f32::from_bits(*sorted.select_nth_unstable(n / 2).1).max(1e-12);
-            let ratio = peak / floor;
-            ratio_row[x] = ratio;
-            if x < border || y < border || x + border >= w || y + border >= h {
-                continue; // the focus window or the breathing correction runs off the frame
-            }
-            if ratio < options.min_peak_ratio || k_best == 0 || k_best + 1 == n {
-                continue;
-            }
-            if let Some(in_focus_offset) = peak_offset(column, &offsets, k_best, floor, options.peak_fraction) {
-                depth_row[x] = (big_f - in_focus_offset) as f32;
-            }
-        }
-    });
+        },
+    );
     Ok(Some(DepthMap { width: w, height: h, depth_mm, peak_ratio, all_in_focus }))
 }
 
@@ -403,6 +497,42 @@ mod tests {
         let (coarse, fine) = (worst(0.25), worst(0.1));
         assert!((0.015..0.03).contains(&coarse), "0.25 mm step: {coarse}");
         assert!(fine < 0.003, "0.1 mm step: {fine}");
+    }
+
+    /// The pruned network selects the median of every 0/1 input up to n = 12 (so, by the 0/1
+    /// principle, of every input), and finds what `select_nth_unstable(n / 2)` finds on random
+    /// rows with many ties.
+    #[test]
+    fn median_network_matches_selection() {
+        for n in 1..=12usize {
+            for bits in 0u32..(1 << n) {
+                let mut rows: Vec<f32> = (0..n).map(|k| ((bits >> k) & 1) as f32).collect();
+                let mut expected = rows.clone();
+                expected.sort_by(f32::total_cmp);
+                let network = MedianNetwork::new(n);
+                network.apply(&mut rows, 1);
+                assert_eq!(rows[n / 2], expected[n / 2], "n {n}, input {bits:b}");
+            }
+        }
+        let mut state = 12345u64;
+        let mut next = || {
+            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            // Few distinct values, so that ties are common.
+            ((state >> 33) % 17) as f32 * 0.25
+        };
+        for n in [3, 7, 8, 16, 20, 21, 31, 40, 64] {
+            let w = 37;
+            let network = MedianNetwork::new(n);
+            let mut rows: Vec<f32> = (0..n * w).map(|_| next()).collect();
+            let expected: Vec<f32> = (0..w)
+                .map(|x| {
+                    let mut column: Vec<f32> = (0..n).map(|k| rows[k * w + x]).collect();
+                    *column.select_nth_unstable_by(n / 2, f32::total_cmp).1
+                })
+                .collect();
+            network.apply(&mut rows, w);
+            assert_eq!(&rows[network.rank * w..(network.rank + 1) * w], &expected[..], "n {n}");
+        }
     }
 
     #[test]

@@ -6,7 +6,7 @@
 use crate::bundle::{Bundle, BundleError};
 use crate::cloud;
 use crate::crest::{self, CrestOptions};
-use crate::depth::{DepthMap, DepthOptions, depth_from_focus};
+use crate::depth::{DepthMap, DepthOptions, depth_from_focus_in};
 use crate::fuse::{Fusion, GridSpec, UnrolledMap};
 use crate::mesh::{self, MeshOptions};
 use crate::optics::ViewPose;
@@ -106,12 +106,24 @@ pub fn inspect(
     progress(Stage::Depth, 0.0);
     let done = AtomicUsize::new(0);
     let total = bundle.views.len();
+    // Focus volumes are handed from view to view (one per view in flight, not one per view).
+    let volumes = std::sync::Mutex::new(Vec::<Vec<f32>>::new());
     let depth_maps: Vec<Option<DepthMap>> = bundle
         .views
         .par_iter()
         .enumerate()
         .map(|(v, view)| {
-            let map = depth_from_focus(&bundle.optics, view, &options.depth, |k| bundle.read_frame(v, k), &cancelled)?;
+            let mut volume = volumes.lock().expect("no panics while held").pop().unwrap_or_default();
+            let map = depth_from_focus_in(
+                &mut volume,
+                &bundle.optics,
+                view,
+                &options.depth,
+                |k| bundle.read_frame(v, k),
+                &cancelled,
+            );
+            volumes.lock().expect("no panics while held").push(volume);
+            let map = map?;
             progress(Stage::Depth, (done.fetch_add(1, Ordering::Relaxed) + 1) as f64 / total as f64);
             Ok(map)
         })
@@ -119,6 +131,7 @@ pub fn inspect(
     if cancelled() || depth_maps.iter().any(Option::is_none) {
         return Ok(None);
     }
+    drop(volumes);
     let mut depth_maps: Vec<DepthMap> = depth_maps.into_iter().flatten().collect();
     if options.depth.equalize_phase {
         let grids: Vec<Option<(f64, f64)>> = bundle

@@ -134,9 +134,17 @@ pub fn luminance(rgb: [f32; 3]) -> f32 {
 impl Frame {
     /// Luminance per pixel (the samples themselves for gray frames).
     pub fn gray(&self) -> Vec<f32> {
+        let mut out = Vec::new();
+        self.gray_into(&mut out);
+        out
+    }
+
+    /// [`Frame::gray`] into a buffer that is reused from frame to frame.
+    pub fn gray_into(&self, out: &mut Vec<f32>) {
+        out.clear();
         match self.channels {
-            1 => self.pixels.clone(),
-            _ => self.pixels.chunks_exact(3).map(|p| luminance([p[0], p[1], p[2]])).collect(),
+            1 => out.extend_from_slice(&self.pixels),
+            _ => out.extend(self.pixels.chunks_exact(3).map(|p| luminance([p[0], p[1], p[2]]))),
         }
     }
 }
