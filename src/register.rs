@@ -203,46 +203,95 @@ fn texture(gray: &[f32], radius: &[f32], ns: usize, nz: usize) -> Vec<f32> {
     out
 }
 
-/// NCC of a's texture with b's moved by (ds, dz) cells, over the cells where both have data,
-/// sampling every `stride` cells. Returns (ncc, cells).
-fn ncc(a: &Patch, b: &Patch, ds: i64, dz: i64, stride: usize) -> (f64, usize) {
-    let (mut sa, mut sb, mut saa, mut sbb, mut sab, mut n) = (0f64, 0f64, 0f64, 0f64, 0f64, 0usize);
-    // a's cell (s, z) meets b's cell (s + off_s, z + off_z) (b's content moved by +d); only the
-    // rows and the run of columns inside b are visited.
-    let (off_s, off_z) = (a.s0 - ds - b.s0, a.z0 - dz - b.z0);
-    let st = stride as i64;
-    // First s on the stride grid with s + off_s ≥ 0, and the end of the run inside b.
-    let s_lo = if off_s >= 0 { 0 } else { ((-off_s + st - 1) / st) * st };
-    let s_hi = (b.ns as i64 - off_s).min(a.ns as i64);
-    for z in (0..a.nz).step_by(stride) {
-        let zb = z as i64 + off_z;
-        if zb < 0 || zb >= b.nz as i64 || s_lo >= s_hi {
-            continue;
-        }
-        let row_a = &a.gray[z * a.ns..(z + 1) * a.ns];
-        let row_b = &b.gray[zb as usize * b.ns..(zb as usize + 1) * b.ns];
-        for s in (s_lo as usize..s_hi as usize).step_by(stride) {
-            let va = row_a[s];
-            let vb = row_b[(s as i64 + off_s) as usize];
-            if va.is_nan() || vb.is_nan() {
-                continue;
+/// A texture grid laid out for correlation: missing cells are zero in the values and their
+/// squares and 0 in the mask, so that the sums over a shifted overlap need no branches (and run
+/// eight cells at a time). Stored by arc column (z fastest): an overlap between neighbours is long
+/// in z and short in arc, and long rows keep the per-row overhead small.
+struct TextureGrid {
+    /// Arc cells (rows of the layout) and z cells (along a row).
+    ns: usize,
+    nz: usize,
+    value: Vec<f32>,
+    square: Vec<f32>,
+    mask: Vec<f32>,
+}
+
+impl TextureGrid {
+    /// Every `step`-th cell of the (z-major) `field` starting at (s_phase, z_phase).
+    fn sampled(field: &[f32], ns: usize, nz: usize, step: usize, s_phase: usize, z_phase: usize) -> Self {
+        let (gs, gz) = (ns.saturating_sub(s_phase).div_ceil(step), nz.saturating_sub(z_phase).div_ceil(step));
+        let cells = gs * gz;
+        let mut grid =
+            Self { ns: gs, nz: gz, value: vec![0.0; cells], square: vec![0.0; cells], mask: vec![0.0; cells] };
+        for s in 0..gs {
+            for z in 0..gz {
+                let v = field[(z_phase + z * step) * ns + s_phase + s * step];
+                if v.is_finite() {
+                    let i = s * gz + z;
+                    (grid.value[i], grid.square[i], grid.mask[i]) = (v, v * v, 1.0);
+                }
             }
-            let (x, y) = (va as f64, vb as f64);
-            sa += x;
-            sb += y;
-            saa += x * x;
-            sbb += y * y;
-            sab += x * y;
-            n += 1;
+        }
+        grid
+    }
+}
+
+/// NCC of a's values with b's where a's cell (s, z) meets b's cell (s + off_s, z + off_z), over
+/// the cells where both have data; (−1, n) when fewer than `min_cells` meet. Returns (ncc, cells).
+fn ncc_grids(a: &TextureGrid, b: &TextureGrid, off_s: i64, off_z: i64, min_cells: usize) -> (f64, usize) {
+    const LANES: usize = 8;
+    fn whole(v: &[f32]) -> std::slice::Iter<'_, [f32; LANES]> {
+        v.as_chunks::<LANES>().0.iter()
+    }
+    let (s_lo, s_hi) = ((-off_s).max(0), (b.ns as i64 - off_s).min(a.ns as i64));
+    let (z_lo, z_hi) = ((-off_z).max(0), (b.nz as i64 - off_z).min(a.nz as i64));
+    // Per-column sums in f32 lanes (a column is a few hundred cells), accumulated in f64.
+    let mut total = [0f64; 6];
+    if z_lo < z_hi {
+        for s in s_lo..s_hi {
+            let (ia, ib, len) = (
+                s as usize * a.nz + z_lo as usize,
+                (s + off_s) as usize * b.nz + (z_lo + off_z) as usize,
+                (z_hi - z_lo) as usize,
+            );
+            let (xa, qa, ma) = (&a.value[ia..ia + len], &a.square[ia..ia + len], &a.mask[ia..ia + len]);
+            let (xb, qb, mb) = (&b.value[ib..ib + len], &b.square[ib..ib + len], &b.mask[ib..ib + len]);
+            // Six separate accumulators (a [[f32; 8]; 6] gets shuffled between registers).
+            let (mut n, mut sa, mut sb) = ([0f32; LANES], [0f32; LANES], [0f32; LANES]);
+            let (mut saa, mut sbb, mut sab) = ([0f32; LANES], [0f32; LANES], [0f32; LANES]);
+            for (((((xa, qa), ma), xb), qb), mb) in
+                whole(xa).zip(whole(qa)).zip(whole(ma)).zip(whole(xb)).zip(whole(qb)).zip(whole(mb))
+            {
+                for l in 0..LANES {
+                    n[l] += ma[l] * mb[l];
+                    sa[l] += xa[l] * mb[l];
+                    sb[l] += ma[l] * xb[l];
+                    saa[l] += qa[l] * mb[l];
+                    sbb[l] += ma[l] * qb[l];
+                    sab[l] += xa[l] * xb[l];
+                }
+            }
+            for i in len / LANES * LANES..len {
+                n[0] += ma[i] * mb[i];
+                sa[0] += xa[i] * mb[i];
+                sb[0] += ma[i] * xb[i];
+                saa[0] += qa[i] * mb[i];
+                sbb[0] += ma[i] * qb[i];
+                sab[0] += xa[i] * xb[i];
+            }
+            for (t, l) in total.iter_mut().zip([n, sa, sb, saa, sbb, sab]) {
+                *t += l.iter().map(|&v| v as f64).sum::<f64>();
+            }
         }
     }
-    if n < 200 / stride.pow(2) + 20 {
-        return (-1.0, n);
+    let [n, sa, sb, saa, sbb, sab] = total;
+    let cells = n.round() as usize;
+    if cells < min_cells {
+        return (-1.0, cells);
     }
-    let nf = n as f64;
-    let cov = sab - sa * sb / nf;
-    let var = (saa - sa * sa / nf) * (sbb - sb * sb / nf);
-    (if var > 0.0 { cov / var.sqrt() } else { -1.0 }, n)
+    let cov = sab - sa * sb / n;
+    let var = (saa - sa * sa / n) * (sbb - sb * sb / n);
+    (if var > 0.0 { cov / var.sqrt() } else { -1.0 }, cells)
 }
 
 /// Vertex offset in (−0.5, 0.5) of the parabola through three equally spaced samples.
@@ -283,33 +332,43 @@ fn measure_pair(
     let (ca, cb) = (pa.halved(), pb.halved());
     let rs = (margin / cell / 2.0).ceil() as i64;
     let rz = (options.max_axial_mm / cell / 2.0).ceil() as i64;
+    // Every other cell of the overlap is plenty to find the peak at this level: a's even cells,
+    // and b's cells of whichever parity a shift brings onto them.
+    let coarse_a = TextureGrid::sampled(&ca.gray, ca.ns, ca.nz, 2, 0, 0);
+    let coarse_b: Vec<TextureGrid> =
+        (0..4).map(|p| TextureGrid::sampled(&cb.gray, cb.ns, cb.nz, 2, p % 2, p / 2)).collect();
     let mut best = (f64::MIN, 0i64, 0i64);
     for dz in -rz..=rz {
         for ds in -rs..=rs {
-            // Every other cell of the overlap is plenty to find the peak at this level.
-            let (c, _) = ncc(&ca, &cb, ds, dz, 2);
+            // a's cell 2i meets b's cell 2i + off = 2(i + off.div_euclid(2)) + off.rem_euclid(2).
+            let (off_s, off_z) = (ca.s0 - ds - cb.s0, ca.z0 - dz - cb.z0);
+            let phase = (off_s.rem_euclid(2) + 2 * off_z.rem_euclid(2)) as usize;
+            let (c, _) = ncc_grids(&coarse_a, &coarse_b[phase], off_s.div_euclid(2), off_z.div_euclid(2), 70);
             if c > best.0 {
                 best = (c, ds, dz);
             }
         }
     }
+    let (fine_a, fine_b) =
+        (TextureGrid::sampled(&pa.gray, pa.ns, pa.nz, 1, 0, 0), TextureGrid::sampled(&pb.gray, pb.ns, pb.nz, 1, 0, 0));
+    let ncc = |ds: i64, dz: i64| ncc_grids(&fine_a, &fine_b, pa.s0 - ds - pb.s0, pa.z0 - dz - pb.z0, 220);
     let (cs, cz) = (2 * best.1, 2 * best.2);
     let mut fine = (f64::MIN, cs, cz);
     for dz in cz - 2..=cz + 2 {
         for ds in cs - 2..=cs + 2 {
-            let (c, _) = ncc(&pa, &pb, ds, dz, 1);
+            let (c, _) = ncc(ds, dz);
             if c > fine.0 {
                 fine = (c, ds, dz);
             }
         }
     }
     let (peak, ds, dz) = fine;
-    let (_, cells) = ncc(&pa, &pb, ds, dz, 1);
+    let (_, cells) = ncc(ds, dz);
     if peak < options.min_ncc || cells < options.min_overlap_cells {
         return None;
     }
-    let frac_s = sub_cell(ncc(&pa, &pb, ds - 1, dz, 1).0, peak, ncc(&pa, &pb, ds + 1, dz, 1).0);
-    let frac_z = sub_cell(ncc(&pa, &pb, ds, dz - 1, 1).0, peak, ncc(&pa, &pb, ds, dz + 1, 1).0);
+    let frac_s = sub_cell(ncc(ds - 1, dz).0, peak, ncc(ds + 1, dz).0);
+    let frac_z = sub_cell(ncc(ds, dz - 1).0, peak, ncc(ds, dz + 1).0);
     // Radial offset over the aligned overlap.
     let mut dr = Vec::new();
     for z in 0..pa.nz {
@@ -324,13 +383,14 @@ fn measure_pair(
     if dr.is_empty() {
         return None;
     }
-    dr.sort_by(f64::total_cmp);
+    let median = dr.len() / 2;
+    let shift_radius_mm = *dr.select_nth_unstable_by(median, f64::total_cmp).1;
     Some(PairMeasure {
         a,
         b,
         shift_angle_deg: ((ds as f64 + frac_s) * cell / radius_ref).to_degrees(),
         shift_axial_mm: (dz as f64 + frac_z) * cell,
-        shift_radius_mm: dr[dr.len() / 2],
+        shift_radius_mm,
         peak_ncc: peak,
         overlap_cells: cells,
         residual_angle_deg: 0.0,
