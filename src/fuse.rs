@@ -82,18 +82,36 @@ pub struct Binned {
     pub rgb: [f32; 3],
 }
 
+/// One cell's weighted sums (kept together: a point touches one cache line, not five arrays).
+#[derive(Clone, Copy, Debug, Default)]
+struct CellSum {
+    r: f64,
+    w: f64,
+    rgb: [f64; 3],
+}
+
+impl CellSum {
+    #[inline]
+    fn add(&mut self, b: &Binned) {
+        let w = b.weight as f64;
+        self.r += w * b.radius_mm as f64;
+        self.w += w;
+        for c in 0..3 {
+            self.rgb[c] += w * b.rgb[c] as f64;
+        }
+    }
+}
+
 /// Accumulates views one at a time, so only the grid is held, never every view's points.
 pub struct Fusion {
     grid: GridSpec,
-    sum_r: Vec<f64>,
-    sum_w: Vec<f64>,
-    sum_rgb: Vec<[f64; 3]>,
+    sums: Vec<CellSum>,
 }
 
 impl Fusion {
     pub fn new(grid: GridSpec) -> Self {
         let cells = grid.nz * grid.ntheta;
-        Self { grid, sum_r: vec![0.0; cells], sum_w: vec![0.0; cells], sum_rgb: vec![[0.0; 3]; cells] }
+        Self { grid, sums: vec![CellSum::default(); cells] }
     }
 
     pub fn add(&mut self, points: &[SurfacePoint]) {
@@ -127,25 +145,37 @@ impl Fusion {
     /// how the binning was scheduled.
     pub fn accumulate(&mut self, binned: &[Binned]) {
         for b in binned {
-            let (i, w) = (b.cell as usize, b.weight as f64);
-            self.sum_r[i] += w * b.radius_mm as f64;
-            self.sum_w[i] += w;
-            for c in 0..3 {
-                self.sum_rgb[i][c] += w * b.rgb[c] as f64;
-            }
+            self.sums[b.cell as usize].add(b);
         }
     }
 
+    /// [`Fusion::accumulate`] of several views, in their order, with the grid split into bands of
+    /// rows summed in parallel: each cell still receives its points in view order, so the sums are
+    /// exactly the sequential ones.
+    pub fn accumulate_all(&mut self, views: &[Vec<Binned>]) {
+        use rayon::prelude::*;
+        let bands = rayon::current_num_threads().clamp(1, 8);
+        let band_cells = self.sums.len().div_ceil(bands).max(1);
+        self.sums.par_chunks_mut(band_cells).enumerate().for_each(|(k, band)| {
+            let start = k * band_cells;
+            for b in views.iter().flatten() {
+                if let Some(cell) = (b.cell as usize).checked_sub(start).and_then(|i| band.get_mut(i)) {
+                    cell.add(b);
+                }
+            }
+        });
+    }
+
     pub fn finish(self) -> UnrolledMap {
-        let radius_mm =
-            self.sum_r.iter().zip(&self.sum_w).map(|(r, w)| if *w > 0.0 { (r / w) as f32 } else { f32::NAN }).collect();
+        use rayon::prelude::*;
+        let radius_mm = self.sums.par_iter().map(|s| if s.w > 0.0 { (s.r / s.w) as f32 } else { f32::NAN }).collect();
         let rgb = self
-            .sum_rgb
-            .iter()
-            .zip(&self.sum_w)
-            .map(|(c, w)| if *w > 0.0 { [0, 1, 2].map(|k| (c[k] / w) as f32) } else { [0.0; 3] })
+            .sums
+            .par_iter()
+            .map(|s| if s.w > 0.0 { [0, 1, 2].map(|k| (s.rgb[k] / s.w) as f32) } else { [0.0; 3] })
             .collect();
-        UnrolledMap { grid: self.grid, radius_mm, weight: self.sum_w.into_iter().map(|w| w as f32).collect(), rgb }
+        let weight = self.sums.par_iter().map(|s| s.w as f32).collect();
+        UnrolledMap { grid: self.grid, radius_mm, weight, rgb }
     }
 }
 

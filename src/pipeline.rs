@@ -185,12 +185,19 @@ pub fn inspect(
     let mut fusion = Fusion::new(grid);
     // Binning (angle and radius per point) runs per view in parallel; the sums stay in view order.
     // Each view's points are dropped as soon as they are binned.
-    let binned: Vec<Vec<crate::fuse::Binned>> = clouds.into_par_iter().map(|points| fusion.bin(&points)).collect();
-    for (k, points) in binned.iter().enumerate() {
-        fusion.accumulate(points);
-        progress(Stage::Fuse, (k + 1) as f64 / total as f64);
-    }
+    let binned_views = AtomicUsize::new(0);
+    let binned: Vec<Vec<crate::fuse::Binned>> = clouds
+        .into_par_iter()
+        .map(|points| {
+            let binned = fusion.bin(&points);
+            // Binning is most of the work; the sums follow in one parallel pass.
+            progress(Stage::Fuse, 0.9 * (binned_views.fetch_add(1, Ordering::Relaxed) + 1) as f64 / total as f64);
+            binned
+        })
+        .collect();
+    fusion.accumulate_all(&binned);
     drop(binned);
+    progress(Stage::Fuse, 1.0);
     let map = fusion.finish();
     lap(Stage::Fuse, &mut timings);
     if cancelled() {
