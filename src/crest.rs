@@ -34,6 +34,10 @@ pub struct CrestOptions {
     /// …and so does a sustained dip: the median of five bins along the helix below the median by
     /// this many scatters.
     pub dark_run_sigmas: f32,
+    /// A dark run extends along the helix over neighbouring bins darker than the median by this
+    /// many scatters: at a run's ends the scale is a thin strip on the crest line (a round crest
+    /// barely cut by the mill surface) or covers part of the bin, and darkens it by less.
+    pub dark_extent_sigmas: f32,
     /// A crest this far below the machined crest cone (median of five bins along the helix) starts
     /// a geometric black run; the threshold rises to four times the crests' own scatter when that
     /// is larger.
@@ -55,6 +59,7 @@ impl Default for CrestOptions {
             dark_fraction: 0.45,
             dark_sigmas: 6.0,
             dark_run_sigmas: 4.0,
+            dark_extent_sigmas: 2.5,
             mill_onset_um: 15.0,
             mill_extent_um: 5.0,
             min_geometric_arc_deg: 10.0,
@@ -143,22 +148,47 @@ fn thresholds(smoothed: &[Option<f64>], options: &CrestOptions) -> (f64, f64, f6
 /// Marks runs along the helix: a bin whose deficit reaches `onset` starts a run, which extends in
 /// both directions over bins whose deficit stays at or above `extent` (a gap ends it).
 fn mill_runs(smoothed: &[Option<f64>], onset_mm: f64, extent_mm: f64) -> Vec<bool> {
-    let mut on = vec![false; smoothed.len()];
     let above = |i: usize, t: f64| smoothed[i].is_some_and(|d| d >= t);
-    for i in 0..smoothed.len() {
-        if !above(i, onset_mm) || on[i] {
-            continue;
-        }
-        let (mut lo, mut hi) = (i, i);
-        while lo > 0 && above(lo - 1, extent_mm) {
+    let seeds: Vec<bool> = (0..smoothed.len()).map(|i| above(i, onset_mm)).collect();
+    grow_runs(&seeds, |i| above(i, extent_mm))
+}
+
+/// Hysteresis along the helix: every run of `seeds` grows in both directions over the bins for
+/// which `extends` holds.
+fn grow_runs(seeds: &[bool], extends: impl Fn(usize) -> bool) -> Vec<bool> {
+    let mut on = seeds.to_vec();
+    for span in run_spans(seeds) {
+        let (mut lo, mut hi) = (span.start, span.end - 1);
+        while lo > 0 && !on[lo - 1] && extends(lo - 1) {
             lo -= 1;
         }
-        while hi + 1 < smoothed.len() && above(hi + 1, extent_mm) {
+        while hi + 1 < seeds.len() && !on[hi + 1] && extends(hi + 1) {
             hi += 1;
         }
         on[lo..=hi].iter_mut().for_each(|b| *b = true);
     }
     on
+}
+
+/// How much of each dark bin the scale covers, read from its brightness: 1 inside a run, and at
+/// a run's first and last bin the fraction of the way from the machined reference down to the
+/// run's own darkness (its median) — a bin the scale covers in part is a mix of the two. Bins
+/// outside runs get 1 (unused).
+fn dark_cover(dark: &[bool], grays: &[Option<f32>], reference: f32) -> Vec<f32> {
+    let mut cover = vec![1f32; dark.len()];
+    for span in run_spans(dark) {
+        let mut inside: Vec<f64> = grays[span.clone()].iter().flatten().map(|&g| g as f64).collect();
+        let Some(level) = median(&mut inside).map(|l| l as f32) else { continue };
+        if reference <= level {
+            continue;
+        }
+        for i in [span.start, span.end - 1] {
+            if let Some(g) = grays[i] {
+                cover[i] = ((reference - g) / (reference - level)).clamp(0.0, 1.0);
+            }
+        }
+    }
+    cover
 }
 
 /// Where a geometric run shows mill scale anywhere, the darkness marks its extent: the crest
@@ -226,9 +256,17 @@ pub fn observations(
     );
     let chamfer_zone_mm = 1.5 * pitch_mm;
     let in_helix_order = || threads.iter().flat_map(|t| t.bins.iter());
-    let dark: Vec<bool> = in_helix_order()
+    let seeds: Vec<bool> = in_helix_order()
         .zip(&run_gray)
         .map(|(b, run)| b.crest_gray.is_some_and(|g| g < dark_below) || run.is_some_and(|g| g < run_below as f64))
+        .collect();
+    let grays: Vec<Option<f32>> = in_helix_order().map(|b| b.crest_gray).collect();
+    let extent_below = reference - options.dark_extent_sigmas * gray_scatter;
+    let dark = grow_runs(&seeds, |i| grays[i].is_some_and(|g| g < extent_below));
+    let cover = dark_cover(&dark, &grays, reference);
+    // A run's first and last bins count by how much of them the scale covers.
+    let run_end: Vec<(bool, bool)> = (0..dark.len())
+        .map(|i| (dark[i] && (i == 0 || !dark[i - 1]), dark[i] && (i + 1 == dark.len() || !dark[i + 1])))
         .collect();
 
     // Geometric: the crests' deficits below the fitted cone, in helix order.
@@ -261,7 +299,7 @@ pub fn observations(
         }
     };
 
-    let (mut on_mill, mut dark) = (on_mill.into_iter(), dark.into_iter());
+    let mut helix_index = 0..;
     let observations = threads
         .iter()
         .map(|t| {
@@ -269,21 +307,33 @@ pub fn observations(
             let mut arcs = Vec::new();
             let mut bins = Vec::with_capacity(t.bins.len());
             for b in &t.bins {
+                let i = helix_index.next().expect("unbounded");
                 let start = b.angle_deg - 0.5;
-                let dark = dark.next().unwrap_or(false);
+                let (dark, cover, (first, last)) = (dark[i], cover[i], run_end[i]);
                 let z_start = b.crest_z_mm - 0.5 * dz_per_deg;
                 if dark && z_start <= lc_mm {
-                    let end = (start + 1.0).min(start + (lc_mm - z_start) / dz_per_deg);
-                    arcs.push([start, end]);
+                    let (from, to) = match (first, last) {
+                        (true, true) => (start + 0.5 - 0.5 * cover as f64, start + 0.5 + 0.5 * cover as f64),
+                        (true, false) => (start + 1.0 - cover as f64, start + 1.0),
+                        (false, true) => (start, start + cover as f64),
+                        (false, false) => (start, start + 1.0),
+                    };
+                    let to = to.min(start + (lc_mm - z_start) / dz_per_deg);
+                    if to > from {
+                        arcs.push([from, to]);
+                    }
                 }
                 let chamfer = !dark && b.crest_z_mm < chamfer_zone_mm;
+                // A dark run's partly covered end bin is measured by its darkness: its geometry
+                // (which took its extent from the darkness) would count the whole bin.
+                let partly_dark = dark && (first || last) && cover < 1.0;
                 bins.push(CrestBin {
                     angle_deg: start,
                     width_deg: 1.0,
                     z_mm: b.crest_z_mm,
                     height_mm: b.height_mm,
                     chamfer,
-                    on_mill_surface: on_mill.next().unwrap_or(false) && !chamfer,
+                    on_mill_surface: on_mill[i] && !chamfer && !partly_dark,
                 });
             }
             ThreadObservation { index: t.index, black_crest_arcs_deg: crate::rules::union_arcs(arcs), bins }
@@ -438,6 +488,26 @@ mod tests {
         let threads = vec![one_thread(4, 20.0, None, |k| if (100..112).contains(&k) || k == 300 { 0.51 } else { 0.6 })];
         let findings = observations(&threads, 40.0, 5.08, 0.0, &CrestOptions::default());
         assert_eq!(findings.observations[0].black_crest_arcs_deg, vec![[100.0, 112.0]]);
+    }
+
+    #[test]
+    fn faint_ends_extend_a_dark_run_and_partly_covered_end_bins_count_by_their_darkness() {
+        // Reference 0.6, scatter at its floor (0.018): a bin starts a run below 0.492 and extends
+        // one below 0.555. Bins 100–109 are scale (0.1); bin 99 (0.35) is half covered; bin 110
+        // (0.53) is a faint end, bin 111 (0.57) is not; bin 300 (0.53) alone starts nothing.
+        let gray = |k: usize| match k {
+            99 => 0.35,
+            100..=109 => 0.1,
+            110 | 300 => 0.53,
+            111 => 0.57,
+            _ => 0.6,
+        };
+        let threads = vec![one_thread(4, 20.0, None, gray)];
+        let findings = observations(&threads, 40.0, 5.08, 0.0, &CrestOptions::default());
+        let arcs = &findings.observations[0].black_crest_arcs_deg;
+        assert_eq!(arcs.len(), 1, "{arcs:?}");
+        // Covers (0.6 − g) / (0.6 − 0.1): half of bin 99 (its end side), 0.14 of bin 110.
+        assert!((arcs[0][0] - 99.5).abs() < 1e-6 && (arcs[0][1] - 110.14).abs() < 1e-5, "{arcs:?}");
     }
 
     #[test]
