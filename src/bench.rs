@@ -165,8 +165,9 @@ pub enum BenchError {
 }
 
 /// Renders the case into `work/<preset>-<seed>` unless a complete rendering is there, times a plain
-/// decode of every frame (the yardstick), inspects it, and compares with truth.
-pub fn run_case(case: &Case, work: &std::path::Path) -> Result<CaseResult, BenchError> {
+/// decode of every frame (the yardstick), inspects it, and compares with truth. With `repeat` > 1
+/// the decode and the inspection alternate that many times and the median times are reported.
+pub fn run_case(case: &Case, work: &std::path::Path, repeat: usize) -> Result<CaseResult, BenchError> {
     use crate::bundle::{Bundle, OpenOptions};
     use rayon::prelude::*;
     let spec = crate::sim::preset(case.preset).ok_or_else(|| BenchError::Preset(case.preset.into()))?;
@@ -191,20 +192,47 @@ pub fn run_case(case: &Case, work: &std::path::Path) -> Result<CaseResult, Bench
     let bundle = Bundle::open(&dir, &table, OpenOptions::default())?;
 
     // Yardstick: decode every frame once, with the pipeline's parallelism (views across cores).
-    let started = std::time::Instant::now();
-    bundle.views.par_iter().enumerate().try_for_each(|(v, view)| {
-        for k in 0..view.frames.len() {
-            std::hint::black_box(bundle.read_frame(v, k)?);
-        }
-        Ok::<_, crate::bundle::BundleError>(())
-    })?;
-    let decode_seconds = started.elapsed().as_secs_f64();
-
-    let started = std::time::Instant::now();
+    // Decode and inspection alternate `repeat` times and each time is the median of its runs: on a
+    // shared 2-core machine one run of either can be 30% off.
+    let decode = || -> Result<f64, BenchError> {
+        let started = std::time::Instant::now();
+        bundle.views.par_iter().enumerate().try_for_each(|(v, view)| {
+            for k in 0..view.frames.len() {
+                std::hint::black_box(bundle.read_frame(v, k)?);
+            }
+            Ok::<_, crate::bundle::BundleError>(())
+        })?;
+        Ok(started.elapsed().as_secs_f64())
+    };
     let cancel = std::sync::atomic::AtomicBool::new(false);
-    let inspection = crate::pipeline::inspect(&bundle, &Default::default(), &|_, _| {}, &cancel)?
-        .ok_or_else(|| BenchError::Other("cancelled".into()))?;
-    let inspect_seconds = started.elapsed().as_secs_f64();
+    // (decode s, inspect s, stage times) per run; the results are the same every run, so only
+    // the last inspection is kept.
+    let mut runs = Vec::new();
+    let mut last = None;
+    for _ in 0..repeat.max(1) {
+        let decode_seconds = decode()?;
+        drop(last.take()); // the previous run's maps are not held while this one runs
+        let started = std::time::Instant::now();
+        let inspection = crate::pipeline::inspect(&bundle, &Default::default(), &|_, _| {}, &cancel)?
+            .ok_or_else(|| BenchError::Other("cancelled".into()))?;
+        let stages: Vec<(String, f64)> =
+            inspection.report.timings.iter().map(|t| (t.stage.clone(), t.seconds)).collect();
+        runs.push((decode_seconds, started.elapsed().as_secs_f64(), stages));
+        last = Some(inspection);
+    }
+    let inspection = last.expect("at least one run");
+    let median_of = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let decode_seconds = median_of(runs.iter().map(|r| r.0).collect());
+    let inspect_seconds = median_of(runs.iter().map(|r| r.1).collect());
+    // Stage times of the run whose inspection time is the median.
+    let stage_seconds = runs
+        .into_iter()
+        .min_by(|a, b| (a.1 - inspect_seconds).abs().total_cmp(&(b.1 - inspect_seconds).abs()))
+        .expect("at least one run")
+        .2;
 
     let accuracy = compare(&inspection.report, &truth);
     let (mut sq, mut errors, mut seen, mut total) = (0.0, Vec::new(), 0usize, 0usize);
@@ -264,7 +292,7 @@ pub fn run_case(case: &Case, work: &std::path::Path) -> Result<CaseResult, Bench
         decode_seconds,
         inspect_seconds,
         render: rendered,
-        stage_seconds: inspection.report.timings.iter().map(|t| (t.stage.clone(), t.seconds)).collect(),
+        stage_seconds,
         table1,
     })
 }

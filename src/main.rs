@@ -59,6 +59,10 @@ enum Command {
         /// Also write the results as JSON here.
         #[arg(long)]
         json: Option<PathBuf>,
+        /// Time each case this many times (decode and inspection alternating) and report the
+        /// medians: single timings on a shared machine scatter by tens of percent.
+        #[arg(long, default_value_t = 1)]
+        repeat: usize,
     },
     /// Compare an inspection report with a simulated bundle's truth/truth.json.
     Compare { report: PathBuf, truth: PathBuf },
@@ -281,7 +285,7 @@ fn main() -> Result<()> {
                 }
             }
         }
-        Command::Bench { suite, work, only, json } => {
+        Command::Bench { suite, work, only, json, repeat } => {
             if suite != "accuracy" {
                 bail!("unknown suite {suite:?}; suites: accuracy");
             }
@@ -291,7 +295,7 @@ fn main() -> Result<()> {
                 .filter(|c| only.is_empty() || only.iter().any(|o| o == c.preset))
             {
                 eprintln!("bench: {} (seed {})", case.preset, case.seed);
-                results.push(crestscan::bench::run_case(case, &work)?);
+                results.push(crestscan::bench::run_case(case, &work, repeat)?);
             }
             println!("{}", crestscan::bench::table(&results));
             if let Some(path) = json {
