@@ -79,6 +79,9 @@ fn axis_taps(len: usize, centre: f64, scale: f64) -> Vec<(usize, usize, f32)> {
 /// (the vertical box), then the horizontal box as 2r+1 shifted row additions (a running sum along
 /// a row is one long dependency chain).
 fn focus_measure(gray: &[f32], w: usize, h: usize, r: usize, scratch: &mut [f32], out: &mut [f32]) {
+    if w == 0 || h == 0 {
+        return;
+    }
     out[..w].fill(0.0);
     out[(h - 1) * w..].fill(0.0);
     for y in 1..h.saturating_sub(1) {

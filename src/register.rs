@@ -236,51 +236,58 @@ impl TextureGrid {
     }
 }
 
+/// Every other cell of two grids, for the coarse search: a's even cells, and b's cells in the
+/// four parities a shift can bring onto them.
+struct StrideTwo {
+    a: TextureGrid,
+    b: [TextureGrid; 4],
+}
+
+impl StrideTwo {
+    fn new(a: &[f32], (ans, anz): (usize, usize), b: &[f32], (bns, bnz): (usize, usize)) -> Self {
+        let b_at = |p: usize| TextureGrid::sampled(b, bns, bnz, 2, p % 2, p / 2);
+        Self { a: TextureGrid::sampled(a, ans, anz, 2, 0, 0), b: [b_at(0), b_at(1), b_at(2), b_at(3)] }
+    }
+
+    /// NCC over a's even cells (s, z) against b's (s + off_s, z + off_z): a's cell 2i meets b's
+    /// cell 2i + off = 2(i + off.div_euclid(2)) + off.rem_euclid(2).
+    fn ncc(&self, off_s: i64, off_z: i64, min_cells: usize) -> (f64, usize) {
+        let phase = (off_s.rem_euclid(2) + 2 * off_z.rem_euclid(2)) as usize;
+        ncc_grids(&self.a, &self.b[phase], off_s.div_euclid(2), off_z.div_euclid(2), min_cells)
+    }
+}
+
+/// Σ a·b over equal-length slices, in eight f32 lanes (one pass per product vectorises cleanly;
+/// six products in one loop spill registers).
+fn dot(a: &[f32], b: &[f32]) -> f64 {
+    const LANES: usize = 8;
+    let (a_chunks, a_rest) = a.as_chunks::<LANES>();
+    let (b_chunks, b_rest) = b.as_chunks::<LANES>();
+    let mut lanes = [0f32; LANES];
+    for (x, y) in a_chunks.iter().zip(b_chunks) {
+        for l in 0..LANES {
+            lanes[l] += x[l] * y[l];
+        }
+    }
+    let rest: f32 = a_rest.iter().zip(b_rest).map(|(x, y)| x * y).sum();
+    lanes.iter().map(|&v| v as f64).sum::<f64>() + rest as f64
+}
+
 /// NCC of a's values with b's where a's cell (s, z) meets b's cell (s + off_s, z + off_z), over
 /// the cells where both have data; (−1, n) when fewer than `min_cells` meet. Returns (ncc, cells).
 fn ncc_grids(a: &TextureGrid, b: &TextureGrid, off_s: i64, off_z: i64, min_cells: usize) -> (f64, usize) {
-    const LANES: usize = 8;
-    fn whole(v: &[f32]) -> std::slice::Iter<'_, [f32; LANES]> {
-        v.as_chunks::<LANES>().0.iter()
-    }
     let (s_lo, s_hi) = ((-off_s).max(0), (b.ns as i64 - off_s).min(a.ns as i64));
     let (z_lo, z_hi) = ((-off_z).max(0), (b.nz as i64 - off_z).min(a.nz as i64));
-    // Per-column sums in f32 lanes (a column is a few hundred cells), accumulated in f64.
+    // Per column (a few hundred cells) six dot products in f32 lanes, accumulated in f64.
     let mut total = [0f64; 6];
     if z_lo < z_hi {
+        let len = (z_hi - z_lo) as usize;
         for s in s_lo..s_hi {
-            let (ia, ib, len) = (
-                s as usize * a.nz + z_lo as usize,
-                (s + off_s) as usize * b.nz + (z_lo + off_z) as usize,
-                (z_hi - z_lo) as usize,
-            );
+            let (ia, ib) = (s as usize * a.nz + z_lo as usize, (s + off_s) as usize * b.nz + (z_lo + off_z) as usize);
             let (xa, qa, ma) = (&a.value[ia..ia + len], &a.square[ia..ia + len], &a.mask[ia..ia + len]);
             let (xb, qb, mb) = (&b.value[ib..ib + len], &b.square[ib..ib + len], &b.mask[ib..ib + len]);
-            // Six separate accumulators (a [[f32; 8]; 6] gets shuffled between registers).
-            let (mut n, mut sa, mut sb) = ([0f32; LANES], [0f32; LANES], [0f32; LANES]);
-            let (mut saa, mut sbb, mut sab) = ([0f32; LANES], [0f32; LANES], [0f32; LANES]);
-            for (((((xa, qa), ma), xb), qb), mb) in
-                whole(xa).zip(whole(qa)).zip(whole(ma)).zip(whole(xb)).zip(whole(qb)).zip(whole(mb))
-            {
-                for l in 0..LANES {
-                    n[l] += ma[l] * mb[l];
-                    sa[l] += xa[l] * mb[l];
-                    sb[l] += ma[l] * xb[l];
-                    saa[l] += qa[l] * mb[l];
-                    sbb[l] += ma[l] * qb[l];
-                    sab[l] += xa[l] * xb[l];
-                }
-            }
-            for i in len / LANES * LANES..len {
-                n[0] += ma[i] * mb[i];
-                sa[0] += xa[i] * mb[i];
-                sb[0] += ma[i] * xb[i];
-                saa[0] += qa[i] * mb[i];
-                sbb[0] += ma[i] * qb[i];
-                sab[0] += xa[i] * xb[i];
-            }
-            for (t, l) in total.iter_mut().zip([n, sa, sb, saa, sbb, sab]) {
-                *t += l.iter().map(|&v| v as f64).sum::<f64>();
+            for (t, (u, v)) in total.iter_mut().zip([(ma, mb), (xa, mb), (ma, xb), (qa, mb), (ma, qb), (xa, xb)]) {
+                *t += dot(u, v);
             }
         }
     }
@@ -332,18 +339,12 @@ fn measure_pair(
     let (ca, cb) = (pa.halved(), pb.halved());
     let rs = (margin / cell / 2.0).ceil() as i64;
     let rz = (options.max_axial_mm / cell / 2.0).ceil() as i64;
-    // Every other cell of the overlap is plenty to find the peak at this level: a's even cells,
-    // and b's cells of whichever parity a shift brings onto them.
-    let coarse_a = TextureGrid::sampled(&ca.gray, ca.ns, ca.nz, 2, 0, 0);
-    let coarse_b: Vec<TextureGrid> =
-        (0..4).map(|p| TextureGrid::sampled(&cb.gray, cb.ns, cb.nz, 2, p % 2, p / 2)).collect();
+    // Every other cell of the overlap is plenty to find the peak at this level.
+    let coarse = StrideTwo::new(&ca.gray, (ca.ns, ca.nz), &cb.gray, (cb.ns, cb.nz));
     let mut best = (f64::MIN, 0i64, 0i64);
     for dz in -rz..=rz {
         for ds in -rs..=rs {
-            // a's cell 2i meets b's cell 2i + off = 2(i + off.div_euclid(2)) + off.rem_euclid(2).
-            let (off_s, off_z) = (ca.s0 - ds - cb.s0, ca.z0 - dz - cb.z0);
-            let phase = (off_s.rem_euclid(2) + 2 * off_z.rem_euclid(2)) as usize;
-            let (c, _) = ncc_grids(&coarse_a, &coarse_b[phase], off_s.div_euclid(2), off_z.div_euclid(2), 70);
+            let (c, _) = coarse.ncc(ca.s0 - ds - cb.s0, ca.z0 - dz - cb.z0, 70);
             if c > best.0 {
                 best = (c, ds, dz);
             }
@@ -493,6 +494,71 @@ mod tests {
         let c = solve_axis(4, &pairs, 0.02);
         for v in 0..4 {
             assert!((c[v] - truth[v]).abs() < 0.02, "{c:?}");
+        }
+    }
+
+    /// Brute-force NCC of a's cells (s, z) on the `step` grid against b's (s + off_s, z + off_z),
+    /// both z-major with NaN for missing cells: what the masked grids must reproduce.
+    fn brute_ncc(
+        a: &[f32],
+        (ans, anz): (usize, usize),
+        b: &[f32],
+        (bns, bnz): (usize, usize),
+        off: (i64, i64),
+        step: usize,
+    ) -> f64 {
+        let (mut n, mut sa, mut sb, mut saa, mut sbb, mut sab) = (0f64, 0f64, 0f64, 0f64, 0f64, 0f64);
+        for z in (0..anz).step_by(step) {
+            for s in (0..ans).step_by(step) {
+                let (bs, bz) = (s as i64 + off.0, z as i64 + off.1);
+                if bs < 0 || bz < 0 || bs >= bns as i64 || bz >= bnz as i64 {
+                    continue;
+                }
+                let (x, y) = (a[z * ans + s], b[bz as usize * bns + bs as usize]);
+                if x.is_nan() || y.is_nan() {
+                    continue;
+                }
+                let (x, y) = (x as f64, y as f64);
+                (n, sa, sb, saa, sbb, sab) = (n + 1.0, sa + x, sb + y, saa + x * x, sbb + y * y, sab + x * y);
+            }
+        }
+        (sab - sa * sb / n) / ((saa - sa * sa / n) * (sbb - sb * sb / n)).sqrt()
+    }
+
+    #[test]
+    fn masked_grids_match_a_brute_force_ncc_at_every_parity() {
+        let mut state = 7u64;
+        let mut next = || {
+            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((state >> 33) % 1000) as f32 / 1000.0 - 0.5
+        };
+        let (ans, anz, bns, bnz) = (23, 57, 29, 61);
+        let a: Vec<f32> = (0..ans * anz).map(|i| if i % 17 == 3 { f32::NAN } else { next() }).collect();
+        // b holds a's texture moved by (3, −2) cells, noise elsewhere, and holes of its own.
+        let b: Vec<f32> = (0..bns * bnz)
+            .map(|i| {
+                let (s, z) = ((i % bns) as i64 - 3, (i / bns) as i64 + 2);
+                let v = if s >= 0 && z >= 0 && (s as usize) < ans && (z as usize) < anz {
+                    a[z as usize * ans + s as usize]
+                } else {
+                    next()
+                };
+                if i % 13 == 5 { f32::NAN } else { v }
+            })
+            .collect();
+        let full = (TextureGrid::sampled(&a, ans, anz, 1, 0, 0), TextureGrid::sampled(&b, bns, bnz, 1, 0, 0));
+        let (peak, _) = ncc_grids(&full.0, &full.1, 3, -2, 20);
+        assert!((peak - 1.0).abs() < 1e-6, "{peak}");
+        let coarse = StrideTwo::new(&a, (ans, anz), &b, (bns, bnz));
+        for off_s in -4..=5i64 {
+            for off_z in -3..=4i64 {
+                let want = brute_ncc(&a, (ans, anz), &b, (bns, bnz), (off_s, off_z), 1);
+                let (got, _) = ncc_grids(&full.0, &full.1, off_s, off_z, 20);
+                assert!((got - want).abs() < 1e-5, "full ({off_s}, {off_z}): {got} vs {want}");
+                let want = brute_ncc(&a, (ans, anz), &b, (bns, bnz), (off_s, off_z), 2);
+                let (got, _) = coarse.ncc(off_s, off_z, 20);
+                assert!((got - want).abs() < 1e-5, "stride 2 ({off_s}, {off_z}): {got} vs {want}");
+            }
         }
     }
 
