@@ -100,8 +100,18 @@ struct Sample {
     weight: f32,
 }
 
-fn samples(points: &[SurfacePoint]) -> Vec<Sample> {
-    points
+/// A view's samples in image order, with each image row's span and its angular extent about the
+/// view's own angle (rows run along θ), so that a pair's patches visit only the rows that can
+/// reach the overlap, and the view's half extent along the arc.
+struct ViewSamples {
+    samples: Vec<Sample>,
+    /// (samples of the row, least and greatest wrap(θ − view angle) in it, rad).
+    rows: Vec<(std::ops::Range<usize>, f64, f64)>,
+    half_extent_rad: f64,
+}
+
+fn view_samples(points: &[SurfacePoint], view_angle_rad: f64) -> ViewSamples {
+    let samples: Vec<Sample> = points
         .iter()
         .map(|p| Sample {
             theta_rad: p.theta_rad(),
@@ -110,18 +120,52 @@ fn samples(points: &[SurfacePoint]) -> Vec<Sample> {
             radius_mm: p.radius_mm() as f32,
             weight: crate::fuse::point_weight(p.weight),
         })
-        .collect()
+        .collect();
+    let mut rows: Vec<(std::ops::Range<usize>, f64, f64)> = Vec::new();
+    let mut half_extent_rad = 0f64;
+    for (i, (p, s)) in points.iter().zip(&samples).enumerate() {
+        let phi = wrap(s.theta_rad - view_angle_rad);
+        half_extent_rad = half_extent_rad.max(phi.abs());
+        match rows.last_mut() {
+            Some((range, lo, hi)) if points[range.start].pixel[1] == p.pixel[1] => {
+                range.end = i + 1;
+                (*lo, *hi) = (lo.min(phi), hi.max(phi));
+            }
+            _ => rows.push((i..i + 1, phi, phi)),
+        }
+    }
+    ViewSamples { samples, rows, half_extent_rad }
 }
 
 impl Patch {
-    fn build(points: &[Sample], ref_angle: f64, radius_ref: f64, cell: f64, s_range: (f64, f64)) -> Option<Patch> {
+    /// The cells of `view` (whose own angle is `view_angle`) within `s_range` of arc around
+    /// `ref_angle`.
+    fn build(
+        view: &ViewSamples,
+        view_angle: f64,
+        ref_angle: f64,
+        radius_ref: f64,
+        cell: f64,
+        s_range: (f64, f64),
+    ) -> Option<Patch> {
+        // Rows are skipped on their extent about the view's angle shifted to the reference; the
+        // slack covers rounding, and near ±π (no neighbour is there) nothing is skipped.
+        const SLACK_MM: f64 = 1e-6;
+        let delta = wrap(view_angle - ref_angle);
         let mut cells: Vec<(i64, i64, f32, f32, f32)> = Vec::new();
-        for p in points {
-            let s = radius_ref * wrap(p.theta_rad - ref_angle);
-            if s < s_range.0 || s > s_range.1 {
+        for (range, lo, hi) in &view.rows {
+            let (lo, hi) = (lo + delta, hi + delta);
+            let far = lo.abs().max(hi.abs()) > PI - 0.1;
+            if !far && (radius_ref * hi + SLACK_MM < s_range.0 || radius_ref * lo - SLACK_MM > s_range.1) {
                 continue;
             }
-            cells.push(((s / cell).floor() as i64, (p.z_mm / cell).floor() as i64, p.gray, p.radius_mm, p.weight));
+            for p in &view.samples[range.clone()] {
+                let s = radius_ref * wrap(p.theta_rad - ref_angle);
+                if s < s_range.0 || s > s_range.1 {
+                    continue;
+                }
+                cells.push(((s / cell).floor() as i64, (p.z_mm / cell).floor() as i64, p.gray, p.radius_mm, p.weight));
+            }
         }
         if cells.is_empty() {
             return None;
@@ -311,7 +355,7 @@ fn sub_cell(left: f64, centre: f64, right: f64) -> f64 {
 fn measure_pair(
     a: usize,
     b: usize,
-    points: &[Vec<Sample>],
+    views: &[ViewSamples],
     angles_rad: &[f64],
     radius_ref: f64,
     options: &RegisterOptions,
@@ -321,18 +365,16 @@ fn measure_pair(
     let margin = radius_ref * options.max_angle_deg.to_radians();
     // a's data near b, and b's data near a, in a's frame.
     let offset_b = radius_ref * wrap(angles_rad[b] - ref_angle);
-    let half = |pts: &[Sample], centre: f64| {
-        pts.iter().map(|p| (radius_ref * wrap(p.theta_rad - ref_angle) - centre).abs()).fold(0.0, f64::max)
-    };
-    let half_a = half(&points[a], 0.0).min(radius_ref * PI / 2.0);
-    let half_b = half(&points[b], offset_b).min(radius_ref * PI / 2.0);
+    let half = |v: usize| (radius_ref * views[v].half_extent_rad).min(radius_ref * PI / 2.0);
+    let (half_a, half_b) = (half(a), half(b));
     let lo = (offset_b - half_b - margin).max(-half_a);
     let hi = (offset_b + half_b + margin).min(half_a);
     if hi <= lo {
         return None;
     }
-    let pa = Patch::build(&points[a], ref_angle, radius_ref, cell, (lo.max(offset_b - half_b - margin), hi))?;
-    let pb = Patch::build(&points[b], ref_angle, radius_ref, cell, (-half_a - margin, half_a + margin))?;
+    let patch = |v: usize, s_range| Patch::build(&views[v], angles_rad[v], ref_angle, radius_ref, cell, s_range);
+    let pa = patch(a, (lo.max(offset_b - half_b - margin), hi))?;
+    let pb = patch(b, (-half_a - margin, half_a + margin))?;
 
     // The grain's correlation peak is a cell or two wide: search every shift at half resolution,
     // then ±2 cells around the best at full resolution, then sub-cell.
@@ -455,11 +497,9 @@ pub fn register(
     use rayon::prelude::*;
     let angles: Vec<f64> = poses.iter().map(|p| p.angle_deg.to_radians()).collect();
     let candidates = overlapping_pairs(poses, half_angle_deg, half_axial_mm);
-    let samples: Vec<Vec<Sample>> = points.par_iter().map(|p| samples(p)).collect();
-    let mut pairs: Vec<PairMeasure> = candidates
-        .par_iter()
-        .filter_map(|&(a, b)| measure_pair(a, b, &samples, &angles, radius_ref, options))
-        .collect();
+    let views: Vec<ViewSamples> = points.par_iter().zip(&angles).map(|(p, &angle)| view_samples(p, angle)).collect();
+    let mut pairs: Vec<PairMeasure> =
+        candidates.par_iter().filter_map(|&(a, b)| measure_pair(a, b, &views, &angles, radius_ref, options)).collect();
     let n = poses.len();
     let axis = |f: &dyn Fn(&PairMeasure) -> f64, huber: f64| {
         solve_axis(n, &pairs.iter().map(|p| (p.a, p.b, f(p))).collect::<Vec<_>>(), huber)
