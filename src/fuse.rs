@@ -197,6 +197,33 @@ mod tests {
         SurfacePoint { position: Point3::new(r * t.cos(), r * t.sin(), z), rgb: [0.5; 3], weight, pixel: [0, 0] }
     }
 
+    /// The banded parallel sums are exactly the sequential ones (same additions per cell, in
+    /// view order).
+    #[test]
+    fn banded_sums_equal_sequential_sums() {
+        let grid = GridSpec { z0_mm: 0.0, dz_mm: 0.1, nz: 40, ntheta: 360 };
+        let views: Vec<Vec<SurfacePoint>> = (0..5)
+            .map(|v| {
+                (0..3000)
+                    .map(|i| {
+                        let k = (i * 7919 + v * 104729) % 100_000;
+                        let (z, t) = ((k % 397) as f64 / 100.0, (k % 3593) as f64 / 10.0);
+                        point(z, t, 50.0 + (k % 13) as f64 * 0.001, 1.0 + (k % 7) as f32 * 0.37)
+                    })
+                    .collect()
+            })
+            .collect();
+        let sequential = fuse(&views.iter().map(Vec::as_slice).collect::<Vec<_>>(), grid.clone());
+        let mut banded = Fusion::new(grid);
+        let binned: Vec<Vec<Binned>> = views.iter().map(|v| banded.bin(v)).collect();
+        banded.accumulate_all(&binned);
+        let banded = banded.finish();
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&sequential.radius_mm), bits(&banded.radius_mm));
+        assert_eq!(bits(&sequential.weight), bits(&banded.weight));
+        assert!(sequential.coverage() > 0.5);
+    }
+
     #[test]
     fn weighted_mean_per_cell() {
         let a = vec![point(1.0, 10.0, 50.0, 3.0), point(1.0, 10.0, 51.0, 2.0), point(1.0, 10.0, 99.0, 1.0)];
