@@ -128,6 +128,30 @@ pub struct FormatQuery {
     pub format: Option<String>,
 }
 
+/// An `Accept` header's media ranges, lower-cased, most preferred first (RFC 9110 §12.5.1: by
+/// weight `q`, 1 when absent; equal weights keep the client's order); ranges with `q=0` are
+/// refused and left out, and so is a range whose weight is not a number from 0 to 1.
+fn media_ranges_by_preference(accept: &str) -> Vec<String> {
+    let mut ranges: Vec<(f32, String)> = accept
+        .split(',')
+        .filter_map(|range| {
+            let mut parts = range.split(';');
+            let media = parts.next().unwrap_or("").trim().to_ascii_lowercase();
+            let mut q = 1f32;
+            for p in parts {
+                if let Some((name, value)) = p.split_once('=')
+                    && name.trim().eq_ignore_ascii_case("q")
+                {
+                    q = value.trim().parse().ok().filter(|q: &f32| (0.0..=1.0).contains(q))?;
+                }
+            }
+            (q > 0.0).then_some((q, media))
+        })
+        .collect();
+    ranges.sort_by(|a, b| b.0.total_cmp(&a.0)); // stable: ties keep the client's order
+    ranges.into_iter().map(|(_, media)| media).collect()
+}
+
 /// The representation asked for by `?format=` or `Accept`, among `offered` (format, media type);
 /// the first is the default.
 fn negotiate(
@@ -143,16 +167,7 @@ fn negotiate(
         });
     }
     let accept = headers.get(header::ACCEPT).and_then(|v| v.to_str().ok()).unwrap_or("*/*");
-    // Media ranges in the client's order; `q=0` means "not this one".
-    let refused = |range: &str| {
-        range
-            .split(';')
-            .skip(1)
-            .any(|p| matches!(p.trim().replace(' ', "").as_str(), "q=0" | "q=0.0" | "q=0.00" | "q=0.000"))
-    };
-    for wanted in
-        accept.split(',').filter(|a| !refused(a)).map(|a| a.split(';').next().unwrap_or("").trim().to_ascii_lowercase())
-    {
+    for wanted in media_ranges_by_preference(accept) {
         if wanted == "*/*" || wanted.is_empty() {
             return Ok(offered[0]);
         }
@@ -465,4 +480,18 @@ pub async fn get_cmm_comparison(
         height_tolerance_mm: report.height_tolerance_mm,
         comparison: cmm::compare(&report, &measurements, tolerance),
     }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn media_ranges_follow_their_weights_and_q_zero_refuses() {
+        assert_eq!(media_ranges_by_preference("text/csv;q=0.5, application/json"), ["application/json", "text/csv"]);
+        assert_eq!(media_ranges_by_preference("model/stl, text/csv ; q=0 , */*;q=0.1"), ["model/stl", "*/*"]);
+        assert_eq!(media_ranges_by_preference("A/B;Q=0.000"), Vec::<String>::new());
+        assert_eq!(media_ranges_by_preference("a/b;q=2, c/d;q=x, e/f;level=1"), ["e/f"]);
+        assert_eq!(media_ranges_by_preference("a/b, c/d;q=1.0"), ["a/b", "c/d"]);
+    }
 }

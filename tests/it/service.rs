@@ -209,6 +209,15 @@ async fn round_trip_on_the_ci_preset() {
     });
     let (thread, angle, height) = first_measured.expect("some bin measured");
     assert!(csv.contains(&format!("{thread},{angle},{height:.6}")), "CSV lacks {thread},{angle},{height:.6}");
+    // Weights decide, not the order the client lists them in.
+    let weighted = app
+        .client
+        .get(app.url(&format!("{location}/threads")))
+        .header("accept", "text/csv;q=0.5, application/json")
+        .send()
+        .await
+        .unwrap();
+    assert!(weighted.headers()["content-type"].to_str().unwrap().starts_with("application/json"));
 
     // Mesh in both formats, images as PNG.
     let ply = app.get(&format!("{location}/mesh")).await;
