@@ -402,19 +402,24 @@ pub async fn put_cmm(
 pub async fn get_cmm(State(state): State<AppState>, Path(id): Path<String>) -> Result<Json<StoredCmm>, ApiError> {
     let id = InspectionId::parse(&id)?;
     state.store.inspection(&id.0).await.map_err(|e| super::missing_inspection(e, &id.0))?;
+    Ok(Json(stored_cmm(&state, id).await?))
+}
+
+/// The CMM measurements stored for an inspection known to exist.
+async fn stored_cmm(state: &AppState, id: InspectionId) -> Result<StoredCmm, ApiError> {
     let row = state.store.cmm(&id.0).await.map_err(|e| match e {
         StoreError::NotFound => {
             ApiError::new("cmm_not_found", format!("no CMM measurements for {}; PUT them first", id.0))
         }
         other => other.into(),
     })?;
-    Ok(Json(StoredCmm {
+    Ok(StoredCmm {
         inspection_id: id.0,
         instrument: row.instrument,
         measured_at: row.measured_at,
         uploaded_at: rfc3339(row.uploaded_at),
         points: serde_json::from_str(&row.points_json).map_err(ApiError::internal)?,
-    }))
+    })
 }
 
 #[derive(Clone, Debug, Default, Deserialize, IntoParams)]
@@ -464,7 +469,7 @@ pub async fn get_cmm_comparison(
             .with_culprit("tolerance_mm"));
     }
     let id = succeeded(&state, &id).await?;
-    let Json(stored) = get_cmm(State(state.clone()), Path(id.0.clone())).await?;
+    let stored = stored_cmm(&state, id.clone()).await?;
     let (json, _) = state.store.report(&id.0).await?;
     let report: Report = serde_json::from_str(&json).map_err(ApiError::internal)?;
     let tolerance = q.tolerance_mm.unwrap_or_else(|| cmm::default_tolerance_mm(&report));
