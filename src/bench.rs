@@ -345,8 +345,8 @@ pub fn table(results: &[CaseResult]) -> String {
         }
     }
     out.push_str(
-        "\nAbsolute z (overlaps cannot observe it; not yet anchored on the end face): helix z_h measured − truth, \
-         and the encoders' mean axial offset, µm\n",
+        "\nAbsolute z (overlaps cannot observe it; taken from the end face where the views show it): helix z_h \
+         measured − truth, and the encoders' mean axial offset, µm\n",
     );
     for r in results {
         out.push_str(&format!("  {}: {:+.1} ({:+.1})\n", r.preset, r.helix_z_error_um, r.encoder_mean_axial_offset_um));

@@ -71,6 +71,7 @@ mod tests {
             depth_mm: vec![220.0; 9],
             peak_ratio: vec![2.0; 9],
             all_in_focus: vec![0.5; 27],
+            end_edges: Vec::new(),
         };
         let pose = ViewPose { angle_deg: 90.0, axial_mm: 10.0, lens_radius_mm: 277.0 };
         let points = back_project(&optics, &pose, &depth);

@@ -52,6 +52,8 @@ pub struct DepthMap {
     pub peak_ratio: Vec<f32>,
     /// Sharpest colour per pixel, RGB interleaved in [0, 1].
     pub all_in_focus: Vec<f32>,
+    /// The end face's silhouette in each frame that shows it (for [`crate::endface`]).
+    pub end_edges: Vec<crate::endface::FrameEdge>,
 }
 
 impl DepthMap {
@@ -205,7 +207,7 @@ impl MedianNetwork {
 /// frames, crosses `fraction` of its height above the floor on either side of the maximum. (A
 /// centroid of the frames above a cut has about twice this estimator's sub-frame phase bias on
 /// the sharp plateaus of glossy crests, and no less noise.)
-fn peak_offset(column: &[f32], offsets: &[f64], k_best: usize, floor: f32, fraction: f32) -> Option<f64> {
+pub(crate) fn peak_offset(column: &[f32], offsets: &[f64], k_best: usize, floor: f32, fraction: f32) -> Option<f64> {
     let peak = column[k_best];
     let cut = floor + fraction * (peak - floor);
     let (mut lo, mut hi) = (k_best, k_best);
@@ -261,6 +263,7 @@ pub fn depth_from_focus_in(
     let mut best = vec![f32::MIN; w * h];
     let mut all_in_focus = vec![0f32; w * h * 3];
     let (mut gray, mut native, mut scratch) = (Vec::with_capacity(w * h), vec![0f32; w * h], vec![0f32; w * h]);
+    let mut end_edges = Vec::new();
     for (k, entry) in view.frames.iter().enumerate() {
         if cancelled() {
             return Ok(None);
@@ -272,6 +275,7 @@ pub fn depth_from_focus_in(
         };
         frame.gray_into(&mut gray);
         focus_measure(&gray, w, h, options.window_radius_px, &mut scratch, &mut native);
+        end_edges.extend(crate::endface::frame_edge(&gray, w, h, entry.offset_mm));
         let channels = frame.channels as usize;
         let (xs, ys) = (axis_taps(w, principal[0], scale), axis_taps(h, principal[1], scale));
         for (y, &(y0, y1, fy)) in ys.iter().enumerate() {
@@ -356,7 +360,7 @@ pub fn depth_from_focus_in(
             }
         },
     );
-    Ok(Some(DepthMap { width: w, height: h, depth_mm, peak_ratio, all_in_focus }))
+    Ok(Some(DepthMap { width: w, height: h, depth_mm, peak_ratio, all_in_focus, end_edges }))
 }
 
 /// The frame grid of a stack whose offsets are evenly spaced (within 1% of the step), as
@@ -584,6 +588,7 @@ mod tests {
             depth_mm: depth,
             peak_ratio: vec![5.0; w * h],
             all_in_focus: vec![0.5; 3 * w * h],
+            end_edges: Vec::new(),
         };
         let worst = |maps: &[DepthMap]| {
             (0..w * h).map(|i| (maps[0].depth_mm[i] as f64 - (big_f - true_offset(i))).abs()).fold(0.0, f64::max)

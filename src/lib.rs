@@ -12,6 +12,7 @@ pub mod cmm;
 pub mod config;
 pub mod crest;
 pub mod depth;
+pub mod endface;
 pub mod fuse;
 pub mod images;
 pub mod jobs;

@@ -28,6 +28,13 @@ pub struct PipelineOptions {
     pub arc_rule: ArcRule,
     /// Fused-map cell size in object pixels.
     pub cell_px: f64,
+    /// Take the ring's axial offset from the end face's silhouette when the views show it.
+    #[serde(default = "yes")]
+    pub anchor_end_face: bool,
+}
+
+fn yes() -> bool {
+    true
 }
 
 impl Default for PipelineOptions {
@@ -39,6 +46,7 @@ impl Default for PipelineOptions {
             mesh: MeshOptions::default(),
             arc_rule: ArcRule::PerThread,
             cell_px: 1.5,
+            anchor_end_face: true,
         }
     }
 }
@@ -170,7 +178,19 @@ pub fn inspect(
         &RegisterOptions { cell_mm: pixel_mm, ..options.register.clone() },
     );
     drop(encoder_clouds);
-    let poses: Vec<ViewPose> = encoder_poses.iter().zip(&registration.corrections).map(|(p, c)| c.apply(p)).collect();
+    let mut poses: Vec<ViewPose> =
+        encoder_poses.iter().zip(&registration.corrections).map(|(p, c)| c.apply(p)).collect();
+    // Absolute z from the end face, where the views show it.
+    let end_face = options
+        .anchor_end_face
+        .then(|| {
+            let edges: Vec<Vec<crate::endface::FrameEdge>> = depth_maps.iter().map(|d| d.end_edges.clone()).collect();
+            crate::endface::anchor(&bundle.optics, &poses, &edges, format.width, format.height, 3, 20.0)
+        })
+        .flatten();
+    if let Some(end) = &end_face {
+        poses.iter_mut().for_each(|p| p.axial_mm -= end.z_offset_mm);
+    }
     lap(Stage::Register, &mut timings);
     if cancelled() {
         return Ok(None);
@@ -287,6 +307,7 @@ pub fn inspect(
         assessment,
         helix,
         registration: registration.clone(),
+        end_face,
         depth_coverage,
         map_coverage: map.coverage(),
         machined_crest_gray,

@@ -52,6 +52,10 @@ pub struct Report {
     pub assessment: Assessment,
     pub helix: Helix,
     pub registration: Registration,
+    /// The end face's silhouette, when the views showed it: the ring's axial offset it found and
+    /// took out of every pose (registration cannot observe it).
+    #[serde(default)]
+    pub end_face: Option<crate::endface::EndFace>,
     pub depth_coverage: f64,
     pub map_coverage: f64,
     pub machined_crest_gray: f32,
