@@ -144,18 +144,6 @@ pub fn anchor(
 mod tests {
     use super::*;
 
-    fn optics() -> Optics {
-        Optics {
-            projection: Projection::Perspective,
-            focal_length_mm: 50.0,
-            f_number: 1.4,
-            focus_distance_mm: 220.0,
-            pixel_pitch_um: 12.0,
-            principal_point_px: None,
-            magnification: None,
-        }
-    }
-
     /// Rows' first lit columns for a corner circle of radius `r` at z = 0 seen from `pose` at
     /// frame offset `o`: the first pixel whose centre ray meets the circle at z ≥ 0.
     fn silhouette(optics: &Optics, pose: &ViewPose, r: f64, o: f64, w: u32, h: u32) -> Vec<(u32, u32)> {
@@ -191,7 +179,7 @@ mod tests {
     fn a_rings_common_axial_offset_is_found_on_the_corner() {
         // Eight views whose poses all sit 0.03 mm too low in z (what registration cannot see); the
         // corner circle (r 54.07 mm) is in focus at offset −1.55 mm in each stack.
-        let optics = optics();
+        let optics = crate::sim::presets::standard_optics();
         let (w, h, r) = (864u32, 320u32, 54.07);
         let truth: Vec<ViewPose> =
             (0..8).map(|i| ViewPose { angle_deg: 45.0 * i as f64, axial_mm: 17.3, lens_radius_mm: 275.6 }).collect();

@@ -7,7 +7,7 @@
 pub mod appearance;
 pub mod part;
 pub mod pfm;
-mod presets;
+pub(crate) mod presets;
 pub mod render;
 
 pub use presets::{PRESETS, PresetInfo, SEED_TABLE1_HEIGHTS_MM, preset};

@@ -65,7 +65,7 @@ pub const PRESETS: &[PresetInfo] = &[
 /// The standard camera: 50 mm f/1.4 focused at 220 mm (magnification 0.29), 12 µm pixels (a 6 µm
 /// sensor binned 2×2): 41 µm per pixel on the part, depth of field ≈ 0.5 mm (a third of the buttress
 /// thread height).
-fn standard_optics() -> Optics {
+pub(crate) fn standard_optics() -> Optics {
     Optics {
         projection: Projection::Perspective,
         focal_length_mm: 50.0,
