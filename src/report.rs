@@ -95,6 +95,15 @@ impl Report {
             self.height_tolerance_mm,
             self.helix.z_h_mm
         ));
+        match &self.end_face {
+            Some(end) => out.push_str(&format!(
+                "  z from the end face: the ring's axial offset {:+.1} µm taken out ({} views, scatter {:.1} µm)\n",
+                1e3 * end.z_offset_mm,
+                end.views,
+                end.scatter_um
+            )),
+            None => out.push_str("  z from the encoders (no end face in view)\n"),
+        }
         let total: f64 = self.timings.iter().map(|t| t.seconds).sum();
         out.push_str(&format!(
             "  {:.2} s ({}){}",
