@@ -57,7 +57,7 @@ pub fn frame_edge(gray: &[f32], w: usize, h: usize, offset_mm: f64) -> Option<Fr
     (2 * rows.len() >= h && middle > 0).then(|| FrameEdge { offset_mm, focus: focus / middle as f64, rows })
 }
 
-/// The ring's axial offset found on the end face: the mean z the reconstruction gives the corner.
+/// The ring's axial offset found on the end face: the z the reconstruction gives the corner.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct EndFace {
     /// Views that saw the end.
@@ -81,9 +81,7 @@ fn corner_z(optics: &Optics, pose: &ViewPose, edges: &[FrameEdge], width: u32, h
     let k = (0..edges.len()).max_by(|&a, &b| edges[a].focus.total_cmp(&edges[b].focus))?;
     let sharpness: Vec<f32> = edges.iter().map(|e| e.focus as f32).collect();
     let offsets: Vec<f64> = edges.iter().map(|e| e.offset_mm).collect();
-    let mut sorted = sharpness.clone();
-    sorted.sort_by(f32::total_cmp);
-    let floor = sorted[sorted.len() / 2];
+    let floor = crate::profile::median(&mut edges.iter().map(|e| e.focus).collect::<Vec<_>>())? as f32;
     let in_focus = crate::depth::peak_offset(&sharpness, &offsets, k, floor, 0.3)?;
     let to_pipe = pose.camera_to_pipe();
     let principal = optics.principal_point(width, height);
@@ -118,7 +116,7 @@ fn corner_z(optics: &Optics, pose: &ViewPose, edges: &[FrameEdge], width: u32, h
 pub fn anchor(
     optics: &Optics,
     poses: &[ViewPose],
-    edges: &[Vec<FrameEdge>],
+    edges: &[&[FrameEdge]],
     width: u32,
     height: u32,
     min_views: usize,
@@ -200,6 +198,7 @@ mod tests {
             })
             .collect();
         let believed: Vec<ViewPose> = truth.iter().map(|p| ViewPose { axial_mm: p.axial_mm - 0.03, ..*p }).collect();
+        let edges: Vec<&[FrameEdge]> = edges.iter().map(Vec::as_slice).collect();
         let end = anchor(&optics, &believed, &edges, w, h, 3, 20.0).expect("every view sees the end");
         assert_eq!(end.views, 8);
         // Pixel-centre sampling places each row's edge within half a pixel (20 µm); the rows of a

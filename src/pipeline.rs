@@ -184,7 +184,7 @@ pub fn inspect(
     let end_face = options
         .anchor_end_face
         .then(|| {
-            let edges: Vec<Vec<crate::endface::FrameEdge>> = depth_maps.iter().map(|d| d.end_edges.clone()).collect();
+            let edges: Vec<&[crate::endface::FrameEdge]> = depth_maps.iter().map(|d| d.end_edges.as_slice()).collect();
             crate::endface::anchor(&bundle.optics, &poses, &edges, format.width, format.height, 3, 20.0)
         })
         .flatten();
