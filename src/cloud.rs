@@ -24,29 +24,41 @@ impl SurfacePoint {
     }
 }
 
+/// Room for every item an iterator may yield (its upper bound: pages never written cost nothing),
+/// so that collecting a view's points does not copy them as the vector grows.
+pub fn capacity_for<T>(items: &impl Iterator<Item = T>) -> usize {
+    let (lower, upper) = items.size_hint();
+    upper.unwrap_or(lower)
+}
+
 /// Points of one view at the given pose; pixels without a trusted depth are skipped.
 pub fn back_project(optics: &Optics, pose: &ViewPose, depth: &DepthMap) -> Vec<SurfacePoint> {
+    let mut points = Vec::with_capacity(depth.depth_mm.iter().filter(|d| d.is_finite()).count());
+    points.extend(points_of(optics, pose, depth));
+    points
+}
+
+/// [`back_project`]'s points one at a time, in image order: the stages that reduce a view's points
+/// at once (registration's samples, fusion's bins) take them from here rather than from a cloud
+/// of every view held in memory (about 50 bytes a point, half a gigabyte for a ring of views).
+pub fn points_of<'a>(
+    optics: &'a Optics,
+    pose: &ViewPose,
+    depth: &'a DepthMap,
+) -> impl Iterator<Item = SurfacePoint> + 'a {
     let iso = pose.camera_to_pipe();
     let principal = optics.principal_point(depth.width as u32, depth.height as u32);
-    let mut points = Vec::with_capacity(depth.width * depth.height);
-    for v in 0..depth.height {
-        for u in 0..depth.width {
-            let i = v * depth.width + u;
-            let d = depth.depth_mm[i];
-            if !d.is_finite() {
-                continue;
-            }
-            let ray = optics.pixel_ray(u as f64, v as f64, principal, 0.0);
-            let rgb = [depth.all_in_focus[3 * i], depth.all_in_focus[3 * i + 1], depth.all_in_focus[3 * i + 2]];
-            points.push(SurfacePoint {
-                position: iso * ray.at(d as f64),
-                rgb,
-                weight: depth.peak_ratio[i],
-                pixel: [u as u32, v as u32],
-            });
+    let width = depth.width;
+    depth.depth_mm.iter().enumerate().filter(|(_, d)| d.is_finite()).map(move |(i, &d)| {
+        let (u, v) = (i % width, i / width);
+        let ray = optics.pixel_ray(u as f64, v as f64, principal, 0.0);
+        SurfacePoint {
+            position: iso * ray.at(d as f64),
+            rgb: [depth.all_in_focus[3 * i], depth.all_in_focus[3 * i + 1], depth.all_in_focus[3 * i + 2]],
+            weight: depth.peak_ratio[i],
+            pixel: [u as u32, v as u32],
         }
-    }
-    points
+    })
 }
 
 #[cfg(test)]

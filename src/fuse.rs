@@ -17,11 +17,14 @@ pub struct GridSpec {
 impl GridSpec {
     /// A grid with cells of about `cell_mm` on a cylinder of `radius_mm`, spanning the points' z.
     pub fn covering(points: &[&[SurfacePoint]], cell_mm: f64, radius_mm: f64) -> Option<Self> {
-        let (mut lo, mut hi) = (f64::MAX, f64::MIN);
-        for p in points.iter().flat_map(|v| v.iter()) {
-            lo = lo.min(p.position.z);
-            hi = hi.max(p.position.z);
-        }
+        let z = points.iter().flat_map(|v| v.iter()).map(|p| p.position.z);
+        Self::spanning(z.fold((f64::MAX, f64::MIN), |(lo, hi), z| (lo.min(z), hi.max(z))), cell_mm, radius_mm)
+    }
+
+    /// The grid whose first row starts at the least z of `z_range_mm` and whose rows reach its
+    /// greatest; None for an empty range (least above greatest).
+    pub fn spanning(z_range_mm: (f64, f64), cell_mm: f64, radius_mm: f64) -> Option<Self> {
+        let (lo, hi) = z_range_mm;
         if lo > hi {
             return None;
         }
@@ -121,9 +124,15 @@ impl Fusion {
 
     /// Each point's cell and weighted contributions: the costly part (angle, radius), which views
     /// can compute in parallel before [`Fusion::accumulate`] sums them in order.
-    pub fn bin(&self, points: &[SurfacePoint]) -> Vec<Binned> {
+    pub fn bin<'a>(&self, points: impl IntoIterator<Item = &'a SurfacePoint>) -> Vec<Binned> {
+        self.bin_each(points.into_iter().copied())
+    }
+
+    /// [`Fusion::bin`] of points as they come (from [`crate::cloud::points_of`]).
+    pub fn bin_each(&self, points: impl IntoIterator<Item = SurfacePoint>) -> Vec<Binned> {
         let grid = &self.grid;
-        let mut out = Vec::with_capacity(points.len());
+        let points = points.into_iter();
+        let mut out = Vec::with_capacity(crate::cloud::capacity_for(&points));
         for p in points {
             let iz = ((p.position.z - grid.z0_mm) / grid.dz_mm).floor();
             if iz < 0.0 || iz as usize >= grid.nz {

@@ -158,26 +158,26 @@ pub fn inspect(
     progress(Stage::Register, 0.0);
     let part = &bundle.part;
     let encoder_poses: Vec<ViewPose> = bundle.views.iter().map(|v| v.pose).collect();
-    let project = |poses: &[ViewPose]| -> Vec<Vec<cloud::SurfacePoint>> {
-        poses
-            .par_iter()
-            .zip(&depth_maps)
-            .map(|(pose, depth)| cloud::back_project(&bundle.optics, pose, depth))
-            .collect()
-    };
-    let encoder_clouds = project(&encoder_poses);
+    // Each view's points are reduced as they are projected (to registration's samples here, to
+    // fusion's bins below): no stage holds every view's cloud.
+    let optics = &bundle.optics;
+    let samples: Vec<register::ViewSamples> = encoder_poses
+        .par_iter()
+        .zip(&depth_maps)
+        .map(|(pose, depth)| register::view_samples(cloud::points_of(optics, pose, depth), pose.angle_deg.to_radians()))
+        .collect();
     let pixel_mm = bundle.optics.object_pixel_mm(bundle.optics.focus_distance_mm);
     let format = bundle.views[0].format;
     let radius_ref = part.pipe_od_mm / 2.0;
     let registration = register::register(
-        &encoder_clouds.iter().map(Vec::as_slice).collect::<Vec<_>>(),
+        &samples,
         &encoder_poses,
         radius_ref,
         (format.height as f64 * pixel_mm / 2.0 / radius_ref).to_degrees(),
         format.width as f64 * pixel_mm / 2.0,
         &RegisterOptions { cell_mm: pixel_mm, ..options.register.clone() },
     );
-    drop(encoder_clouds);
+    drop(samples);
     let mut poses: Vec<ViewPose> =
         encoder_poses.iter().zip(&registration.corrections).map(|(p, c)| c.apply(p)).collect();
     // Absolute z from the end face, where the views show it.
@@ -197,19 +197,25 @@ pub fn inspect(
     }
 
     progress(Stage::Fuse, 0.0);
-    let clouds = project(&poses);
-    let slices: Vec<&[cloud::SurfacePoint]> = clouds.iter().map(Vec::as_slice).collect();
     let cell_mm = options.cell_px * pixel_mm;
-    let grid = GridSpec::covering(&slices, cell_mm, part.pipe_od_mm / 2.0).ok_or(PipelineError::NoDepth)?;
-    drop(slices);
+    let z_range_mm = poses
+        .par_iter()
+        .zip(&depth_maps)
+        .map(|(pose, depth)| {
+            cloud::points_of(optics, pose, depth).fold((f64::MAX, f64::MIN), |(lo, hi), p| {
+                (lo.min(p.position.z), hi.max(p.position.z))
+            })
+        })
+        .reduce(|| (f64::MAX, f64::MIN), |a, b| (a.0.min(b.0), a.1.max(b.1)));
+    let grid = GridSpec::spanning(z_range_mm, cell_mm, part.pipe_od_mm / 2.0).ok_or(PipelineError::NoDepth)?;
     let mut fusion = Fusion::new(grid);
     // Binning (angle and radius per point) runs per view in parallel; the sums stay in view order.
-    // Each view's points are dropped as soon as they are binned.
     let binned_views = AtomicUsize::new(0);
-    let binned: Vec<Vec<crate::fuse::Binned>> = clouds
-        .into_par_iter()
-        .map(|points| {
-            let binned = fusion.bin(&points);
+    let binned: Vec<Vec<crate::fuse::Binned>> = poses
+        .par_iter()
+        .zip(&depth_maps)
+        .map(|(pose, depth)| {
+            let binned = fusion.bin_each(cloud::points_of(optics, pose, depth));
             // Binning is most of the work; the sums follow in one parallel pass.
             progress(Stage::Fuse, 0.9 * (binned_views.fetch_add(1, Ordering::Relaxed) + 1) as f64 / total as f64);
             binned

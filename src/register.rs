@@ -103,36 +103,40 @@ struct Sample {
 /// A view's samples in image order, with each image row's span and its angular extent about the
 /// view's own angle (rows run along θ), so that a pair's patches visit only the rows that can
 /// reach the overlap, and the view's half extent along the arc.
-struct ViewSamples {
+pub struct ViewSamples {
     samples: Vec<Sample>,
     /// (samples of the row, least and greatest wrap(θ − view angle) in it, rad).
     rows: Vec<(std::ops::Range<usize>, f64, f64)>,
     half_extent_rad: f64,
 }
 
-fn view_samples(points: &[SurfacePoint], view_angle_rad: f64) -> ViewSamples {
-    let samples: Vec<Sample> = points
-        .iter()
-        .map(|p| Sample {
+/// What registration keeps of a view's points (in image order, as [`crate::cloud::points_of`]
+/// gives them) seen from the view's own angle.
+pub fn view_samples(points: impl IntoIterator<Item = SurfacePoint>, view_angle_rad: f64) -> ViewSamples {
+    let points = points.into_iter();
+    let mut samples: Vec<Sample> = Vec::with_capacity(crate::cloud::capacity_for(&points));
+    let mut rows: Vec<(std::ops::Range<usize>, f64, f64)> = Vec::new();
+    let mut half_extent_rad = 0f64;
+    let mut row_of_last = None;
+    for (i, p) in points.enumerate() {
+        let s = Sample {
             theta_rad: p.theta_rad(),
             z_mm: p.position.z,
             gray: crate::bundle::luminance(p.rgb),
             radius_mm: p.radius_mm() as f32,
             weight: crate::fuse::point_weight(p.weight),
-        })
-        .collect();
-    let mut rows: Vec<(std::ops::Range<usize>, f64, f64)> = Vec::new();
-    let mut half_extent_rad = 0f64;
-    for (i, (p, s)) in points.iter().zip(&samples).enumerate() {
+        };
         let phi = wrap(s.theta_rad - view_angle_rad);
         half_extent_rad = half_extent_rad.max(phi.abs());
         match rows.last_mut() {
-            Some((range, lo, hi)) if points[range.start].pixel[1] == p.pixel[1] => {
+            Some((range, lo, hi)) if row_of_last == Some(p.pixel[1]) => {
                 range.end = i + 1;
                 (*lo, *hi) = (lo.min(phi), hi.max(phi));
             }
             _ => rows.push((i..i + 1, phi, phi)),
         }
+        row_of_last = Some(p.pixel[1]);
+        samples.push(s);
     }
     ViewSamples { samples, rows, half_extent_rad }
 }
@@ -486,8 +490,9 @@ fn solve_axis(n: usize, pairs: &[(usize, usize, f64)], huber: f64) -> Vec<f64> {
 }
 
 /// Registers all views. `points[v]` is view v back-projected with its encoder pose.
+/// `views[i]` are the samples of view i at `poses[i]` ([`view_samples`]).
 pub fn register(
-    points: &[&[SurfacePoint]],
+    views: &[ViewSamples],
     poses: &[ViewPose],
     radius_ref: f64,
     half_angle_deg: f64,
@@ -497,9 +502,8 @@ pub fn register(
     use rayon::prelude::*;
     let angles: Vec<f64> = poses.iter().map(|p| p.angle_deg.to_radians()).collect();
     let candidates = overlapping_pairs(poses, half_angle_deg, half_axial_mm);
-    let views: Vec<ViewSamples> = points.par_iter().zip(&angles).map(|(p, &angle)| view_samples(p, angle)).collect();
     let mut pairs: Vec<PairMeasure> =
-        candidates.par_iter().filter_map(|&(a, b)| measure_pair(a, b, &views, &angles, radius_ref, options)).collect();
+        candidates.par_iter().filter_map(|&(a, b)| measure_pair(a, b, views, &angles, radius_ref, options)).collect();
     let n = poses.len();
     let axis = |f: &dyn Fn(&PairMeasure) -> f64, huber: f64| {
         solve_axis(n, &pairs.iter().map(|p| (p.a, p.b, f(p))).collect::<Vec<_>>(), huber)
