@@ -75,6 +75,64 @@ fn axis_taps(len: usize, centre: f64, scale: f64) -> Vec<(usize, usize, f32)> {
         .collect()
 }
 
+/// A run of reference columns whose taps (see [`axis_taps`]) are `x0 + i` and `x0 + i + 1` for the
+/// run's i-th column (`shifted`), or columns taken one by one (taps clamped at the frame's edge).
+struct TapSpan {
+    start: usize,
+    len: usize,
+    x0: usize,
+    shifted: bool,
+}
+
+/// Splits a row's taps into [`TapSpan`]s: the scale is within a few percent of 1, so the offset
+/// between a column and its first tap changes only a few times across a row.
+fn tap_spans(taps: &[(usize, usize, f32)]) -> Vec<TapSpan> {
+    let mut spans: Vec<TapSpan> = Vec::new();
+    for (x, &(x0, x1, _)) in taps.iter().enumerate() {
+        let shifted = x1 == x0 + 1;
+        match spans.last_mut() {
+            Some(s) if s.shifted && shifted && s.x0 + s.len == x0 && s.start + s.len == x => s.len += 1,
+            Some(s) if !s.shifted && !shifted && s.start + s.len == x => s.len += 1,
+            _ => spans.push(TapSpan { start: x, len: 1, x0, shifted }),
+        }
+    }
+    spans
+}
+
+/// One row of the offset-0 grid from the two native rows around it (`fy` of the way to `below`),
+/// bilinearly, through the row's taps (`fxs` are their fractions, `spans` from [`tap_spans`]).
+fn resample_row(
+    above: &[f32],
+    below: &[f32],
+    fy: f32,
+    xs: &[(usize, usize, f32)],
+    spans: &[TapSpan],
+    fxs: &[f32],
+    out: &mut [f32],
+) {
+    for span in spans {
+        let (x, len, x0) = (span.start, span.len, span.x0);
+        let (out, f) = (&mut out[x..x + len], &fxs[x..x + len]);
+        if span.shifted {
+            // Contiguous taps: the same arithmetic as below, over slices, so that it vectorises.
+            let (a0, a1) = (&above[x0..x0 + len], &above[x0 + 1..x0 + 1 + len]);
+            let (b0, b1) = (&below[x0..x0 + len], &below[x0 + 1..x0 + 1 + len]);
+            for i in 0..len {
+                let a = a0[i] * (1.0 - f[i]) + a1[i] * f[i];
+                let b = b0[i] * (1.0 - f[i]) + b1[i] * f[i];
+                out[i] = a * (1.0 - fy) + b * fy;
+            }
+        } else {
+            for (i, m) in out.iter_mut().enumerate() {
+                let (x0, x1, fx) = xs[x + i];
+                let a = above[x0] * (1.0 - fx) + above[x1] * fx;
+                let b = below[x0] * (1.0 - fx) + below[x1] * fx;
+                *m = a * (1.0 - fy) + b * fy;
+            }
+        }
+    }
+}
+
 /// Squared Laplacian, box-summed over (2r+1)², written into `out`; `scratch` is reused.
 ///
 /// Every pass runs along whole rows so that it vectorises: the Laplacian, a running sum of rows
@@ -278,14 +336,11 @@ pub fn depth_from_focus_in(
         end_edges.extend(crate::endface::frame_edge(&gray, w, h, entry.offset_mm));
         let channels = frame.channels as usize;
         let (xs, ys) = (axis_taps(w, principal[0], scale), axis_taps(h, principal[1], scale));
+        let (spans, fxs) = (tap_spans(&xs), xs.iter().map(|t| t.2).collect::<Vec<f32>>());
         for (y, &(y0, y1, fy)) in ys.iter().enumerate() {
             let (above, below) = (&native[y0 * w..(y0 + 1) * w], &native[y1 * w..(y1 + 1) * w]);
             let measures = &mut volume[k * plane + y * w..k * plane + (y + 1) * w];
-            for (m, &(x0, x1, fx)) in measures.iter_mut().zip(&xs) {
-                let a = above[x0] * (1.0 - fx) + above[x1] * fx;
-                let b = below[x0] * (1.0 - fx) + below[x1] * fx;
-                *m = a * (1.0 - fy) + b * fy;
-            }
+            resample_row(above, below, fy, &xs, &spans, &fxs, measures);
             let best_row = &mut best[y * w..(y + 1) * w];
             for (x, (&m, best)) in measures.iter().zip(best_row.iter_mut()).enumerate() {
                 if m > *best {
@@ -332,10 +387,10 @@ pub fn depth_from_focus_in(
             k_best.fill(0);
             for k in 1..n {
                 for ((p, b), &m) in peak.iter_mut().zip(k_best.iter_mut()).zip(&rows[k * w..(k + 1) * w]) {
-                    if m >= *p {
-                        *p = m;
-                        *b = k as u32;
-                    }
+                    // Selects rather than a branch, so that the loop vectorises.
+                    let later = m >= *p;
+                    *p = if later { m } else { *p };
+                    *b = if later { k as u32 } else { *b };
                 }
             }
             network.apply(sorted, w);
@@ -408,11 +463,11 @@ pub fn equalize_sub_frame_phase(maps: &mut [DepthMap], grids: &[Option<(f64, f64
         let whole = p.floor();
         (whole, p - whole)
     };
-    let mut histogram = [0f64; PHASE_BINS];
+    // Counts per map, summed (whole numbers: the sum does not depend on the order).
     // Estimates per whole frame index (an estimate lies within the stack, so the index is ≥ 0).
-    let mut per_frame: Vec<f64> = Vec::new();
-    for (map, grid) in maps.iter().zip(grids) {
+    let count = |map: &DepthMap, grid: &Option<(f64, f64)>| {
         let origin = grid.expect("checked above").0;
+        let (mut histogram, mut per_frame) = ([0f64; PHASE_BINS], Vec::<f64>::new());
         for &d in map.depth_mm.iter().filter(|d| d.is_finite()) {
             let (whole, phase) = phase_of(d, origin);
             let k = whole.max(0.0) as usize;
@@ -424,7 +479,18 @@ pub fn equalize_sub_frame_phase(maps: &mut [DepthMap], grids: &[Option<(f64, f64
             histogram[bin] += 1.0;
             histogram[PHASE_BINS - 1 - bin] += 1.0;
         }
-    }
+        (histogram, per_frame)
+    };
+    let add = |(mut h, mut f): ([f64; PHASE_BINS], Vec<f64>), (h2, f2): ([f64; PHASE_BINS], Vec<f64>)| {
+        h.iter_mut().zip(&h2).for_each(|(a, b)| *a += b);
+        if f2.len() > f.len() {
+            f.resize(f2.len(), 0.0);
+        }
+        f.iter_mut().zip(&f2).for_each(|(a, b)| *a += b);
+        (h, f)
+    };
+    let (histogram, per_frame) =
+        maps.par_iter().zip(grids).map(|(map, grid)| count(map, grid)).reduce(|| ([0f64; PHASE_BINS], Vec::new()), add);
     let total: f64 = histogram.iter().sum();
     if total < (100 * PHASE_BINS) as f64 {
         return; // too few estimates for a histogram
@@ -446,7 +512,7 @@ pub fn equalize_sub_frame_phase(maps: &mut [DepthMap], grids: &[Option<(f64, f64
     if largest > MAX_PHASE_CORRECTION {
         return;
     }
-    for (map, grid) in maps.iter_mut().zip(grids) {
+    maps.par_iter_mut().zip(grids).for_each(|(map, grid)| {
         let origin = grid.expect("checked above").0;
         for d in map.depth_mm.iter_mut().filter(|d| d.is_finite()) {
             let (whole, phase) = phase_of(*d, origin);
@@ -455,7 +521,7 @@ pub fn equalize_sub_frame_phase(maps: &mut [DepthMap], grids: &[Option<(f64, f64
             let equalized = cdf[i] + (cdf[i + 1] - cdf[i]) * (x - i as f64);
             *d = (focus_distance_mm - origin - step * (whole + equalized)) as f32;
         }
-    }
+    });
 }
 
 #[cfg(test)]
@@ -539,6 +605,29 @@ mod tests {
                 .collect();
             network.apply(&mut rows, w);
             assert_eq!(&rows[network.rank * w..(network.rank + 1) * w], &expected[..], "n {n}");
+        }
+    }
+
+    /// The row resampling by spans gives, bit for bit, the bilinear sample through each column's
+    /// own taps, for frames scaled up and down about centres inside and outside the row (taps
+    /// clamped at either edge).
+    #[test]
+    fn resampling_by_spans_matches_tap_by_tap() {
+        let w = 97;
+        let above: Vec<f32> = (0..w).map(|i| ((i * 37) % 23) as f32 / 7.0).collect();
+        let below: Vec<f32> = (0..w).map(|i| ((i * 11) % 19) as f32 / 5.0).collect();
+        for (centre, scale) in [(48.5, 1.011), (48.5, 0.989), (10.0, 1.05), (90.0, 0.95), (-20.0, 1.0), (48.5, 1.0)] {
+            let xs = axis_taps(w, centre, scale);
+            let fxs: Vec<f32> = xs.iter().map(|t| t.2).collect();
+            let spans = tap_spans(&xs);
+            assert_eq!(spans.iter().map(|s| s.len).sum::<usize>(), w);
+            let mut out = vec![0f32; w];
+            resample_row(&above, &below, 0.3, &xs, &spans, &fxs, &mut out);
+            for (x, &(x0, x1, fx)) in xs.iter().enumerate() {
+                let a = above[x0] * (1.0 - fx) + above[x1] * fx;
+                let b = below[x0] * (1.0 - fx) + below[x1] * fx;
+                assert_eq!(out[x], a * (1.0 - 0.3) + b * 0.3, "centre {centre}, scale {scale}, column {x}");
+            }
         }
     }
 

@@ -202,9 +202,8 @@ pub fn inspect(
         .par_iter()
         .zip(&depth_maps)
         .map(|(pose, depth)| {
-            cloud::points_of(optics, pose, depth).fold((f64::MAX, f64::MIN), |(lo, hi), p| {
-                (lo.min(p.position.z), hi.max(p.position.z))
-            })
+            cloud::points_of(optics, pose, depth)
+                .fold((f64::MAX, f64::MIN), |(lo, hi), p| (lo.min(p.position.z), hi.max(p.position.z)))
         })
         .reduce(|| (f64::MAX, f64::MIN), |a, b| (a.0.min(b.0), a.1.max(b.1)));
     let grid = GridSpec::spanning(z_range_mm, cell_mm, part.pipe_od_mm / 2.0).ok_or(PipelineError::NoDepth)?;
