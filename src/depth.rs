@@ -75,6 +75,28 @@ fn axis_taps(len: usize, centre: f64, scale: f64) -> Vec<(usize, usize, f32)> {
         .collect()
 }
 
+/// A frame's bilinear taps onto the offset-0 grid, columns and rows ([`axis_taps`]).
+struct Taps {
+    xs: Vec<(usize, usize, f32)>,
+    ys: Vec<(usize, usize, f32)>,
+}
+
+impl Taps {
+    /// The frame's colour at reference pixel (x, y), RGB (a gray frame's value thrice).
+    fn sample(&self, frame: &Frame, w: usize, x: usize, y: usize, out: &mut [f32]) {
+        let ((x0, x1, fx), (y0, y1, fy)) = (self.xs[x], self.ys[y]);
+        let channels = frame.channels as usize;
+        let corner = |yy: usize, xx: usize| &frame.pixels[(yy * w + xx) * channels..][..channels];
+        let (p00, p01, p10, p11) = (corner(y0, x0), corner(y0, x1), corner(y1, x0), corner(y1, x1));
+        for (c, out) in out.iter_mut().enumerate() {
+            let c = c.min(channels - 1);
+            let a = p00[c] * (1.0 - fx) + p01[c] * fx;
+            let b = p10[c] * (1.0 - fx) + p11[c] * fx;
+            *out = a * (1.0 - fy) + b * fy;
+        }
+    }
+}
+
 /// A run of reference columns whose taps (see [`axis_taps`]) are `x0 + i` and `x0 + i + 1` for the
 /// run's i-th column (`shifted`), or columns taken one by one (taps clamped at the frame's edge).
 struct TapSpan {
@@ -319,9 +341,14 @@ pub fn depth_from_focus_in(
     // Every cell is written before it is read (each frame fills its whole plane).
     volume.resize(plane * n, 0.0);
     let mut best = vec![f32::MIN; w * h];
+    // The frame (index) where each pixel's measure is highest so far (the first such).
+    let mut best_frame = vec![0u32; w * h];
     let mut all_in_focus = vec![0f32; w * h * 3];
     let (mut gray, mut native, mut scratch) = (Vec::with_capacity(w * h), vec![0f32; w * h], vec![0f32; w * h]);
     let mut end_edges = Vec::new();
+    // The previous frame and its taps: a pixel's colour is sampled from a frame once the next
+    // frame fails to beat it (its peak, mostly), not at every frame that rises on the way there.
+    let mut previous: Option<(Frame, Taps)> = None;
     for (k, entry) in view.frames.iter().enumerate() {
         if cancelled() {
             return Ok(None);
@@ -334,32 +361,37 @@ pub fn depth_from_focus_in(
         frame.gray_into(&mut gray);
         focus_measure(&gray, w, h, options.window_radius_px, &mut scratch, &mut native);
         end_edges.extend(crate::endface::frame_edge(&gray, w, h, entry.offset_mm));
-        let channels = frame.channels as usize;
-        let (xs, ys) = (axis_taps(w, principal[0], scale), axis_taps(h, principal[1], scale));
-        let (spans, fxs) = (tap_spans(&xs), xs.iter().map(|t| t.2).collect::<Vec<f32>>());
-        for (y, &(y0, y1, fy)) in ys.iter().enumerate() {
+        let taps = Taps { xs: axis_taps(w, principal[0], scale), ys: axis_taps(h, principal[1], scale) };
+        let (spans, fxs) = (tap_spans(&taps.xs), taps.xs.iter().map(|t| t.2).collect::<Vec<f32>>());
+        let (k32, before) = (k as u32, k.wrapping_sub(1) as u32);
+        for (y, &(y0, y1, fy)) in taps.ys.iter().enumerate() {
             let (above, below) = (&native[y0 * w..(y0 + 1) * w], &native[y1 * w..(y1 + 1) * w]);
             let measures = &mut volume[k * plane + y * w..k * plane + (y + 1) * w];
-            resample_row(above, below, fy, &xs, &spans, &fxs, measures);
-            let best_row = &mut best[y * w..(y + 1) * w];
-            for (x, (&m, best)) in measures.iter().zip(best_row.iter_mut()).enumerate() {
-                if m > *best {
-                    // Colour only where this frame is the sharpest so far.
-                    *best = m;
-                    let (x0, x1, fx) = xs[x];
-                    let colour = &mut all_in_focus[3 * (y * w + x)..3 * (y * w + x) + 3];
-                    let corner = |yy: usize, xx: usize| &frame.pixels[(yy * w + xx) * channels..][..channels];
-                    let (p00, p01, p10, p11) = (corner(y0, x0), corner(y0, x1), corner(y1, x0), corner(y1, x1));
-                    for (c, out) in colour.iter_mut().enumerate() {
-                        let c = c.min(channels - 1);
-                        let a = p00[c] * (1.0 - fx) + p01[c] * fx;
-                        let b = p10[c] * (1.0 - fx) + p11[c] * fx;
-                        *out = a * (1.0 - fy) + b * fy;
-                    }
+            resample_row(above, below, fy, &taps.xs, &spans, &fxs, measures);
+            let (best_row, best_frame_row) = (&mut best[y * w..(y + 1) * w], &mut best_frame[y * w..(y + 1) * w]);
+            for (x, &m) in measures.iter().enumerate() {
+                if m > best_row[x] {
+                    best_row[x] = m;
+                    best_frame_row[x] = k32;
+                } else if best_frame_row[x] == before
+                    && let Some((frame, taps)) = &previous
+                {
+                    taps.sample(frame, w, x, y, &mut all_in_focus[3 * (y * w + x)..3 * (y * w + x) + 3]);
                 }
             }
         }
+        previous = Some((frame, taps));
     }
+    // Pixels sharpest in the last frame.
+    if let Some((frame, taps)) = &previous {
+        let last = n as u32 - 1;
+        for (i, colour) in all_in_focus.chunks_exact_mut(3).enumerate() {
+            if best_frame[i] == last {
+                taps.sample(frame, w, i % w, i / w, colour);
+            }
+        }
+    }
+    drop(previous);
     let offsets: Vec<f64> = view.frames.iter().map(|f| f.offset_mm).collect();
     // Breathing moves content by up to |o|/F of its distance from the principal point.
     let max_offset = offsets.iter().fold(0.0f64, |m, o| m.max(o.abs()));
@@ -386,11 +418,13 @@ pub fn depth_from_focus_in(
             peak.copy_from_slice(&rows[..w]);
             k_best.fill(0);
             for k in 1..n {
-                for ((p, b), &m) in peak.iter_mut().zip(k_best.iter_mut()).zip(&rows[k * w..(k + 1) * w]) {
-                    // Selects rather than a branch, so that the loop vectorises.
-                    let later = m >= *p;
-                    *p = if later { m } else { *p };
-                    *b = if later { k as u32 } else { *b };
+                // Equal-length slices and selects rather than a branch, so that the loop vectorises.
+                let (row, peak, k_best) = (&rows[k * w..(k + 1) * w], &mut peak[..w], &mut k_best[..w]);
+                let k = k as u32;
+                for x in 0..w {
+                    let later = row[x] >= peak[x];
+                    peak[x] = if later { row[x] } else { peak[x] };
+                    k_best[x] = if later { k } else { k_best[x] };
                 }
             }
             network.apply(sorted, w);
@@ -627,6 +661,68 @@ mod tests {
                 let a = above[x0] * (1.0 - fx) + above[x1] * fx;
                 let b = below[x0] * (1.0 - fx) + below[x1] * fx;
                 assert_eq!(out[x], a * (1.0 - 0.3) + b * 0.3, "centre {centre}, scale {scale}, column {x}");
+            }
+        }
+    }
+
+    /// The all-in-focus colour of each pixel is its sharpest frame's, whether that frame is the
+    /// first, one in the middle, the last, or the higher of two peaks. Frame k's gray level
+    /// carries k (0.3 + 0.05·k) under a checkerboard whose contrast per column band peaks at
+    /// the band's frame.
+    #[test]
+    fn all_in_focus_takes_each_pixel_from_its_sharpest_frame() {
+        let (w, h, n) = (48usize, 20usize, 7usize);
+        // Contrast of band b (12 columns each) in frame k.
+        let contrast = |band: usize, k: usize| -> f32 {
+            let peaks: [&[f32]; 4] = [
+                &[1.0, 0.6, 0.3, 0.2, 0.1, 0.1, 0.1],
+                &[0.1, 0.3, 0.6, 1.0, 0.6, 0.3, 0.1],
+                &[0.1, 0.1, 0.2, 0.3, 0.5, 0.7, 1.0],
+                &[0.2, 0.7, 0.3, 0.2, 0.5, 0.9, 0.4],
+            ];
+            peaks[band][k]
+        };
+        let sharpest = [0usize, 3, 6, 5];
+        let frames: Vec<Frame> = (0..n)
+            .map(|k| Frame {
+                width: w as u32,
+                height: h as u32,
+                channels: 1,
+                pixels: (0..w * h)
+                    .map(|i| {
+                        let (x, y) = (i % w, i / w);
+                        let checker = if (x + y) % 2 == 0 { 1.0 } else { -1.0 };
+                        0.3 + 0.05 * k as f32 + 0.1 * contrast(x / 12, k) * checker
+                    })
+                    .collect(),
+            })
+            .collect();
+        let optics = Optics {
+            projection: Projection::Telecentric,
+            focal_length_mm: 50.0,
+            f_number: 8.0,
+            focus_distance_mm: 100.0,
+            pixel_pitch_um: 10.0,
+            principal_point_px: None,
+            magnification: Some(0.5),
+        };
+        let view = View {
+            id: "v".into(),
+            pose: crate::optics::ViewPose { angle_deg: 0.0, axial_mm: 0.0, lens_radius_mm: 150.0 },
+            frames: (0..n)
+                .map(|k| crate::bundle::FrameEntry { file: format!("{k}.png"), offset_mm: 0.25 * k as f64 })
+                .collect(),
+            format: crate::bundle::FrameFormat { width: w as u32, height: h as u32, channels: 1, bit_depth: 8 },
+        };
+        let map = depth_from_focus(&optics, &view, &DepthOptions::default(), |k| Ok(frames[k].clone()), &|| false)
+            .unwrap()
+            .unwrap();
+        // Pixels clear of the band edges by more than the focus window.
+        for y in 5..h - 5 {
+            for x in (0..w).filter(|&x| (6..=7).contains(&(x % 12)) || (1..4).contains(&x)) {
+                let k = sharpest[x / 12];
+                let expected = frames[k].pixels[y * w + x];
+                assert_eq!(&map.all_in_focus[3 * (y * w + x)..3 * (y * w + x) + 3], &[expected; 3], "({x}, {y})");
             }
         }
     }
