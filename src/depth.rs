@@ -75,6 +75,10 @@ fn axis_taps(len: usize, centre: f64, scale: f64) -> Vec<(usize, usize, f32)> {
         .collect()
 }
 
+/// Frames kept for the all-in-focus colour (a focus curve's plateau is about two frames wide at
+/// the presets' step: a pixel still sharpest in a frame this many frames on is sampled once).
+const COLOUR_WINDOW_FRAMES: usize = 3;
+
 /// A frame's bilinear taps onto the offset-0 grid, columns and rows ([`axis_taps`]).
 struct Taps {
     xs: Vec<(usize, usize, f32)>,
@@ -346,9 +350,19 @@ pub fn depth_from_focus_in(
     let mut all_in_focus = vec![0f32; w * h * 3];
     let (mut gray, mut native, mut scratch) = (Vec::with_capacity(w * h), vec![0f32; w * h], vec![0f32; w * h]);
     let mut end_edges = Vec::new();
-    // The previous frame and its taps: a pixel's colour is sampled from a frame once the next
-    // frame fails to beat it (its peak, mostly), not at every frame that rises on the way there.
-    let mut previous: Option<(Frame, Taps)> = None;
+    // The last few frames and their taps: a pixel's colour is sampled from a frame that is still
+    // its sharpest when the frame leaves this window (or the stack ends), not at every frame that
+    // rises on the way to its peak or jitters on its plateau.
+    let mut recent: std::collections::VecDeque<(u32, Frame, Taps)> = std::collections::VecDeque::new();
+    let sample_where_sharpest = |k: u32, frame: &Frame, taps: &Taps, best_frame: &[u32], colours: &mut [f32]| {
+        for (y, (row, colours)) in best_frame.chunks_exact(w).zip(colours.chunks_exact_mut(3 * w)).enumerate() {
+            for (x, (_, colour)) in
+                row.iter().zip(colours.chunks_exact_mut(3)).enumerate().filter(|(_, (b, _))| **b == k)
+            {
+                taps.sample(frame, w, x, y, colour);
+            }
+        }
+    };
     for (k, entry) in view.frames.iter().enumerate() {
         if cancelled() {
             return Ok(None);
@@ -363,35 +377,29 @@ pub fn depth_from_focus_in(
         end_edges.extend(crate::endface::frame_edge(&gray, w, h, entry.offset_mm));
         let taps = Taps { xs: axis_taps(w, principal[0], scale), ys: axis_taps(h, principal[1], scale) };
         let (spans, fxs) = (tap_spans(&taps.xs), taps.xs.iter().map(|t| t.2).collect::<Vec<f32>>());
-        let (k32, before) = (k as u32, k.wrapping_sub(1) as u32);
+        let k32 = k as u32;
         for (y, &(y0, y1, fy)) in taps.ys.iter().enumerate() {
             let (above, below) = (&native[y0 * w..(y0 + 1) * w], &native[y1 * w..(y1 + 1) * w]);
             let measures = &mut volume[k * plane + y * w..k * plane + (y + 1) * w];
             resample_row(above, below, fy, &taps.xs, &spans, &fxs, measures);
             let (best_row, best_frame_row) = (&mut best[y * w..(y + 1) * w], &mut best_frame[y * w..(y + 1) * w]);
-            for (x, &m) in measures.iter().enumerate() {
-                if m > best_row[x] {
-                    best_row[x] = m;
-                    best_frame_row[x] = k32;
-                } else if best_frame_row[x] == before
-                    && let Some((frame, taps)) = &previous
-                {
-                    taps.sample(frame, w, x, y, &mut all_in_focus[3 * (y * w + x)..3 * (y * w + x) + 3]);
-                }
+            for ((&m, best), best_frame) in measures.iter().zip(best_row.iter_mut()).zip(best_frame_row.iter_mut()) {
+                let sharper = m > *best;
+                *best = if sharper { m } else { *best };
+                *best_frame = if sharper { k32 } else { *best_frame };
             }
         }
-        previous = Some((frame, taps));
-    }
-    // Pixels sharpest in the last frame.
-    if let Some((frame, taps)) = &previous {
-        let last = n as u32 - 1;
-        for (i, colour) in all_in_focus.chunks_exact_mut(3).enumerate() {
-            if best_frame[i] == last {
-                taps.sample(frame, w, i % w, i / w, colour);
-            }
+        recent.push_back((k32, frame, taps));
+        if recent.len() > COLOUR_WINDOW_FRAMES
+            && let Some((k_old, frame, taps)) = recent.pop_front()
+        {
+            sample_where_sharpest(k_old, &frame, &taps, &best_frame, &mut all_in_focus);
         }
     }
-    drop(previous);
+    for (k, frame, taps) in &recent {
+        sample_where_sharpest(*k, frame, taps, &best_frame, &mut all_in_focus);
+    }
+    drop(recent);
     let offsets: Vec<f64> = view.frames.iter().map(|f| f.offset_mm).collect();
     // Breathing moves content by up to |o|/F of its distance from the principal point.
     let max_offset = offsets.iter().fold(0.0f64, |m, o| m.max(o.abs()));
