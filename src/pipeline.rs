@@ -243,7 +243,10 @@ pub fn inspect(
         || timed(|| mesh::build(&map, &options.mesh)),
         || {
             timed(|| {
-                let helix = profile::estimate_helix(&map, form);
+                let helix = profile::estimate_helix(&map, form).map(|first| {
+                    let threads = profile::measure_threads(&map, form, &first);
+                    profile::refine_helix(&map, form, &first, &threads)
+                });
                 let threads = helix.as_ref().map(|h| profile::measure_threads(&map, form, h));
                 (helix, threads)
             })

@@ -187,6 +187,113 @@ pub fn estimate_helix(map: &UnrolledMap, form: &ThreadForm) -> Option<Helix> {
     })
 }
 
+/// The helix phase again, from the full threads only and over whole pitches.
+///
+/// [`estimate_helix`] reads the phase over each generatrix's whole length, which takes in what is
+/// not the nominal form: the chamfer at the pipe end and the vanishing threads at the far end
+/// (crests on the mill surface, roots rising). On an asymmetric form those shift the fundamental's
+/// phase (tens of µm on a few views of a short-threaded part). Here each 1° bin is read only
+/// between the first and last full threads (nine bins in ten within max(tolerance, 2% of the
+/// height) of nominal, a whole pitch of thread before its crest (the first
+/// thread meets the end chamfer), measured over at least half as many bins
+/// as the most measured thread), from half a pitch before the first crest
+/// centre line to half a pitch after the last, a whole number of pitches, so that neither the
+/// taper line nor the harmonics leak into the fundamental. Twice, since the window follows the
+/// phase. The first estimate stands where fewer than two full threads are measured.
+pub fn refine_helix(map: &UnrolledMap, form: &ThreadForm, helix: &Helix, threads: &[ThreadMeasure]) -> Helix {
+    let p = helix.pitch_mm;
+    let g = &map.grid;
+    let close = form.height_tolerance_mm.max(0.02 * form.height_mm);
+    // Full threads are measured around as much of the circumference as any thread is.
+    let most_bins = threads.iter().map(|t| t.bins.iter().filter(|b| b.height_mm.is_some()).count()).max().unwrap_or(0);
+    let full: Vec<bool> = threads
+        .iter()
+        .map(|t| {
+            let heights: Vec<f64> = t.bins.iter().filter_map(|b| b.height_mm).collect();
+            let clear_of_chamfer = t.bins.first().is_some_and(|b| b.crest_z_mm >= 1.5 * p);
+            let near = heights.iter().filter(|h| (*h - form.height_mm).abs() <= close).count();
+            heights.len() >= (most_bins / 2).max(1) && clear_of_chamfer && near as f64 >= 0.9 * heights.len() as f64
+        })
+        .collect();
+    // The longest run of full threads.
+    let (mut best, mut start) = (0..0, None);
+    for i in 0..=full.len() {
+        match (full.get(i).copied().unwrap_or(false), start) {
+            (true, None) => start = Some(i),
+            (false, Some(s)) => {
+                if i - s > best.len() {
+                    best = s..i;
+                }
+                start = None;
+            }
+            _ => {}
+        }
+    }
+    if best.len() < 2 {
+        return helix.clone();
+    }
+    let (first, last) = (threads[best.start].index as f64, threads[best.end - 1].index as f64);
+    let phase_form = form_fundamental(form).arg();
+    let mut z_h_mm = helix.z_h_mm;
+    for _ in 0..2 {
+        let mut sum = Complex::new(0.0, 0.0);
+        for bin in 0..360 {
+            let Some(profile) = bin_generatrix(map, bin) else { continue };
+            let theta_deg = bin as f64 + 0.5;
+            let centre = |index: f64| z_h_mm + p * (index - 1.0 + theta_deg / 360.0);
+            let (lo, hi) = (centre(first) - 0.5 * p, centre(last) + 0.5 * p);
+            let rows: Vec<usize> = (0..g.nz).filter(|&iz| (lo..hi).contains(&g.z_at(iz))).collect();
+            if (rows.len() as f64) < 0.9 * (hi - lo) / g.dz_mm {
+                continue; // the window runs off the map
+            }
+            let Some(fundamental) = fundamental_beside_a_line(rows.iter().map(|&iz| (g.z_at(iz), profile[iz])), p)
+            else {
+                continue;
+            };
+            let z_crest = (phase_form - fundamental.arg()) * p / TAU;
+            let z_h = (z_crest - p * theta_deg / 360.0).rem_euclid(p);
+            sum += Complex::from_polar(1.0, TAU * z_h / p);
+        }
+        if sum.norm() == 0.0 {
+            return helix.clone();
+        }
+        z_h_mm = (sum.arg() * p / TAU).rem_euclid(p);
+    }
+    Helix { z_h_mm, ..helix.clone() }
+}
+
+/// Harmonics fitted beside the fundamental in [`fundamental_beside_a_line`].
+const HARMONICS: usize = 6;
+
+/// The coefficient of exp(i·2πz/p) in a least-squares fit of r(z) by a line and the first
+/// [`HARMONICS`] harmonics of 1/p, jointly. A line fitted first and removed would take part of an
+/// asymmetric thread with it (its first moment over each pitch is not zero) and hand the
+/// fundamental a ramp's share; fitted together, the line takes only the taper.
+fn fundamental_beside_a_line(samples: impl Iterator<Item = (f64, f64)>, p: f64) -> Option<Complex<f64>> {
+    const N: usize = 2 + 2 * HARMONICS;
+    let (mut ata, mut atb) = (nalgebra::SMatrix::<f64, N, N>::zeros(), nalgebra::SVector::<f64, N>::zeros());
+    let mut count = 0;
+    for (z, r) in samples {
+        let mut row = nalgebra::SVector::<f64, N>::zeros();
+        row[0] = 1.0;
+        row[1] = z;
+        for k in 1..=HARMONICS {
+            let (sin, cos) = (TAU * k as f64 * z / p).sin_cos();
+            row[2 * k] = cos;
+            row[2 * k + 1] = sin;
+        }
+        ata += row * row.transpose();
+        atb += row * r;
+        count += 1;
+    }
+    if count < 4 * N {
+        return None;
+    }
+    let solution = ata.cholesky()?.solve(&atb);
+    // r ⊃ c·cos + s·sin = Re((c − i·s)·exp(i·2πz/p)): the coefficient the DFT's phase reads.
+    Some(Complex::new(solution[2], -solution[3]))
+}
+
 /// Half width of the strip around the crest centre line whose brightness decides black crests.
 const CREST_LINE_HALF_MM: f64 = 0.15;
 
@@ -465,6 +572,29 @@ mod tests {
         }
         let cells = radius.len();
         (UnrolledMap { grid, radius_mm: radius, weight: vec![1.0; cells], rgb: vec![[0.6; 3]; cells] }, form)
+    }
+
+    /// Threads vanishing towards the far end (their roots rising, as on the seed's Table 1 part)
+    /// pull the whole-length phase of an asymmetric form; read over the full threads alone (and
+    /// with the taper line fitted beside the harmonics), the phase is the crests' again.
+    #[test]
+    fn the_helix_phase_is_read_over_the_full_threads() {
+        let z_h = 1.234;
+        let (mut map, form) = ideal_map(z_h, 0.0);
+        let g = map.grid.clone();
+        // From z = 22 mm the roots rise 0.12 mm per mm above the root cone.
+        for iz in 0..g.nz {
+            let floor_mm = 55.0 + g.z_at(iz) * form.radius_slope() + 0.12 * (g.z_at(iz) - 22.0).max(0.0);
+            for it in 0..g.ntheta {
+                let i = map.index(iz, it);
+                map.radius_mm[i] = map.radius_mm[i].max(floor_mm as f32);
+            }
+        }
+        let first = estimate_helix(&map, &form).unwrap();
+        let threads = measure_threads(&map, &form, &first);
+        let refined = refine_helix(&map, &form, &first, &threads);
+        let (before_um, after_um) = (1e3 * (first.z_h_mm - z_h).abs(), 1e3 * (refined.z_h_mm - z_h).abs());
+        assert!(before_um > 2.0 && after_um < 1.0, "whole length {before_um} µm, full threads {after_um} µm");
     }
 
     #[test]
