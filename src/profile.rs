@@ -11,6 +11,7 @@
 
 use crate::fuse::UnrolledMap;
 use crate::thread::{ProfileShape, ThreadForm};
+use rayon::prelude::*;
 use rustfft::FftPlanner;
 use rustfft::num_complex::Complex;
 use serde::{Deserialize, Serialize};
@@ -234,26 +235,28 @@ pub fn refine_helix(map: &UnrolledMap, form: &ThreadForm, helix: &Helix, threads
     }
     let (first, last) = (threads[best.start].index as f64, threads[best.end - 1].index as f64);
     let phase_form = form_fundamental(form).arg();
+    let profiles: Vec<(usize, Vec<f64>)> =
+        (0..360).into_par_iter().filter_map(|bin| Some((bin, bin_generatrix(map, bin)?))).collect();
     let mut z_h_mm = helix.z_h_mm;
     for _ in 0..2 {
-        let mut sum = Complex::new(0.0, 0.0);
-        for bin in 0..360 {
-            let Some(profile) = bin_generatrix(map, bin) else { continue };
-            let theta_deg = bin as f64 + 0.5;
-            let centre = |index: f64| z_h_mm + p * (index - 1.0 + theta_deg / 360.0);
-            let (lo, hi) = (centre(first) - 0.5 * p, centre(last) + 0.5 * p);
-            let rows: Vec<usize> = (0..g.nz).filter(|&iz| (lo..hi).contains(&g.z_at(iz))).collect();
-            if (rows.len() as f64) < 0.9 * (hi - lo) / g.dz_mm {
-                continue; // the window runs off the map
-            }
-            let Some(fundamental) = fundamental_beside_a_line(rows.iter().map(|&iz| (g.z_at(iz), profile[iz])), p)
-            else {
-                continue;
-            };
-            let z_crest = (phase_form - fundamental.arg()) * p / TAU;
-            let z_h = (z_crest - p * theta_deg / 360.0).rem_euclid(p);
-            sum += Complex::from_polar(1.0, TAU * z_h / p);
-        }
+        let phasors: Vec<Option<Complex<f64>>> = profiles
+            .par_iter()
+            .map(|(bin, profile)| {
+                let theta_deg = *bin as f64 + 0.5;
+                let centre = |index: f64| z_h_mm + p * (index - 1.0 + theta_deg / 360.0);
+                let (lo, hi) = (centre(first) - 0.5 * p, centre(last) + 0.5 * p);
+                let rows: Vec<usize> = (0..g.nz).filter(|&iz| (lo..hi).contains(&g.z_at(iz))).collect();
+                if (rows.len() as f64) < 0.9 * (hi - lo) / g.dz_mm {
+                    return None; // the window runs off the map
+                }
+                let fundamental = fundamental_beside_a_line(rows.iter().map(|&iz| (g.z_at(iz), profile[iz])), p)?;
+                let z_crest = (phase_form - fundamental.arg()) * p / TAU;
+                let z_h = (z_crest - p * theta_deg / 360.0).rem_euclid(p);
+                Some(Complex::from_polar(1.0, TAU * z_h / p))
+            })
+            .collect();
+        // Summed in bin order, so the result does not depend on the scheduling.
+        let sum: Complex<f64> = phasors.into_iter().flatten().sum();
         if sum.norm() == 0.0 {
             return helix.clone();
         }
