@@ -195,12 +195,12 @@ pub fn estimate_helix(map: &UnrolledMap, form: &ThreadForm) -> Option<Helix> {
 /// (crests on the mill surface, roots rising). On an asymmetric form those shift the fundamental's
 /// phase (tens of µm on a few views of a short-threaded part). Here each 1° bin is read only
 /// between the first and last full threads (nine bins in ten within max(tolerance, 2% of the
-/// height) of nominal, a whole pitch of thread before its crest (the first
-/// thread meets the end chamfer), measured over at least half as many bins
-/// as the most measured thread), from half a pitch before the first crest
-/// centre line to half a pitch after the last, a whole number of pitches, so that neither the
-/// taper line nor the harmonics leak into the fundamental. Twice, since the window follows the
-/// phase. The first estimate stands where fewer than two full threads are measured.
+/// height) of nominal, the crest at least 1.5 pitches from the end face, clear of the chamfer zone
+/// as the crest stage takes it, and measured over at least half as many bins as the most measured
+/// thread), from half a pitch before the first crest centre line to half a pitch after the last: a
+/// whole number of pitches, over which the taper line is fitted beside the harmonics
+/// ([`fundamental_beside_a_line`]). Twice, since the window follows the phase. The first estimate
+/// stands where fewer than two full threads are measured.
 pub fn refine_helix(map: &UnrolledMap, form: &ThreadForm, helix: &Helix, threads: &[ThreadMeasure]) -> Helix {
     let p = helix.pitch_mm;
     let g = &map.grid;
