@@ -226,10 +226,7 @@ pub fn run_case(case: &Case, work: &std::path::Path, repeat: usize) -> Result<Ca
         last = Some(inspection);
     }
     let inspection = last.expect("at least one run");
-    let median_of = |mut v: Vec<f64>| {
-        v.sort_by(f64::total_cmp);
-        v[v.len() / 2]
-    };
+    let median_of = |mut v: Vec<f64>| crate::profile::median(&mut v).expect("at least one run");
     let decode_seconds = median_of(runs.iter().map(|r| r.0).collect());
     let inspect_seconds = median_of(runs.iter().map(|r| r.1).collect());
     // Stage times of the run whose inspection time is the median.

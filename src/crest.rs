@@ -91,7 +91,7 @@ fn cone_basis(z_mm: f64, theta_deg: f64) -> Vector4<f64> {
 
 /// Robust scale of deviations from a centre (1.4826 × their median absolute value: σ for normal
 /// noise, blind to a minority of outliers).
-fn robust_scale(deviations: impl Iterator<Item = f64>) -> Option<f64> {
+pub(crate) fn robust_scale(deviations: impl Iterator<Item = f64>) -> Option<f64> {
     let mut abs: Vec<f64> = deviations.map(f64::abs).collect();
     median(&mut abs).map(|m| 1.4826 * m)
 }

@@ -9,8 +9,8 @@
 //! whose first columns are background, the first lit column and the focus measure there
 //! ([`frame_edge`]). Here the frame sequence gives the corner's depth (the focus curve of the edge
 //! pixels), the frame focused on it gives the corner's column per row, each row's ray is followed
-//! through the refined pose to the corner circle, and the mean z over the rows and the views that
-//! see the end is the ring's axial offset ([`anchor`]).
+//! through the refined pose to the corner circle; the mean z over a view's rows, and the median of
+//! that over the views that see the end, is the ring's axial offset ([`anchor`]).
 
 use crate::optics::{Optics, Projection, ViewPose};
 use serde::{Deserialize, Serialize};
@@ -132,8 +132,7 @@ pub fn anchor(
     let mut z: Vec<f64> = found.iter().map(|f| f.0).collect();
     let mut r: Vec<f64> = found.iter().map(|f| f.1).collect();
     let z_offset_mm = crate::profile::median(&mut z)?;
-    let mut deviations: Vec<f64> = z.iter().map(|v| (v - z_offset_mm).abs()).collect();
-    let scatter_um = 1e3 * 1.4826 * crate::profile::median(&mut deviations)?;
+    let scatter_um = 1e3 * crate::crest::robust_scale(z.iter().map(|v| v - z_offset_mm))?;
     let corner_radius_mm = crate::profile::median(&mut r)?;
     (scatter_um <= max_scatter_um).then_some(EndFace { views: found.len(), z_offset_mm, scatter_um, corner_radius_mm })
 }

@@ -15,14 +15,9 @@ pub struct GridSpec {
 }
 
 impl GridSpec {
-    /// A grid with cells of about `cell_mm` on a cylinder of `radius_mm`, spanning the points' z.
-    pub fn covering(points: &[&[SurfacePoint]], cell_mm: f64, radius_mm: f64) -> Option<Self> {
-        let z = points.iter().flat_map(|v| v.iter()).map(|p| p.position.z);
-        Self::spanning(z.fold((f64::MAX, f64::MIN), |(lo, hi), z| (lo.min(z), hi.max(z))), cell_mm, radius_mm)
-    }
-
-    /// The grid whose first row starts at the least z of `z_range_mm` and whose rows reach its
-    /// greatest; None for an empty range (least above greatest).
+    /// A grid with cells of about `cell_mm` on a cylinder of `radius_mm`, whose first row starts at
+    /// the least z of `z_range_mm` and whose rows reach its greatest; None for an empty range (least
+    /// above greatest).
     pub fn spanning(z_range_mm: (f64, f64), cell_mm: f64, radius_mm: f64) -> Option<Self> {
         let (lo, hi) = z_range_mm;
         if lo > hi {

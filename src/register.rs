@@ -489,8 +489,8 @@ fn solve_axis(n: usize, pairs: &[(usize, usize, f64)], huber: f64) -> Vec<f64> {
     c
 }
 
-/// Registers all views. `points[v]` is view v back-projected with its encoder pose.
-/// `views[i]` are the samples of view i at `poses[i]` ([`view_samples`]).
+/// Registers all views. `views[v]` are the samples of view v back-projected with its encoder pose
+/// `poses[v]` ([`view_samples`]).
 pub fn register(
     views: &[ViewSamples],
     poses: &[ViewPose],
