@@ -89,14 +89,25 @@ impl Taps {
     /// The frame's colour at reference pixel (x, y), RGB (a gray frame's value thrice).
     fn sample(&self, frame: &Frame, w: usize, x: usize, y: usize, out: &mut [f32]) {
         let ((x0, x1, fx), (y0, y1, fy)) = (self.xs[x], self.ys[y]);
-        let channels = frame.channels as usize;
-        let corner = |yy: usize, xx: usize| &frame.pixels[(yy * w + xx) * channels..][..channels];
-        let (p00, p01, p10, p11) = (corner(y0, x0), corner(y0, x1), corner(y1, x0), corner(y1, x1));
-        for (c, out) in out.iter_mut().enumerate() {
-            let c = c.min(channels - 1);
-            let a = p00[c] * (1.0 - fx) + p01[c] * fx;
-            let b = p10[c] * (1.0 - fx) + p11[c] * fx;
-            *out = a * (1.0 - fy) + b * fy;
+        let mix = |p00: f32, p01: f32, p10: f32, p11: f32| {
+            let a = p00 * (1.0 - fx) + p01 * fx;
+            let b = p10 * (1.0 - fx) + p11 * fx;
+            a * (1.0 - fy) + b * fy
+        };
+        // Per channel count, so that the corners are fixed-size arrays (one bounds check each).
+        match frame.channels {
+            1 => {
+                let p = &frame.pixels;
+                let v = mix(p[y0 * w + x0], p[y0 * w + x1], p[y1 * w + x0], p[y1 * w + x1]);
+                out.fill(v);
+            }
+            _ => {
+                let (pixels, _) = frame.pixels.as_chunks::<3>();
+                let (p00, p01, p10, p11) = (pixels[y0 * w + x0], pixels[y0 * w + x1], pixels[y1 * w + x0], pixels[y1 * w + x1]);
+                for (c, out) in out.iter_mut().enumerate() {
+                    *out = mix(p00[c], p01[c], p10[c], p11[c]);
+                }
+            }
         }
     }
 }
@@ -383,10 +394,12 @@ pub fn depth_from_focus_in(
             let measures = &mut volume[k * plane + y * w..k * plane + (y + 1) * w];
             resample_row(above, below, fy, &taps.xs, &spans, &fxs, measures);
             let (best_row, best_frame_row) = (&mut best[y * w..(y + 1) * w], &mut best_frame[y * w..(y + 1) * w]);
-            for ((&m, best), best_frame) in measures.iter().zip(best_row.iter_mut()).zip(best_frame_row.iter_mut()) {
-                let sharper = m > *best;
-                *best = if sharper { m } else { *best };
-                *best_frame = if sharper { k32 } else { *best_frame };
+            // Equal-length slices indexed together and selects, so that the loop vectorises.
+            let measures = &measures[..w];
+            for x in 0..w {
+                let sharper = measures[x] > best_row[x];
+                best_row[x] = if sharper { measures[x] } else { best_row[x] };
+                best_frame_row[x] = if sharper { k32 } else { best_frame_row[x] };
             }
         }
         recent.push_back((k32, frame, taps));

@@ -177,6 +177,7 @@ pub fn inspect(
         format.width as f64 * pixel_mm / 2.0,
         &RegisterOptions { cell_mm: pixel_mm, ..options.register.clone() },
     );
+    let encoder_z_ranges_mm: Vec<(f64, f64)> = samples.iter().map(|s| s.z_range_mm()).collect();
     drop(samples);
     let mut poses: Vec<ViewPose> =
         encoder_poses.iter().zip(&registration.corrections).map(|(p, c)| c.apply(p)).collect();
@@ -198,14 +199,14 @@ pub fn inspect(
 
     progress(Stage::Fuse, 0.0);
     let cell_mm = options.cell_px * pixel_mm;
-    let z_range_mm = poses
-        .par_iter()
-        .zip(&depth_maps)
-        .map(|(pose, depth)| {
-            cloud::points_of(optics, pose, depth)
-                .fold((f64::MAX, f64::MIN), |(lo, hi), p| (lo.min(p.position.z), hi.max(p.position.z)))
-        })
-        .reduce(|| (f64::MAX, f64::MIN), |a, b| (a.0.min(b.0), a.1.max(b.1)));
+    // The views' z ranges at the encoder poses, moved by each view's axial correction.
+    let z_range_mm = poses.iter().zip(&encoder_poses).zip(&encoder_z_ranges_mm).fold(
+        (f64::MAX, f64::MIN),
+        |(lo, hi), ((pose, encoder), &(view_lo, view_hi))| {
+            let shift = pose.axial_mm - encoder.axial_mm;
+            (lo.min(view_lo + shift), hi.max(view_hi + shift))
+        },
+    );
     let grid = GridSpec::spanning(z_range_mm, cell_mm, part.pipe_od_mm / 2.0).ok_or(PipelineError::NoDepth)?;
     let mut fusion = Fusion::new(grid);
     // Binning (angle and radius per point) runs per view in parallel; the sums stay in view order.

@@ -108,6 +108,16 @@ pub struct ViewSamples {
     /// (samples of the row, least and greatest wrap(θ − view angle) in it, rad).
     rows: Vec<(std::ops::Range<usize>, f64, f64)>,
     half_extent_rad: f64,
+    z_range_mm: (f64, f64),
+}
+
+impl ViewSamples {
+    /// Least and greatest z of the view's points at the pose they were projected with. A pose's z
+    /// enters a point's z as its axial position alone, so a refined pose's range is this one moved
+    /// by the axial correction (no second projection needed to size the fused grid).
+    pub fn z_range_mm(&self) -> (f64, f64) {
+        self.z_range_mm
+    }
 }
 
 /// What registration keeps of a view's points (in image order, as [`crate::cloud::points_of`]
@@ -117,6 +127,7 @@ pub fn view_samples(points: impl IntoIterator<Item = SurfacePoint>, view_angle_r
     let mut samples: Vec<Sample> = Vec::with_capacity(crate::cloud::capacity_for(&points));
     let mut rows: Vec<(std::ops::Range<usize>, f64, f64)> = Vec::new();
     let mut half_extent_rad = 0f64;
+    let mut z_range_mm = (f64::MAX, f64::MIN);
     let mut row_of_last = None;
     for (i, p) in points.enumerate() {
         let s = Sample {
@@ -128,6 +139,7 @@ pub fn view_samples(points: impl IntoIterator<Item = SurfacePoint>, view_angle_r
         };
         let phi = wrap(s.theta_rad - view_angle_rad);
         half_extent_rad = half_extent_rad.max(phi.abs());
+        z_range_mm = (z_range_mm.0.min(s.z_mm), z_range_mm.1.max(s.z_mm));
         match rows.last_mut() {
             Some((range, lo, hi)) if row_of_last == Some(p.pixel[1]) => {
                 range.end = i + 1;
@@ -138,7 +150,7 @@ pub fn view_samples(points: impl IntoIterator<Item = SurfacePoint>, view_angle_r
         row_of_last = Some(p.pixel[1]);
         samples.push(s);
     }
-    ViewSamples { samples, rows, half_extent_rad }
+    ViewSamples { samples, rows, half_extent_rad, z_range_mm }
 }
 
 impl Patch {
