@@ -93,7 +93,8 @@ struct Patch {
 /// What registration needs of a surface point, computed once per view (every pair reuses it).
 #[derive(Clone, Copy)]
 struct Sample {
-    theta_rad: f64,
+    /// Angle about the pipe axis from the view's own angle, wrapped to (−π, π].
+    phi_rad: f64,
     z_mm: f64,
     gray: f32,
     radius_mm: f32,
@@ -130,14 +131,14 @@ pub fn view_samples(points: impl IntoIterator<Item = SurfacePoint>, view_angle_r
     let mut z_range_mm = (f64::MAX, f64::MIN);
     let mut row_of_last = None;
     for (i, p) in points.enumerate() {
+        let phi = wrap(p.theta_rad() - view_angle_rad);
         let s = Sample {
-            theta_rad: p.theta_rad(),
+            phi_rad: phi,
             z_mm: p.position.z,
             gray: crate::bundle::luminance(p.rgb),
             radius_mm: p.radius_mm() as f32,
             weight: crate::fuse::point_weight(p.weight),
         };
-        let phi = wrap(s.theta_rad - view_angle_rad);
         half_extent_rad = half_extent_rad.max(phi.abs());
         z_range_mm = (z_range_mm.0.min(s.z_mm), z_range_mm.1.max(s.z_mm));
         match rows.last_mut() {
@@ -176,7 +177,9 @@ impl Patch {
                 continue;
             }
             for p in &view.samples[range.clone()] {
-                let s = radius_ref * wrap(p.theta_rad - ref_angle);
+                // Near the view's own angle the arc from the reference is the sample's angle from
+                // its view plus the views' separation; only a row near ±π needs wrapping again.
+                let s = if far { radius_ref * wrap(p.phi_rad + delta) } else { radius_ref * (p.phi_rad + delta) };
                 if s < s_range.0 || s > s_range.1 {
                     continue;
                 }
