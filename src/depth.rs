@@ -295,6 +295,31 @@ impl MedianNetwork {
     }
 }
 
+/// Which frame a pixel keeps when a later frame's measure equals its best so far.
+#[derive(Clone, Copy, PartialEq)]
+enum Ties {
+    KeepEarlier,
+    TakeLater,
+}
+
+/// Per pixel, the greater of `best` and frame `k`'s `measures`, and the frame it came from.
+/// Selected by bit masks: written as `if`s, the compiler keeps a branch per pixel (the loop does
+/// not vectorise, and the branch is unpredictable where measures are close).
+fn keep_sharpest(measures: &[f32], k: u32, best: &mut [f32], best_frame: &mut [u32], ties: Ties) {
+    let n = measures.len().min(best.len()).min(best_frame.len());
+    let (measures, best, best_frame) = (&measures[..n], &mut best[..n], &mut best_frame[..n]);
+    for x in 0..n {
+        let (m, b) = (measures[x], best[x]);
+        let sharper = match ties {
+            Ties::KeepEarlier => m > b,
+            Ties::TakeLater => m >= b,
+        };
+        let mask = 0u32.wrapping_sub(sharper as u32);
+        best[x] = f32::from_bits((b.to_bits() & !mask) | (m.to_bits() & mask));
+        best_frame[x] = (best_frame[x] & !mask) | (k & mask);
+    }
+}
+
 /// The in-focus offset of one pixel's focus curve. The curve is flat-topped (within the depth of
 /// field the image is as sharp as the pixels allow: two frames or so at the presets' step) and
 /// falls off symmetrically, so the top says little about where focus lies and the shoulders say
@@ -394,13 +419,7 @@ pub fn depth_from_focus_in(
             let measures = &mut volume[k * plane + y * w..k * plane + (y + 1) * w];
             resample_row(above, below, fy, &taps.xs, &spans, &fxs, measures);
             let (best_row, best_frame_row) = (&mut best[y * w..(y + 1) * w], &mut best_frame[y * w..(y + 1) * w]);
-            // Equal-length slices indexed together and selects, so that the loop vectorises.
-            let measures = &measures[..w];
-            for x in 0..w {
-                let sharper = measures[x] > best_row[x];
-                best_row[x] = if sharper { measures[x] } else { best_row[x] };
-                best_frame_row[x] = if sharper { k32 } else { best_frame_row[x] };
-            }
+            keep_sharpest(measures, k32, best_row, best_frame_row, Ties::KeepEarlier);
         }
         recent.push_back((k32, frame, taps));
         if recent.len() > COLOUR_WINDOW_FRAMES
@@ -439,14 +458,7 @@ pub fn depth_from_focus_in(
             peak.copy_from_slice(&rows[..w]);
             k_best.fill(0);
             for k in 1..n {
-                // Equal-length slices and selects rather than a branch, so that the loop vectorises.
-                let (row, peak, k_best) = (&rows[k * w..(k + 1) * w], &mut peak[..w], &mut k_best[..w]);
-                let k = k as u32;
-                for x in 0..w {
-                    let later = row[x] >= peak[x];
-                    peak[x] = if later { row[x] } else { peak[x] };
-                    k_best[x] = if later { k } else { k_best[x] };
-                }
+                keep_sharpest(&rows[k * w..(k + 1) * w], k as u32, peak, k_best, Ties::TakeLater);
             }
             network.apply(sorted, w);
             let floors = &sorted[network.rank * w..(network.rank + 1) * w];
@@ -582,6 +594,36 @@ pub fn equalize_sub_frame_phase(maps: &mut [DepthMap], grids: &[Option<(f64, f64
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn keeping_the_sharpest_frame_by_masks_matches_the_branches_and_their_ties() {
+        // Measures on a coarse lattice so that ties are frequent; 37 pixels (not a lane multiple).
+        let frames: Vec<Vec<f32>> =
+            (0..9u32).map(|k| (0..37u32).map(|x| ((x * 7 + k * 13) % 5) as f32 * 0.5).collect()).collect();
+        for ties in [Ties::KeepEarlier, Ties::TakeLater] {
+            let (mut best, mut best_frame) = (frames[0].clone(), vec![0u32; 37]);
+            let (mut want, mut want_frame) = (frames[0].clone(), vec![0u32; 37]);
+            for (k, measures) in frames.iter().enumerate().skip(1) {
+                keep_sharpest(measures, k as u32, &mut best, &mut best_frame, ties);
+                for x in 0..37 {
+                    let sharper = if ties == Ties::TakeLater { measures[x] >= want[x] } else { measures[x] > want[x] };
+                    if sharper {
+                        (want[x], want_frame[x]) = (measures[x], k as u32);
+                    }
+                }
+            }
+            assert_eq!((&best, &best_frame), (&want, &want_frame));
+        }
+        // The tie rule decides between equal peaks in frames 1 and 3.
+        let curve = [[0.0f32], [2.0], [1.0], [2.0]];
+        for (ties, frame) in [(Ties::KeepEarlier, 1), (Ties::TakeLater, 3)] {
+            let (mut best, mut best_frame) = ([curve[0][0]], [0u32]);
+            for (k, m) in curve.iter().enumerate().skip(1) {
+                keep_sharpest(m, k as u32, &mut best, &mut best_frame, ties);
+            }
+            assert_eq!((best, best_frame), ([2.0], [frame]));
+        }
+    }
 
     #[test]
     fn flat_topped_curve_centre_moves_smoothly_with_focus() {
