@@ -288,8 +288,10 @@ impl MedianNetwork {
             let (low, high) = rows.split_at_mut(b * w);
             let (low, high) = (&mut low[a * w..(a + 1) * w], &mut high[..w]);
             for (u, v) in low.iter_mut().zip(high.iter_mut()) {
+                // Compare-and-select, which is one minps / maxps each: f32::min and max also order
+                // NaNs, which the measures never are, at three more instructions apiece.
                 let (x, y) = (*u, *v);
-                (*u, *v) = (x.min(y), x.max(y));
+                (*u, *v) = if y < x { (y, x) } else { (x, y) };
             }
         }
     }
