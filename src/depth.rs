@@ -13,7 +13,7 @@
 //! says how sharply the measure peaks above its floor, so that texture-less and saturated pixels
 //! are recognised rather than trusted. The all-in-focus image keeps each pixel's sharpest colour.
 
-use crate::bundle::{BundleError, Frame, View};
+use crate::bundle::{BundleError, Frame, Samples, View};
 use crate::optics::{Optics, Projection};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -94,19 +94,39 @@ impl Taps {
             let b = p10 * (1.0 - fx) + p11 * fx;
             a * (1.0 - fy) + b * fy
         };
-        // Per channel count, so that the corners are fixed-size arrays (one bounds check each).
-        match frame.channels {
-            1 => {
-                let p = &frame.pixels;
-                let v = mix(p[y0 * w + x0], p[y0 * w + x1], p[y1 * w + x0], p[y1 * w + x1]);
-                out.fill(v);
-            }
-            _ => {
-                let (pixels, _) = frame.pixels.as_chunks::<3>();
-                let (p00, p01, p10, p11) = (pixels[y0 * w + x0], pixels[y0 * w + x1], pixels[y1 * w + x0], pixels[y1 * w + x1]);
-                for (c, out) in out.iter_mut().enumerate() {
-                    *out = mix(p00[c], p01[c], p10[c], p11[c]);
-                }
+        // Per sample type, so that reading a sample is a table lookup or a load, not a match.
+        match &frame.samples {
+            Samples::Eight(s) => mix_corners(s, frame.channels, w, (x0, x1, y0, y1), out, &mix, |v| {
+                crate::bundle::EIGHT_BIT_VALUES[v as usize]
+            }),
+            Samples::Sixteen(s) => mix_corners(s, frame.channels, w, (x0, x1, y0, y1), out, &mix, |v| v as f32 / 65535.0),
+            Samples::Float(s) => mix_corners(s, frame.channels, w, (x0, x1, y0, y1), out, &mix, |v| v),
+        }
+    }
+}
+
+/// The four corners' values of one pixel, mixed per channel (a gray frame's value thrice).
+#[inline]
+fn mix_corners<T: Copy>(
+    samples: &[T],
+    channels: u8,
+    w: usize,
+    (x0, x1, y0, y1): (usize, usize, usize, usize),
+    out: &mut [f32],
+    mix: &impl Fn(f32, f32, f32, f32) -> f32,
+    value: impl Fn(T) -> f32,
+) {
+    match channels {
+        1 => {
+            let s = samples;
+            out.fill(mix(value(s[y0 * w + x0]), value(s[y0 * w + x1]), value(s[y1 * w + x0]), value(s[y1 * w + x1])));
+        }
+        _ => {
+            let (pixels, _) = samples.as_chunks::<3>();
+            let (p00, p01, p10, p11) =
+                (pixels[y0 * w + x0], pixels[y0 * w + x1], pixels[y1 * w + x0], pixels[y1 * w + x1]);
+            for (c, out) in out.iter_mut().enumerate() {
+                *out = mix(value(p00[c]), value(p01[c]), value(p10[c]), value(p11[c]));
             }
         }
     }
@@ -753,13 +773,15 @@ mod tests {
                 width: w as u32,
                 height: h as u32,
                 channels: 1,
-                pixels: (0..w * h)
-                    .map(|i| {
-                        let (x, y) = (i % w, i / w);
-                        let checker = if (x + y) % 2 == 0 { 1.0 } else { -1.0 };
-                        0.3 + 0.05 * k as f32 + 0.1 * contrast(x / 12, k) * checker
-                    })
-                    .collect(),
+                samples: Samples::Float(
+                    (0..w * h)
+                        .map(|i| {
+                            let (x, y) = (i % w, i / w);
+                            let checker = if (x + y) % 2 == 0 { 1.0 } else { -1.0 };
+                            0.3 + 0.05 * k as f32 + 0.1 * contrast(x / 12, k) * checker
+                        })
+                        .collect(),
+                ),
             })
             .collect();
         let optics = Optics {
@@ -786,7 +808,7 @@ mod tests {
         for y in 5..h - 5 {
             for x in (0..w).filter(|&x| (6..=7).contains(&(x % 12)) || (1..4).contains(&x)) {
                 let k = sharpest[x / 12];
-                let expected = frames[k].pixels[y * w + x];
+                let expected = frames[k].samples.value(y * w + x);
                 assert_eq!(&map.all_in_focus[3 * (y * w + x)..3 * (y * w + x) + 3], &[expected; 3], "({x}, {y})");
             }
         }

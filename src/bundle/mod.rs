@@ -115,13 +115,66 @@ pub struct View {
     pub format: FrameFormat,
 }
 
-/// A decoded frame: interleaved samples scaled to [0, 1].
+/// A decoded frame: its interleaved samples as the file holds them (8 or 16 bits), read as
+/// values in [0, 1]. Kept at the file's depth rather than widened to f32: a colour frame is a
+/// quarter the size, which is what the depth stage's window of recent frames holds per view in
+/// flight, and decoding needs no second pass.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Frame {
     pub width: u32,
     pub height: u32,
     pub channels: u8,
-    pub pixels: Vec<f32>,
+    pub samples: Samples,
+}
+
+/// A frame's samples at their stored depth.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Samples {
+    Eight(Vec<u8>),
+    Sixteen(Vec<u16>),
+    /// Values already in [0, 1] (frames made in memory).
+    Float(Vec<f32>),
+}
+
+/// Each 8-bit sample's value, v / 255 exactly as a division gives it (a multiply by 1/255 would
+/// differ in the last bit for some v), looked up rather than divided per read.
+pub(crate) const EIGHT_BIT_VALUES: [f32; 256] = {
+    let mut table = [0f32; 256];
+    let mut v = 0;
+    while v < 256 {
+        table[v] = v as f32 / 255.0;
+        v += 1;
+    }
+    table
+};
+
+impl Samples {
+    /// Sample i as a value in [0, 1].
+    #[inline]
+    pub fn value(&self, i: usize) -> f32 {
+        match self {
+            Samples::Eight(s) => EIGHT_BIT_VALUES[s[i] as usize],
+            Samples::Sixteen(s) => s[i] as f32 / 65535.0,
+            Samples::Float(s) => s[i],
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        match self {
+            Samples::Eight(s) => s.len(),
+            Samples::Sixteen(s) => s.len(),
+            Samples::Float(s) => s.len(),
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Every sample as a value in [0, 1].
+    pub fn values(&self) -> Vec<f32> {
+        (0..self.len()).map(|i| self.value(i)).collect()
+    }
 }
 
 /// Luminance of a linear RGB sample (Rec. 709 weights): what a monochrome sensor integrates and what
@@ -142,9 +195,16 @@ impl Frame {
     /// [`Frame::gray`] into a buffer that is reused from frame to frame.
     pub fn gray_into(&self, out: &mut Vec<f32>) {
         out.clear();
-        match self.channels {
-            1 => out.extend_from_slice(&self.pixels),
-            _ => out.extend(self.pixels.chunks_exact(3).map(|p| luminance([p[0], p[1], p[2]]))),
+        fn fill<T: Copy>(out: &mut Vec<f32>, samples: &[T], channels: u8, value: impl Fn(T) -> f32) {
+            match channels {
+                1 => out.extend(samples.iter().map(|&v| value(v))),
+                _ => out.extend(samples.chunks_exact(3).map(|p| luminance([value(p[0]), value(p[1]), value(p[2])]))),
+            }
+        }
+        match &self.samples {
+            Samples::Eight(s) => fill(out, s, self.channels, |v| EIGHT_BIT_VALUES[v as usize]),
+            Samples::Sixteen(s) => fill(out, s, self.channels, |v| v as f32 / 65535.0),
+            Samples::Float(s) => fill(out, s, self.channels, |v| v),
         }
     }
 }
@@ -519,19 +579,19 @@ fn probe(path: &str, bytes: &[u8]) -> Result<FrameFormat, BundleError> {
     Ok(FrameFormat { width, height, ..format_of(path, color)? })
 }
 
-/// Decodes a frame to samples in [0, 1].
+/// Decodes a frame (its samples at their stored depth; see [`Frame`]).
 pub fn decode(path: &str, bytes: &[u8]) -> Result<Frame, BundleError> {
     let unreadable = |e: image::ImageError| BundleError::UnreadableFrame { path: path.into(), message: e.to_string() };
     let format = if is_tiff(path) { image::ImageFormat::Tiff } else { image::ImageFormat::Png };
     let image = image::load_from_memory_with_format(bytes, format).map_err(unreadable)?;
     let f = format_of(path, image.color())?;
     let (width, height) = (image.width(), image.height());
-    let pixels: Vec<f32> = match image {
-        image::DynamicImage::ImageLuma8(img) => img.into_raw().into_iter().map(|v| v as f32 / 255.0).collect(),
-        image::DynamicImage::ImageRgb8(img) => img.into_raw().into_iter().map(|v| v as f32 / 255.0).collect(),
-        image::DynamicImage::ImageLuma16(img) => img.into_raw().into_iter().map(|v| v as f32 / 65535.0).collect(),
-        image::DynamicImage::ImageRgb16(img) => img.into_raw().into_iter().map(|v| v as f32 / 65535.0).collect(),
+    let samples = match image {
+        image::DynamicImage::ImageLuma8(img) => Samples::Eight(img.into_raw()),
+        image::DynamicImage::ImageRgb8(img) => Samples::Eight(img.into_raw()),
+        image::DynamicImage::ImageLuma16(img) => Samples::Sixteen(img.into_raw()),
+        image::DynamicImage::ImageRgb16(img) => Samples::Sixteen(img.into_raw()),
         _ => unreachable!("format_of refused other colour types"),
     };
-    Ok(Frame { width, height, channels: f.channels, pixels })
+    Ok(Frame { width, height, channels: f.channels, samples })
 }

@@ -40,7 +40,7 @@ fn the_ci_bundle_opens_as_a_directory_and_decodes() {
     assert!((bundle.part.lc_mm - 31.839).abs() < 1e-3);
     let frame = bundle.read_frame(0, 0).unwrap();
     assert_eq!((frame.width, frame.height, frame.channels), (384, 160, 3));
-    assert!(frame.pixels.iter().all(|v| (0.0..=1.0).contains(v)));
+    assert!(frame.samples.values().iter().all(|v| (0.0..=1.0).contains(v)));
     let full = Bundle::open(
         ci_bundle(),
         &ConnectionTable::api5b(),
@@ -368,10 +368,10 @@ fn gray_rgb_png_and_tiff_in_8_and_16_bits() {
     let bundle = open(s.path()).unwrap();
     let f0 = bundle.read_frame(0, 1).unwrap();
     assert_eq!((f0.channels, f0.width), (1, 64));
-    assert_eq!(f0.pixels[5], 5.0 / 255.0);
+    assert_eq!(f0.samples.value(5), 5.0 / 255.0);
     let f1 = bundle.read_frame(1, 1).unwrap();
     assert_eq!(bundle.views[1].format.bit_depth, 16);
-    assert_eq!(f1.pixels[3], (3 * 97) as f32 / 65535.0);
+    assert_eq!(f1.samples.value(3), (3 * 97) as f32 / 65535.0);
     let f2 = bundle.read_frame(2, 0).unwrap();
     assert_eq!((f2.channels, bundle.views[2].format.bit_depth), (3, 16));
     // Other colour types are refused by name.
