@@ -750,6 +750,66 @@ mod tests {
         }
     }
 
+    /// The same frames stored as 8-bit, 16-bit (v·257, the same value v / 255) and f32 samples,
+    /// gray and RGB, give the same depth map, confidence and all-in-focus colour bit for bit.
+    #[test]
+    fn every_sample_depth_gives_the_same_depth_map() {
+        let (w, h, n) = (40usize, 24usize, 7usize);
+        // A checkerboard whose contrast peaks at frame 3 on the left half and frame 4 on the right.
+        let level = |x: usize, y: usize, k: usize| -> u8 {
+            let peak = if x < w / 2 { 3.0 } else { 4.0 };
+            let contrast = (-(k as f32 - peak).powi(2) / 2.0).exp();
+            let checker = if (x + y) % 2 == 0 { 1.0 } else { -1.0 };
+            (255.0 * (0.45 + 0.02 * k as f32 + 0.3 * contrast * checker)).round() as u8
+        };
+        let optics = Optics {
+            projection: Projection::Perspective,
+            focal_length_mm: 50.0,
+            f_number: 2.8,
+            focus_distance_mm: 220.0,
+            pixel_pitch_um: 12.0,
+            principal_point_px: None,
+            magnification: None,
+        };
+        for channels in [1u8, 3] {
+            let values = |k: usize| -> Vec<u8> {
+                (0..w * h)
+                    .flat_map(|i| {
+                        let v = level(i % w, i / w, k);
+                        [v, v / 2, 255 - v].into_iter().take(channels as usize)
+                    })
+                    .collect()
+            };
+            let frames_as = |samples: &dyn Fn(Vec<u8>) -> Samples| -> Vec<Frame> {
+                (0..n)
+                    .map(|k| Frame { width: w as u32, height: h as u32, channels, samples: samples(values(k)) })
+                    .collect()
+            };
+            let view = View {
+                id: "v".into(),
+                pose: crate::optics::ViewPose { angle_deg: 0.0, axial_mm: 0.0, lens_radius_mm: 250.0 },
+                frames: (0..n)
+                    .map(|k| crate::bundle::FrameEntry { file: format!("{k}.png"), offset_mm: -0.75 + 0.25 * k as f64 })
+                    .collect(),
+                format: crate::bundle::FrameFormat { width: w as u32, height: h as u32, channels, bit_depth: 8 },
+            };
+            let depth_of = |frames: Vec<Frame>| {
+                depth_from_focus(&optics, &view, &DepthOptions::default(), |k| Ok(frames[k].clone()), &|| false)
+                    .unwrap()
+                    .unwrap()
+            };
+            let eight = depth_of(frames_as(&Samples::Eight));
+            let sixteen = depth_of(frames_as(&|v| Samples::Sixteen(v.iter().map(|&v| v as u16 * 257).collect())));
+            let float = depth_of(frames_as(&|v| Samples::Float(v.iter().map(|&v| v as f32 / 255.0).collect())));
+            assert!(eight.depth_mm.iter().any(|d| d.is_finite()), "some pixels are in focus");
+            let bits = |m: &DepthMap| -> Vec<u32> {
+                m.depth_mm.iter().chain(&m.peak_ratio).chain(&m.all_in_focus).map(|v| v.to_bits()).collect()
+            };
+            assert_eq!(bits(&eight), bits(&sixteen), "{channels} channels: 8 vs 16 bits");
+            assert_eq!(bits(&eight), bits(&float), "{channels} channels: 8 bits vs f32");
+        }
+    }
+
     /// The all-in-focus colour of each pixel is its sharpest frame's, whether that frame is the
     /// first, one in the middle, the last, or the higher of two peaks. Frame k's gray level
     /// carries k (0.3 + 0.05·k) under a checkerboard whose contrast per column band peaks at
