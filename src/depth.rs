@@ -99,7 +99,9 @@ impl Taps {
             Samples::Eight(s) => mix_corners(s, frame.channels, w, (x0, x1, y0, y1), out, &mix, |v| {
                 crate::bundle::EIGHT_BIT_VALUES[v as usize]
             }),
-            Samples::Sixteen(s) => mix_corners(s, frame.channels, w, (x0, x1, y0, y1), out, &mix, |v| v as f32 / 65535.0),
+            Samples::Sixteen(s) => {
+                mix_corners(s, frame.channels, w, (x0, x1, y0, y1), out, &mix, |v| v as f32 / 65535.0)
+            }
             Samples::Float(s) => mix_corners(s, frame.channels, w, (x0, x1, y0, y1), out, &mix, |v| v),
         }
     }
