@@ -13,7 +13,7 @@
 //! says how sharply the measure peaks above its floor, so that texture-less and saturated pixels
 //! are recognised rather than trusted. The all-in-focus image keeps each pixel's sharpest colour.
 
-use crate::bundle::{BundleError, Frame, Samples, View};
+use crate::bundle::{BundleError, Frame, SampleValue, Samples, View};
 use crate::optics::{Optics, Projection};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -89,46 +89,50 @@ impl Taps {
     /// The frame's colour at reference pixel (x, y), RGB (a gray frame's value thrice).
     fn sample(&self, frame: &Frame, w: usize, x: usize, y: usize, out: &mut [f32]) {
         let ((x0, x1, fx), (y0, y1, fy)) = (self.xs[x], self.ys[y]);
-        let mix = |p00: f32, p01: f32, p10: f32, p11: f32| {
-            let a = p00 * (1.0 - fx) + p01 * fx;
-            let b = p10 * (1.0 - fx) + p11 * fx;
-            a * (1.0 - fy) + b * fy
-        };
+        let corners = ((x0, x1, fx), (y0, y1, fy));
         // Per sample type, so that reading a sample is a table lookup or a load, not a match.
         match &frame.samples {
-            Samples::Eight(s) => mix_corners(s, frame.channels, w, (x0, x1, y0, y1), out, &mix, |v| {
-                crate::bundle::EIGHT_BIT_VALUES[v as usize]
-            }),
-            Samples::Sixteen(s) => {
-                mix_corners(s, frame.channels, w, (x0, x1, y0, y1), out, &mix, |v| v as f32 / 65535.0)
-            }
-            Samples::Float(s) => mix_corners(s, frame.channels, w, (x0, x1, y0, y1), out, &mix, |v| v),
+            Samples::Eight(s) => mix_corners(s, frame.channels, w, corners, out),
+            Samples::Sixteen(s) => mix_corners(s, frame.channels, w, corners, out),
+            Samples::Float(s) => mix_corners(s, frame.channels, w, corners, out),
         }
     }
 }
 
+/// Bilinear interpolation between four values: `fx` of the way from the 0 to the 1 column, `fy`
+/// from the 0 to the 1 row (along the columns first: every resampling here rounds the same way).
+#[inline]
+fn bilinear(p00: f32, p01: f32, p10: f32, p11: f32, fx: f32, fy: f32) -> f32 {
+    let a = p00 * (1.0 - fx) + p01 * fx;
+    let b = p10 * (1.0 - fx) + p11 * fx;
+    a * (1.0 - fy) + b * fy
+}
+
 /// The four corners' values of one pixel, mixed per channel (a gray frame's value thrice).
 #[inline]
-fn mix_corners<T: Copy>(
+fn mix_corners<T: SampleValue>(
     samples: &[T],
     channels: u8,
     w: usize,
-    (x0, x1, y0, y1): (usize, usize, usize, usize),
+    ((x0, x1, fx), (y0, y1, fy)): ((usize, usize, f32), (usize, usize, f32)),
     out: &mut [f32],
-    mix: &impl Fn(f32, f32, f32, f32) -> f32,
-    value: impl Fn(T) -> f32,
 ) {
+    let at = |s: &[T], y: usize, x: usize| s[y * w + x].value();
     match channels {
-        1 => {
-            let s = samples;
-            out.fill(mix(value(s[y0 * w + x0]), value(s[y0 * w + x1]), value(s[y1 * w + x0]), value(s[y1 * w + x1])));
-        }
+        1 => out.fill(bilinear(
+            at(samples, y0, x0),
+            at(samples, y0, x1),
+            at(samples, y1, x0),
+            at(samples, y1, x1),
+            fx,
+            fy,
+        )),
         _ => {
             let (pixels, _) = samples.as_chunks::<3>();
             let (p00, p01, p10, p11) =
                 (pixels[y0 * w + x0], pixels[y0 * w + x1], pixels[y1 * w + x0], pixels[y1 * w + x1]);
             for (c, out) in out.iter_mut().enumerate() {
-                *out = mix(value(p00[c]), value(p01[c]), value(p10[c]), value(p11[c]));
+                *out = bilinear(p00[c].value(), p01[c].value(), p10[c].value(), p11[c].value(), fx, fy);
             }
         }
     }
@@ -177,16 +181,12 @@ fn resample_row(
             let (a0, a1) = (&above[x0..x0 + len], &above[x0 + 1..x0 + 1 + len]);
             let (b0, b1) = (&below[x0..x0 + len], &below[x0 + 1..x0 + 1 + len]);
             for i in 0..len {
-                let a = a0[i] * (1.0 - f[i]) + a1[i] * f[i];
-                let b = b0[i] * (1.0 - f[i]) + b1[i] * f[i];
-                out[i] = a * (1.0 - fy) + b * fy;
+                out[i] = bilinear(a0[i], a1[i], b0[i], b1[i], f[i], fy);
             }
         } else {
             for (i, m) in out.iter_mut().enumerate() {
                 let (x0, x1, fx) = xs[x + i];
-                let a = above[x0] * (1.0 - fx) + above[x1] * fx;
-                let b = below[x0] * (1.0 - fx) + below[x1] * fx;
-                *m = a * (1.0 - fy) + b * fy;
+                *m = bilinear(above[x0], above[x1], below[x0], below[x1], fx, fy);
             }
         }
     }

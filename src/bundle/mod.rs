@@ -138,7 +138,7 @@ pub enum Samples {
 
 /// Each 8-bit sample's value, v / 255 exactly as a division gives it (a multiply by 1/255 would
 /// differ in the last bit for some v), looked up rather than divided per read.
-pub(crate) const EIGHT_BIT_VALUES: [f32; 256] = {
+const EIGHT_BIT_VALUES: [f32; 256] = {
     let mut table = [0f32; 256];
     let mut v = 0;
     while v < 256 {
@@ -148,14 +148,40 @@ pub(crate) const EIGHT_BIT_VALUES: [f32; 256] = {
     table
 };
 
+/// A stored sample type and what it reads as, in [0, 1]: the one place the scales live.
+pub trait SampleValue: Copy {
+    fn value(self) -> f32;
+}
+
+impl SampleValue for u8 {
+    #[inline]
+    fn value(self) -> f32 {
+        EIGHT_BIT_VALUES[self as usize]
+    }
+}
+
+impl SampleValue for u16 {
+    #[inline]
+    fn value(self) -> f32 {
+        self as f32 / 65535.0
+    }
+}
+
+impl SampleValue for f32 {
+    #[inline]
+    fn value(self) -> f32 {
+        self
+    }
+}
+
 impl Samples {
     /// Sample i as a value in [0, 1].
     #[inline]
     pub fn value(&self, i: usize) -> f32 {
         match self {
-            Samples::Eight(s) => EIGHT_BIT_VALUES[s[i] as usize],
-            Samples::Sixteen(s) => s[i] as f32 / 65535.0,
-            Samples::Float(s) => s[i],
+            Samples::Eight(s) => s[i].value(),
+            Samples::Sixteen(s) => s[i].value(),
+            Samples::Float(s) => s[i].value(),
         }
     }
 
@@ -195,16 +221,16 @@ impl Frame {
     /// [`Frame::gray`] into a buffer that is reused from frame to frame.
     pub fn gray_into(&self, out: &mut Vec<f32>) {
         out.clear();
-        fn fill<T: Copy>(out: &mut Vec<f32>, samples: &[T], channels: u8, value: impl Fn(T) -> f32) {
+        fn fill<T: SampleValue>(out: &mut Vec<f32>, samples: &[T], channels: u8) {
             match channels {
-                1 => out.extend(samples.iter().map(|&v| value(v))),
-                _ => out.extend(samples.chunks_exact(3).map(|p| luminance([value(p[0]), value(p[1]), value(p[2])]))),
+                1 => out.extend(samples.iter().map(|v| v.value())),
+                _ => out.extend(samples.chunks_exact(3).map(|p| luminance([p[0].value(), p[1].value(), p[2].value()]))),
             }
         }
         match &self.samples {
-            Samples::Eight(s) => fill(out, s, self.channels, |v| EIGHT_BIT_VALUES[v as usize]),
-            Samples::Sixteen(s) => fill(out, s, self.channels, |v| v as f32 / 65535.0),
-            Samples::Float(s) => fill(out, s, self.channels, |v| v),
+            Samples::Eight(s) => fill(out, s, self.channels),
+            Samples::Sixteen(s) => fill(out, s, self.channels),
+            Samples::Float(s) => fill(out, s, self.channels),
         }
     }
 }
