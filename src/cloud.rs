@@ -33,16 +33,10 @@ pub fn capacity_for<T>(items: &impl Iterator<Item = T>) -> usize {
     upper.unwrap_or(lower)
 }
 
-/// Points of one view at the given pose; pixels without a trusted depth are skipped.
-pub fn back_project(optics: &Optics, pose: &ViewPose, depth: &DepthMap) -> Vec<SurfacePoint> {
-    let mut points = Vec::with_capacity(depth.depth_mm.iter().filter(|d| d.is_finite()).count());
-    points.extend(points_of(optics, pose, depth));
-    points
-}
-
-/// [`back_project`]'s points one at a time, in image order: the stages that reduce a view's points
-/// at once (registration's samples, fusion's bins) take them from here rather than from a cloud
-/// of every view held in memory (about 50 bytes a point, half a gigabyte for a ring of views).
+/// Points of one view at the given pose, one at a time in image order; pixels without a trusted
+/// depth are skipped. The stages that reduce a view's points at once (registration's samples,
+/// fusion's bins) take them as they come rather than from a cloud of every view held in memory
+/// (about 50 bytes a point, half a gigabyte for a ring of views).
 pub fn points_of<'a>(
     optics: &'a Optics,
     pose: &ViewPose,
@@ -96,7 +90,7 @@ mod tests {
             end_edges: Vec::new(),
         };
         let pose = ViewPose { angle_deg: 90.0, axial_mm: 10.0, lens_radius_mm: 277.0 };
-        let points = back_project(&optics, &pose, &depth);
+        let points: Vec<SurfacePoint> = points_of(&optics, &pose, &depth).collect();
         assert_eq!(points.len(), 9);
         // Pixel (1, 1) has its centre at the principal point: straight down the optical axis.
         let centre = points[4];

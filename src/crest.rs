@@ -214,7 +214,7 @@ fn drop_short_geometric_runs(runs: &mut [bool], dark: &[bool], min_bins: usize) 
 }
 
 /// The maximal runs of set bins, as index ranges.
-fn run_spans(runs: &[bool]) -> Vec<std::ops::Range<usize>> {
+pub(crate) fn run_spans(runs: &[bool]) -> Vec<std::ops::Range<usize>> {
     let mut spans = Vec::new();
     let mut i = 0;
     while i < runs.len() {

@@ -112,18 +112,9 @@ impl Fusion {
         Self { grid, sums: vec![CellSum::default(); cells] }
     }
 
-    pub fn add(&mut self, points: &[SurfacePoint]) {
-        let binned = self.bin(points);
-        self.accumulate(&binned);
-    }
-
-    /// Each point's cell and weighted contributions: the costly part (angle, radius), which views
-    /// can compute in parallel before [`Fusion::accumulate`] sums them in order.
-    pub fn bin<'a>(&self, points: impl IntoIterator<Item = &'a SurfacePoint>) -> Vec<Binned> {
-        self.bin_each(points.into_iter().copied())
-    }
-
-    /// [`Fusion::bin`] of points as they come (from [`crate::cloud::points_of`]).
+    /// Each point's cell and weighted contributions, for points as they come (from
+    /// [`crate::cloud::points_of`]): the costly part (angle, radius), which views can compute in
+    /// parallel before [`Fusion::accumulate_all`] sums them in order.
     pub fn bin_each(&self, points: impl IntoIterator<Item = SurfacePoint>) -> Vec<Binned> {
         let grid = &self.grid;
         let points = points.into_iter();
@@ -183,18 +174,20 @@ impl Fusion {
     }
 }
 
-pub fn fuse(views: &[&[SurfacePoint]], grid: GridSpec) -> UnrolledMap {
-    let mut fusion = Fusion::new(grid);
-    for v in views {
-        fusion.add(v);
-    }
-    fusion.finish()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use nalgebra::Point3;
+
+    /// The views binned and summed one after the other: the sequential reference.
+    fn fuse(views: &[&[SurfacePoint]], grid: GridSpec) -> UnrolledMap {
+        let mut fusion = Fusion::new(grid);
+        for v in views {
+            let binned = fusion.bin_each(v.iter().copied());
+            fusion.accumulate(&binned);
+        }
+        fusion.finish()
+    }
 
     fn point(z: f64, theta_deg: f64, r: f64, weight: f32) -> SurfacePoint {
         let t = theta_deg.to_radians();
@@ -219,7 +212,7 @@ mod tests {
             .collect();
         let sequential = fuse(&views.iter().map(Vec::as_slice).collect::<Vec<_>>(), grid.clone());
         let mut banded = Fusion::new(grid);
-        let binned: Vec<Vec<Binned>> = views.iter().map(|v| banded.bin(v)).collect();
+        let binned: Vec<Vec<Binned>> = views.iter().map(|v| banded.bin_each(v.iter().copied())).collect();
         banded.accumulate_all(&binned);
         let banded = banded.finish();
         let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();

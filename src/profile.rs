@@ -216,20 +216,8 @@ pub fn refine_helix(map: &UnrolledMap, form: &ThreadForm, helix: &Helix, threads
             heights.len() >= (most_bins / 2).max(1) && clear_of_chamfer && near as f64 >= 0.9 * heights.len() as f64
         })
         .collect();
-    // The longest run of full threads.
-    let (mut best, mut start) = (0..0, None);
-    for i in 0..=full.len() {
-        match (full.get(i).copied().unwrap_or(false), start) {
-            (true, None) => start = Some(i),
-            (false, Some(s)) => {
-                if i - s > best.len() {
-                    best = s..i;
-                }
-                start = None;
-            }
-            _ => {}
-        }
-    }
+    // The longest run of full threads (the first of equally long ones: max_by_key keeps the last).
+    let best = crate::crest::run_spans(&full).into_iter().rev().max_by_key(|run| run.len()).unwrap_or(0..0);
     if best.len() < 2 {
         return helix.clone();
     }
