@@ -15,13 +15,22 @@
 
 use crate::bundle::{BundleError, Frame, SampleValue, Samples, View};
 use crate::optics::{Optics, Projection};
+use crate::thread::{ProfileShape, ThreadForm};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct DepthOptions {
-    /// Half size of the box that sums the focus measure.
+    /// Half size of the box that sums the focus measure. [`DepthOptions::for_form`] sets it from
+    /// the thread's profile: this value where crests and roots are arcs, `flat_window_radius_px`
+    /// where they are flat.
     pub window_radius_px: usize,
+    /// The box's half size on a form with flat crests and roots (buttress). Each pixel's focus
+    /// curve is the sum over the box, so a wider box averages more texture and its depth is less
+    /// noisy; on an arc it would also average depth over a curved section and flatten crests and
+    /// roots (lower their heights), but a flat is many boxes wide.
+    #[serde(default = "flat_window_radius_px")]
+    pub flat_window_radius_px: usize,
     /// Pixels whose peak-to-floor ratio is below this are not trusted (depth NaN).
     pub min_peak_ratio: f32,
     /// The focus curve's centre is the midpoint of its crossings of this fraction of its height.
@@ -35,9 +44,31 @@ fn yes() -> bool {
     true
 }
 
+fn flat_window_radius_px() -> usize {
+    DepthOptions::default().flat_window_radius_px
+}
+
 impl Default for DepthOptions {
     fn default() -> Self {
-        Self { window_radius_px: 4, min_peak_ratio: 1.6, peak_fraction: 0.3, equalize_phase: true }
+        Self {
+            window_radius_px: 4,
+            flat_window_radius_px: 5,
+            min_peak_ratio: 1.6,
+            peak_fraction: 0.3,
+            equalize_phase: true,
+        }
+    }
+}
+
+impl DepthOptions {
+    /// These options for a thread of `form`: the focus window is `flat_window_radius_px` where the
+    /// crests and roots are flat, `window_radius_px` where they are arcs.
+    pub fn for_form(&self, form: &ThreadForm) -> Self {
+        let window_radius_px = match form.profile {
+            ProfileShape::Trapezoid { .. } => self.flat_window_radius_px,
+            ProfileShape::Rounded { .. } => self.window_radius_px,
+        };
+        Self { window_radius_px, ..self.clone() }
     }
 }
 

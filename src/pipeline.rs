@@ -116,6 +116,7 @@ pub fn inspect(
     let total = bundle.views.len();
     // Focus volumes are handed from view to view (one per view in flight, not one per view).
     let volumes = std::sync::Mutex::new(Vec::<Vec<f32>>::new());
+    let depth_options = options.depth.for_form(&bundle.part.form);
     let depth_maps: Vec<Option<DepthMap>> = bundle
         .views
         .par_iter()
@@ -126,7 +127,7 @@ pub fn inspect(
                 &mut volume,
                 &bundle.optics,
                 view,
-                &options.depth,
+                &depth_options,
                 |k| bundle.read_frame(v, k),
                 &cancelled,
             );

@@ -6,15 +6,14 @@ use crestscan::thread::ConnectionTable;
 
 /// Depth errors (µm) against truth: all trusted pixels, and those on smooth surface (truth depth
 /// varies < 40 µm within ±4 px: crests, roots, mill surface, away from flank edges).
-fn depth_errors(preset: &'static str) -> (Vec<f64>, Vec<f64>, f64) {
+fn depth_errors(preset: &'static str, options: &DepthOptions) -> (Vec<f64>, Vec<f64>, f64) {
     let dir = rendered(preset);
     let bundle = Bundle::open(dir, &ConnectionTable::api5b(), OpenOptions::default()).unwrap();
     let (mut all, mut smooth, mut pixels) = (Vec::new(), Vec::new(), 0);
     for (v, view) in bundle.views.iter().enumerate() {
-        let map =
-            depth_from_focus(&bundle.optics, view, &DepthOptions::default(), |k| bundle.read_frame(v, k), &|| false)
-                .unwrap()
-                .expect("not cancelled");
+        let map = depth_from_focus(&bundle.optics, view, options, |k| bundle.read_frame(v, k), &|| false)
+            .unwrap()
+            .expect("not cancelled");
         let truth_pfm = std::fs::read(dir.join(format!("truth/{}.depth.pfm", view.id))).unwrap();
         let (w, h, truth) = pfm::read(&truth_pfm).unwrap();
         assert_eq!((w, h), (map.width, map.height));
@@ -54,7 +53,7 @@ fn median_abs(errors: &[f64]) -> f64 {
 #[test]
 fn depth_from_focus_recovers_truth_depth() {
     for preset in ["ci", "ci-telecentric"] {
-        let (all, smooth, coverage) = depth_errors(preset);
+        let (all, smooth, coverage) = depth_errors(preset, &DepthOptions::default());
         let bias = smooth.iter().sum::<f64>() / smooth.len() as f64;
         eprintln!(
             "{preset}: coverage {coverage:.3}; median |error| {:.1} µm over all, {:.1} µm on {} smooth pixels (bias {bias:.1} µm)",
@@ -70,4 +69,25 @@ fn depth_from_focus_recovers_truth_depth() {
         assert!(median_abs(&smooth) < 25.0, "{preset}: {}", median_abs(&smooth));
         assert!(bias.abs() < 15.0, "{preset}: bias {bias}");
     }
+}
+
+#[test]
+fn a_flat_crested_forms_wider_focus_window_measures_flats_with_less_noise() {
+    // ci renders a buttress part: for_form widens the window there, and only there.
+    let bundle = Bundle::open(rendered("ci"), &ConnectionTable::api5b(), OpenOptions::default()).unwrap();
+    let defaults = DepthOptions::default();
+    let wide = defaults.for_form(&bundle.part.form);
+    assert!(wide.window_radius_px > defaults.window_radius_px);
+    let table = ConnectionTable::api5b();
+    let round = table.get("LC 5-1/2").expect("in the table").form().clone();
+    assert_eq!(defaults.for_form(&round).window_radius_px, defaults.window_radius_px);
+    let (_, narrow_smooth, _) = depth_errors("ci", &defaults);
+    let (_, wide_smooth, _) = depth_errors("ci", &wide);
+    let (narrow, wide) = (median_abs(&narrow_smooth), median_abs(&wide_smooth));
+    eprintln!(
+        "ci smooth pixels, median |error|: {narrow:.2} µm ({} px) → {wide:.2} µm ({} px)",
+        narrow_smooth.len(),
+        wide_smooth.len()
+    );
+    assert!(wide < 0.95 * narrow, "{narrow} → {wide}");
 }
