@@ -9,20 +9,38 @@ pub fn ci_bundle() -> &'static Path {
     rendered("ci")
 }
 
-/// A `ci*` preset rendered once per test run (seed 7).
+static CI: OnceLock<PathBuf> = OnceLock::new();
+static TELECENTRIC: OnceLock<PathBuf> = OnceLock::new();
+
+/// A `ci*` preset rendered once per test run (seed 7), removed when the test process exits.
 pub fn rendered(preset: &'static str) -> &'static Path {
-    static CI: OnceLock<PathBuf> = OnceLock::new();
-    static TELECENTRIC: OnceLock<PathBuf> = OnceLock::new();
     let cell = match preset {
         "ci" => &CI,
         "ci-telecentric" => &TELECENTRIC,
         other => panic!("tests render only the ci presets, not {other}"),
     };
     cell.get_or_init(|| {
+        remove_renders_at_exit();
         let dir = tempfile::Builder::new().prefix(&format!("crestscan-{preset}-")).tempdir().unwrap().keep();
         sim::simulate(&sim::preset(preset).unwrap(), CI_SEED, &dir).unwrap();
         dir
     })
+}
+
+/// Statics are never dropped, so a `TempDir` kept in one would never be removed: the renders are
+/// deleted by a C `atexit` hook instead, which runs when the test harness returns from `main`.
+fn remove_renders_at_exit() {
+    extern "C" fn remove_renders() {
+        for dir in [&CI, &TELECENTRIC].into_iter().filter_map(|cell| cell.get()) {
+            let _ = std::fs::remove_dir_all(dir);
+        }
+    }
+    unsafe extern "C" {
+        fn atexit(callback: extern "C" fn()) -> std::os::raw::c_int;
+    }
+    static HOOK: std::sync::Once = std::sync::Once::new();
+    // SAFETY: registers a plain function with no captured state; it only reads the statics.
+    HOOK.call_once(|| assert_eq!(unsafe { atexit(remove_renders) }, 0, "atexit refused the hook"));
 }
 
 /// A private copy of the ci bundle (without truth/) whose manifest a test may edit.
