@@ -71,6 +71,8 @@ impl Settings {
             .map_err(|e| ConfigError::File { path: path.display().to_string(), message: e.to_string() })
     }
 
+    // `!(x > 0.0)` rather than `x <= 0.0`: a NaN from a config file fails the check too.
+    #[allow(clippy::neg_cmp_op_on_partial_ord)]
     pub fn validate(&self) -> Result<(), ConfigError> {
         let invalid = |field, message: &str| Err(ConfigError::Invalid { field, message: message.into() });
         if self.max_upload_mb == 0 {

@@ -792,7 +792,7 @@ mod tests {
         let level = |x: usize, y: usize, k: usize| -> u8 {
             let peak = if x < w / 2 { 3.0 } else { 4.0 };
             let contrast = (-(k as f32 - peak).powi(2) / 2.0).exp();
-            let checker = if (x + y) % 2 == 0 { 1.0 } else { -1.0 };
+            let checker = if (x + y).is_multiple_of(2) { 1.0 } else { -1.0 };
             (255.0 * (0.45 + 0.02 * k as f32 + 0.3 * contrast * checker)).round() as u8
         };
         let optics = Optics {
@@ -870,7 +870,7 @@ mod tests {
                     (0..w * h)
                         .map(|i| {
                             let (x, y) = (i % w, i / w);
-                            let checker = if (x + y) % 2 == 0 { 1.0 } else { -1.0 };
+                            let checker = if (x + y).is_multiple_of(2) { 1.0 } else { -1.0 };
                             0.3 + 0.05 * k as f32 + 0.1 * contrast(x / 12, k) * checker
                         })
                         .collect(),

@@ -81,7 +81,7 @@ impl Source {
         let mut head = [0u8; 512];
         let n = read_up_to(&mut file, &mut head).map_err(|e| io_err(&display, e))?;
         file.seek(SeekFrom::Start(0)).map_err(|e| io_err(&display, e))?;
-        if n >= 4 && &head[..4] == b"PK\x03\x04" || n >= 4 && &head[..4] == b"PK\x05\x06" {
+        if n >= 4 && (&head[..4] == b"PK\x03\x04" || &head[..4] == b"PK\x05\x06") {
             Self::open_zip(file, limits, display)
         } else if n >= 262 && &head[257..262] == b"ustar" {
             Self::open_tar(file, limits, display)

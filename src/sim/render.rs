@@ -386,7 +386,7 @@ pub fn disc_blur(radiance: &[f32], radius_px: &[f32], w: usize, h: usize) -> Vec
     let reach = (max_r + 0.5).ceil() as i64;
     // Normalisation of each disc: the sum of its weights over the integer grid, tabulated.
     let table = disc_norm_table();
-    let norms: Vec<f32> = radius_px.iter().map(|&r| disc_norm(&table, r)).collect();
+    let norms: Vec<f32> = radius_px.iter().map(|&r| disc_norm(table, r)).collect();
     let mut out = vec![0f32; radiance.len()];
     for y in 0..h as i64 {
         for x in 0..w as i64 {
