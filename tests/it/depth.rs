@@ -2,16 +2,23 @@ use crate::common::rendered;
 use crestscan::bundle::{Bundle, OpenOptions};
 use crestscan::depth::{DepthOptions, depth_from_focus};
 use crestscan::sim::pfm;
-use crestscan::thread::ConnectionTable;
+use crestscan::thread::{ConnectionTable, ThreadForm};
 
 /// Depth errors (µm) against truth: all trusted pixels, and those on smooth surface (truth depth
-/// varies < 40 µm within ±4 px: crests, roots, mill surface, away from flank edges).
-fn depth_errors(preset: &'static str, options: &DepthOptions) -> (Vec<f64>, Vec<f64>, f64) {
+/// varies < 40 µm within ±`smooth_radius_px`: crests, roots, mill surface, where no focus window
+/// of that reach straddles a flank). `options` gives the depth options for the bundle's form.
+fn depth_errors(
+    preset: &'static str,
+    options: impl Fn(&ThreadForm) -> DepthOptions,
+    smooth_radius_px: impl Fn(&DepthOptions) -> usize,
+) -> (Vec<f64>, Vec<f64>, f64) {
     let dir = rendered(preset);
     let bundle = Bundle::open(dir, &ConnectionTable::api5b(), OpenOptions::default()).unwrap();
+    let options = options(&bundle.part.form);
+    let r = smooth_radius_px(&options);
     let (mut all, mut smooth, mut pixels) = (Vec::new(), Vec::new(), 0);
     for (v, view) in bundle.views.iter().enumerate() {
-        let map = depth_from_focus(&bundle.optics, view, options, |k| bundle.read_frame(v, k), &|| false)
+        let map = depth_from_focus(&bundle.optics, view, &options, |k| bundle.read_frame(v, k), &|| false)
             .unwrap()
             .expect("not cancelled");
         let truth_pfm = std::fs::read(dir.join(format!("truth/{}.depth.pfm", view.id))).unwrap();
@@ -25,10 +32,10 @@ fn depth_errors(preset: &'static str, options: &DepthOptions) -> (Vec<f64>, Vec<
             let error_um = (d - t) as f64 * 1e3;
             all.push(error_um);
             let (x, y) = (i % w, i / w);
-            if x >= 4 && y >= 4 && x + 4 < w && y + 4 < h {
+            if x >= r && y >= r && x + r < w && y + r < h {
                 let (mut lo, mut hi) = (f32::MAX, f32::MIN);
-                for yy in y - 4..=y + 4 {
-                    for xx in x - 4..=x + 4 {
+                for yy in y - r..=y + r {
+                    for xx in x - r..=x + r {
                         lo = lo.min(truth[yy * w + xx]);
                         hi = hi.max(truth[yy * w + xx]);
                     }
@@ -52,8 +59,10 @@ fn median_abs(errors: &[f64]) -> f64 {
 
 #[test]
 fn depth_from_focus_recovers_truth_depth() {
+    // As the pipeline runs it: the window follows the form (buttress on ci, round on telecentric).
     for preset in ["ci", "ci-telecentric"] {
-        let (all, smooth, coverage) = depth_errors(preset, &DepthOptions::default());
+        let (all, smooth, coverage) =
+            depth_errors(preset, |form| DepthOptions::default().for_form(form), |o| o.window_radius_px);
         let bias = smooth.iter().sum::<f64>() / smooth.len() as f64;
         eprintln!(
             "{preset}: coverage {coverage:.3}; median |error| {:.1} µm over all, {:.1} µm on {} smooth pixels (bias {bias:.1} µm)",
@@ -81,8 +90,10 @@ fn a_flat_crested_forms_wider_focus_window_measures_flats_with_less_noise() {
     let table = ConnectionTable::api5b();
     let round = table.get("LC 5-1/2").expect("in the table").form().clone();
     assert_eq!(defaults.for_form(&round).window_radius_px, defaults.window_radius_px);
-    let (_, narrow_smooth, _) = depth_errors("ci", &defaults);
-    let (_, wide_smooth, _) = depth_errors("ci", &wide);
+    // Smooth pixels judged by the wider window's reach for both, so neither set is nearer a flank.
+    let reach = |_: &DepthOptions| wide.window_radius_px;
+    let (_, narrow_smooth, _) = depth_errors("ci", |_| defaults.clone(), reach);
+    let (_, wide_smooth, _) = depth_errors("ci", |_| wide.clone(), reach);
     let (narrow, wide) = (median_abs(&narrow_smooth), median_abs(&wide_smooth));
     eprintln!(
         "ci smooth pixels, median |error|: {narrow:.2} µm ({} px) → {wide:.2} µm ({} px)",
