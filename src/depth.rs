@@ -62,7 +62,8 @@ impl Default for DepthOptions {
 
 impl DepthOptions {
     /// These options for a thread of `form`: the focus window is `flat_window_radius_px` where the
-    /// crests and roots are flat, `window_radius_px` where they are arcs.
+    /// crests and roots are flat, `window_radius_px` where they are arcs. Meant for the options as
+    /// configured: the result's `window_radius_px` is the window that runs.
     pub fn for_form(&self, form: &ThreadForm) -> Self {
         let window_radius_px = match form.profile {
             ProfileShape::Trapezoid { .. } => self.flat_window_radius_px,
@@ -649,6 +650,14 @@ pub fn equalize_sub_frame_phase(maps: &mut [DepthMap], grids: &[Option<(f64, f64
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn options_stored_before_the_flat_window_existed_still_load_with_its_default() {
+        let old = r#"{"window_radius_px": 3, "min_peak_ratio": 1.6, "peak_fraction": 0.3}"#;
+        let options: DepthOptions = serde_json::from_str(old).unwrap();
+        assert_eq!((options.window_radius_px, options.flat_window_radius_px), (3, 5));
+        assert!(options.equalize_phase);
+    }
 
     #[test]
     fn keeping_the_sharpest_frame_by_masks_matches_the_branches_and_their_ties() {

@@ -21,9 +21,10 @@ pub fn rendered(preset: &'static str) -> &'static Path {
     };
     cell.get_or_init(|| {
         remove_renders_at_exit();
-        let dir = tempfile::Builder::new().prefix(&format!("crestscan-{preset}-")).tempdir().unwrap().keep();
-        sim::simulate(&sim::preset(preset).unwrap(), CI_SEED, &dir).unwrap();
-        dir
+        let dir = tempfile::Builder::new().prefix(&format!("crestscan-{preset}-")).tempdir().unwrap();
+        sim::simulate(&sim::preset(preset).unwrap(), CI_SEED, dir.path()).unwrap();
+        // Kept (and so removed at exit) only once rendered: a failed render is dropped here.
+        dir.keep()
     })
 }
 
@@ -39,7 +40,8 @@ fn remove_renders_at_exit() {
         fn atexit(callback: extern "C" fn()) -> std::os::raw::c_int;
     }
     static HOOK: std::sync::Once = std::sync::Once::new();
-    // SAFETY: registers a plain function with no captured state; it only reads the statics.
+    // SAFETY: the declaration matches C's `int atexit(void (*)(void))`, and the callback never
+    // unwinds (it ignores every error).
     HOOK.call_once(|| assert_eq!(unsafe { atexit(remove_renders) }, 0, "atexit refused the hook"));
 }
 

@@ -6,12 +6,13 @@ use crestscan::thread::{ConnectionTable, ThreadForm};
 
 /// Depth errors (µm) against truth: all trusted pixels, and those on smooth surface (truth depth
 /// varies < 40 µm within ±`smooth_radius_px`: crests, roots, mill surface, where no focus window
-/// of that reach straddles a flank). `options` gives the depth options for the bundle's form.
+/// of that reach straddles a flank) keyed by pixel (view by view, in image order). `options`
+/// gives the depth options for the bundle's form.
 fn depth_errors(
     preset: &'static str,
     options: impl Fn(&ThreadForm) -> DepthOptions,
     smooth_radius_px: impl Fn(&DepthOptions) -> usize,
-) -> (Vec<f64>, Vec<f64>, f64) {
+) -> (Vec<f64>, Vec<(usize, f64)>, f64) {
     let dir = rendered(preset);
     let bundle = Bundle::open(dir, &ConnectionTable::api5b(), OpenOptions::default()).unwrap();
     let options = options(&bundle.part.form);
@@ -24,6 +25,7 @@ fn depth_errors(
         let truth_pfm = std::fs::read(dir.join(format!("truth/{}.depth.pfm", view.id))).unwrap();
         let (w, h, truth) = pfm::read(&truth_pfm).unwrap();
         assert_eq!((w, h), (map.width, map.height));
+        let first_pixel = pixels;
         pixels += truth.len();
         for (i, (d, t)) in map.depth_mm.iter().zip(&truth).enumerate() {
             if !(d.is_finite() && t.is_finite()) {
@@ -41,7 +43,7 @@ fn depth_errors(
                     }
                 }
                 if hi - lo < 0.04 {
-                    smooth.push(error_um);
+                    smooth.push((first_pixel + i, error_um));
                 }
             }
         }
@@ -63,6 +65,7 @@ fn depth_from_focus_recovers_truth_depth() {
     for preset in ["ci", "ci-telecentric"] {
         let (all, smooth, coverage) =
             depth_errors(preset, |form| DepthOptions::default().for_form(form), |o| o.window_radius_px);
+        let smooth: Vec<f64> = smooth.into_iter().map(|(_, e)| e).collect();
         let bias = smooth.iter().sum::<f64>() / smooth.len() as f64;
         eprintln!(
             "{preset}: coverage {coverage:.3}; median |error| {:.1} µm over all, {:.1} µm on {} smooth pixels (bias {bias:.1} µm)",
@@ -71,7 +74,7 @@ fn depth_from_focus_recovers_truth_depth() {
             smooth.len()
         );
         // A border of window + breathing shift (10 px on the small ci frames with the buttress window,
-        // 17% of them) is left out.
+        // 17% of them) is left out: ci measures 0.826, the telecentric bundle 0.908.
         assert!(coverage > 0.8, "{preset}: {coverage}");
         assert!(smooth.len() > 1000, "{preset}: {} smooth pixels", smooth.len());
         // Frames are 150–250 µm apart; the peak is found to a tenth of a step. The bias on ci is
@@ -91,15 +94,15 @@ fn a_flat_crested_forms_wider_focus_window_measures_flats_with_less_noise() {
     let table = ConnectionTable::api5b();
     let round = table.get("LC 5-1/2").expect("in the table").form().clone();
     assert_eq!(defaults.for_form(&round).window_radius_px, defaults.window_radius_px);
-    // Smooth pixels judged by the wider window's reach for both, so neither set is nearer a flank.
+    // The same pixels for both: smooth over the wider window's reach and trusted in both maps.
     let reach = |_: &DepthOptions| wide.window_radius_px;
     let (_, narrow_smooth, _) = depth_errors("ci", |_| defaults.clone(), reach);
     let (_, wide_smooth, _) = depth_errors("ci", |_| wide.clone(), reach);
-    let (narrow, wide) = (median_abs(&narrow_smooth), median_abs(&wide_smooth));
-    eprintln!(
-        "ci smooth pixels, median |error|: {narrow:.2} µm ({} px) → {wide:.2} µm ({} px)",
-        narrow_smooth.len(),
-        wide_smooth.len()
-    );
+    let wide_by_pixel: std::collections::HashMap<usize, f64> = wide_smooth.into_iter().collect();
+    let (narrow_errors, wide_errors): (Vec<f64>, Vec<f64>) =
+        narrow_smooth.iter().filter_map(|(pixel, e)| Some((*e, *wide_by_pixel.get(pixel)?))).unzip();
+    assert!(narrow_errors.len() > 100_000, "{} pixels in common", narrow_errors.len());
+    let (narrow, wide) = (median_abs(&narrow_errors), median_abs(&wide_errors));
+    eprintln!("ci smooth pixels trusted in both ({}), median |error|: {narrow:.2} → {wide:.2} µm", narrow_errors.len());
     assert!(wide < 0.95 * narrow, "{narrow} → {wide}");
 }
