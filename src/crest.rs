@@ -251,8 +251,13 @@ pub fn observations(
     // A sustained dip counts at a lower bar than a single bin: the median of five bins along the
     // helix below the reference by `dark_run_sigmas` scatters (one dark speck cannot make it).
     let run_below = reference - options.dark_run_sigmas * gray_scatter;
-    let run_gray = crate::profile::median_along_helix(
+    // Only a whole window of five makes a sustained dip: where it is cut short (the start of the
+    // helix, next to an unmeasured bin) one or two dim bins would stand for five. The first
+    // thread's crest meets the chamfer at the start of the helix and reads dimmer there (a
+    // quarter below the reference over its first few degrees on the round presets).
+    let run_gray = crate::profile::centred_median(
         &threads.iter().flat_map(|t| t.bins.iter().map(|b| b.crest_gray.map(f64::from))).collect::<Vec<_>>(),
+        2,
     );
     let chamfer_zone_mm = 1.5 * pitch_mm;
     let in_helix_order = || threads.iter().flat_map(|t| t.bins.iter());
@@ -488,6 +493,24 @@ mod tests {
         let threads = vec![one_thread(4, 20.0, None, |k| if (100..112).contains(&k) || k == 300 { 0.51 } else { 0.6 })];
         let findings = observations(&threads, 40.0, 5.08, 0.0, &CrestOptions::default());
         assert_eq!(findings.observations[0].black_crest_arcs_deg, vec![[100.0, 112.0]]);
+    }
+
+    /// The helix starts with thread 1 at the chamfer, where its crest reads a little dim over a
+    /// few degrees: faint bins there are not a sustained dip unless five in a row are (a window cut
+    /// short at the helix's start, or by an unmeasured bin, would let one or two bins stand for
+    /// five).
+    #[test]
+    fn faint_bins_where_the_helix_starts_or_a_gap_cuts_the_window_are_not_a_sustained_dip() {
+        // Reference 0.6, scatter at its 3% floor: one bin must fall below 0.492, five in a row
+        // below 0.528. Bins 0–1 read 0.51 (then 0.6); bins 200–201 read 0.51 next to a gap at 202.
+        let mut thread = one_thread(1, 1.1, None, |k| if k < 2 || k == 200 || k == 201 { 0.51 } else { 0.6 });
+        thread.bins[202].crest_gray = None;
+        let findings = observations(&[thread.clone()], 40.0, 5.08, 0.0, &CrestOptions::default());
+        assert!(findings.observations[0].black_crest_arcs_deg.is_empty(), "{:?}", findings.observations[0]);
+        // Five faint bins in a row at the start are a dip, as anywhere else.
+        thread.bins[..5].iter_mut().for_each(|b| b.crest_gray = Some(0.51));
+        let findings = observations(&[thread], 40.0, 5.08, 0.0, &CrestOptions::default());
+        assert_eq!(findings.observations[0].black_crest_arcs_deg, vec![[0.0, 5.0]]);
     }
 
     #[test]

@@ -46,6 +46,11 @@ enum Command {
         /// How the buttress 25% limit applies.
         #[arg(long, value_enum, default_value_t = ArcRuleArg::PerThread)]
         arc_rule: ArcRuleArg,
+        /// Report each 1° bin's height as the interquartile mean of the 2N + 1 bins centred on it
+        /// along the helix (0: each bin's own fit, noisier; a dent shorter than about N degrees is
+        /// averaged away).
+        #[arg(long, default_value_t = crestscan::profile::ProfileOptions::default().height_window_half_bins)]
+        height_window_half_bins: usize,
     },
     /// Run a benchmark suite: render its cases (cached in --work), inspect, compare with truth.
     Bench {
@@ -237,7 +242,7 @@ fn main() -> Result<()> {
                 summary.verdict.as_str()
             );
         }
-        Command::Inspect { bundle, out, json, arc_rule } => {
+        Command::Inspect { bundle, out, json, arc_rule, height_window_half_bins } => {
             let table = ConnectionTable::api5b();
             let b = Bundle::open(&bundle, &table, OpenOptions::default())
                 .map_err(|e| anyhow::anyhow!("[{}] {e}", e.code()))?;
@@ -246,6 +251,7 @@ fn main() -> Result<()> {
                     ArcRuleArg::PerThread => ArcRule::PerThread,
                     ArcRuleArg::Combined => ArcRule::Combined,
                 },
+                profile: crestscan::profile::ProfileOptions { height_window_half_bins },
                 ..Default::default()
             };
             let cancel = AtomicBool::new(false);

@@ -10,7 +10,7 @@ use crate::depth::{DepthMap, DepthOptions, depth_from_focus_in};
 use crate::fuse::{Fusion, GridSpec, UnrolledMap};
 use crate::mesh::{self, MeshOptions};
 use crate::optics::ViewPose;
-use crate::profile;
+use crate::profile::{self, ProfileOptions};
 use crate::register::{self, RegisterOptions};
 use crate::report::{self, HeightSeries, Report, StageTiming, ThreadReport};
 use crate::rules::{self, ArcRule, RuleInput};
@@ -25,6 +25,9 @@ pub struct PipelineOptions {
     pub crest: CrestOptions,
     pub register: RegisterOptions,
     pub mesh: MeshOptions,
+    /// How heights are reported (options stored before this existed load with the default).
+    #[serde(default)]
+    pub profile: ProfileOptions,
     pub arc_rule: ArcRule,
     /// Fused-map cell size in object pixels.
     pub cell_px: f64,
@@ -44,6 +47,7 @@ impl Default for PipelineOptions {
             crest: CrestOptions::default(),
             register: RegisterOptions::default(),
             mesh: MeshOptions::default(),
+            profile: ProfileOptions::default(),
             arc_rule: ArcRule::PerThread,
             cell_px: 1.5,
             anchor_end_face: true,
@@ -246,10 +250,10 @@ pub fn inspect(
         || {
             timed(|| {
                 let helix = profile::estimate_helix(&map, form).map(|first| {
-                    let threads = profile::measure_threads(&map, form, &first);
+                    let threads = profile::measure_threads(&map, form, &first, &options.profile);
                     profile::refine_helix(&map, form, &first, &threads)
                 });
-                let threads = helix.as_ref().map(|h| profile::measure_threads(&map, form, h));
+                let threads = helix.as_ref().map(|h| profile::measure_threads(&map, form, h, &options.profile));
                 (helix, threads)
             })
         },
@@ -326,4 +330,19 @@ pub fn inspect(
         peak_memory_mb: report::peak_memory_mb(),
     };
     Ok(Some(Inspection { report, map, depth_maps, poses, mesh }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Jobs store their options; those stored before the profile options existed still load.
+    #[test]
+    fn options_stored_before_the_profile_options_existed_load_with_their_default() {
+        let mut stored = serde_json::to_value(PipelineOptions::default()).unwrap();
+        stored.as_object_mut().unwrap().remove("profile");
+        let options: PipelineOptions = serde_json::from_value(stored).unwrap();
+        assert_eq!(options.profile, ProfileOptions::default());
+        assert_eq!(options.profile.height_window_half_bins, 5);
+    }
 }

@@ -41,6 +41,27 @@ pub struct BinMeasure {
     pub crest_gray: Option<f32>,
 }
 
+/// How the profile stage reports heights.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct ProfileOptions {
+    /// Each 1° bin's reported height is the interquartile mean of the 2h + 1 bins centred on it
+    /// along the helix, h being this half width (fewer at the ends of a measured run). One bin's
+    /// own fit scatters by several µm on a round crest (its depth is noisy and the fit spans a few
+    /// dozen samples); the thread's true height changes slowly along the helix (taper, run-out,
+    /// the mill surface meeting the cone at a shallow angle), so averaging over a few degrees
+    /// lowers the scatter, and trimming a quarter at each end keeps a spike out. The price is
+    /// resolution: a dent shorter than about h degrees is averaged away. 0 reports each bin's
+    /// own fit.
+    pub height_window_half_bins: usize,
+}
+
+impl Default for ProfileOptions {
+    fn default() -> Self {
+        Self { height_window_half_bins: 5 }
+    }
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ThreadMeasure {
     pub index: u32,
@@ -393,7 +414,12 @@ fn fit_line_checked(pts: &[(f64, f64)]) -> Option<(f64, f64)> {
 }
 
 /// Heights of every thread whose crest line starts within the map, per 1° bin.
-pub fn measure_threads(map: &UnrolledMap, form: &ThreadForm, helix: &Helix) -> Vec<ThreadMeasure> {
+pub fn measure_threads(
+    map: &UnrolledMap,
+    form: &ThreadForm,
+    helix: &Helix,
+    options: &ProfileOptions,
+) -> Vec<ThreadMeasure> {
     let g = &map.grid;
     let p = helix.pitch_mm;
     let (crest_half, root_half) = windows(form);
@@ -472,8 +498,10 @@ pub fn measure_threads(map: &UnrolledMap, form: &ThreadForm, helix: &Helix) -> V
         let rb = fit_at_centre(&w.root_before, root_section, root_half);
         let ra = fit_at_centre(&w.root_after, root_section, root_half);
         // A root whose window reaches past the end face is not on the part (or is the chamfer):
-        // there is no adjacent root to measure from.
-        let root_on_part = w.crest_z_mm + before - root_half > 0.0;
+        // there is no adjacent root to measure from. Nor is one whose window reaches into the
+        // map's first cell on the part: that cell holds the end face's edge, whose silhouette
+        // pulls the fused radius off the root (round thread 1's first bins read 25–50 µm high).
+        let root_on_part = w.crest_z_mm + before - root_half > g.dz_mm;
         let height = match (crest_r, rb, ra) {
             (Some(c), Some(b), Some(a)) if root_on_part => Some(c - (b + (a - b) * (0.0 - before) / (after - before))),
             _ => None,
@@ -488,37 +516,67 @@ pub fn measure_threads(map: &UnrolledMap, form: &ThreadForm, helix: &Helix) -> V
     }
     // Along the helix, thread i's last bin (359.5°) is followed by thread i + 1's first (0.5°).
     let helix_order: Vec<Option<f64>> = threads.iter().flat_map(|t| t.bins.iter().map(|b| b.height_mm)).collect();
-    let filtered = median_along_helix(&helix_order);
+    let filtered = trimmed_mean_along_helix(&helix_order, options.height_window_half_bins);
     for (bin, h) in threads.iter_mut().flat_map(|t| t.bins.iter_mut()).zip(filtered) {
         bin.height_mm = h;
     }
     threads
 }
 
-/// Each bin's height replaced by the median of the five bins around it along the helix (three at
-/// the ends of the measured runs), where all were measured. One bin's fit can be thrown by a few
-/// bad samples (a specular pixel, a flank leaking into a window); a real change of height (a black
-/// crest, the run-out) spans many bins and keeps its edges, which a median does not move. The
+/// Each bin's value replaced by the interquartile mean of the 2·`half` + 1 bins centred on it
+/// along the helix (the values between the quarter ranks: a quarter, at least one, dropped from
+/// each end; the median of three), where all were measured, else over the widest centred window
+/// that was. Unmeasured bins stay unmeasured. As in [`median_along_helix`], the sequence is the
+/// helix, not the circle.
+pub(crate) fn trimmed_mean_along_helix(values: &[Option<f64>], half: usize) -> Vec<Option<f64>> {
+    let n = values.len();
+    let mut window = Vec::with_capacity(2 * half + 1);
+    (0..n)
+        .map(|i| {
+            values[i]?;
+            let h =
+                (1..=half).rev().find(|&h| i >= h && i + h < n && values[i - h..=i + h].iter().all(Option::is_some))?;
+            window.clear();
+            window.extend(values[i - h..=i + h].iter().flatten());
+            window.sort_by(f64::total_cmp);
+            let trim = (window.len() / 4).max(1);
+            let kept = &window[trim..window.len() - trim];
+            Some(kept.iter().sum::<f64>() / kept.len() as f64)
+        })
+        .zip(values)
+        .map(|(smoothed, &own)| smoothed.or(own))
+        .collect()
+}
+
+/// Each bin's value (a crest's deficit below the cone) replaced by the median of the five bins
+/// around it along the helix (three, else its own, at the ends of the measured runs), where all
+/// were measured. One bin's fit can be thrown by a few bad samples (a specular pixel, a flank
+/// leaking into a window); a real change (a black crest) spans many bins and keeps its edges,
+/// which a median does not move. The
 /// sequence is the helix, not the circle: across 360° → 0° a crest continues as the next thread,
 /// whose height on a run-out differs.
 pub(crate) fn median_along_helix(heights: &[Option<f64>]) -> Vec<Option<f64>> {
-    let n = heights.len();
-    let window = |i: usize, half: usize| -> Option<Vec<f64>> {
-        if i < half || i + half >= n {
-            return None;
-        }
-        heights[i - half..=i + half].iter().copied().collect()
-    };
+    let (five, three) = (centred_median(heights, 2), centred_median(heights, 1));
+    five.into_iter().zip(three).zip(heights).map(|((five, three), &own)| own.and(five.or(three).or(own))).collect()
+}
+
+/// The median of the 2·`half` + 1 bins centred on each bin along the helix; None wherever one of
+/// them is unmeasured or the window runs off either end of the helix.
+pub(crate) fn centred_median(values: &[Option<f64>], half: usize) -> Vec<Option<f64>> {
+    let n = values.len();
+    let mut window = Vec::with_capacity(2 * half + 1);
     (0..n)
         .map(|i| {
-            heights[i]?;
-            let mut w = window(i, 2).or_else(|| window(i, 1))?;
-            w.sort_by(f64::total_cmp);
-            Some(w[w.len() / 2])
+            if i < half || i + half >= n {
+                return None;
+            }
+            window.clear();
+            for v in &values[i - half..=i + half] {
+                window.push((*v)?);
+            }
+            window.sort_by(f64::total_cmp);
+            Some(window[half])
         })
-        .map(Some)
-        .zip(heights)
-        .map(|(m, &h)| m.flatten().or(h))
         .collect()
 }
 
@@ -539,6 +597,48 @@ mod tests {
         assert_eq!((m[11], m[13]), (Some(0.8), Some(0.8)));
         assert_eq!((m[0], m[15]), (Some(1.0), Some(0.8)), "ends are not wrapped");
     }
+    #[test]
+    fn the_interquartile_mean_along_the_helix_drops_spikes_averages_scatter_and_keeps_a_ramp() {
+        let smooth = |v: &[Option<f64>], half| trimmed_mean_along_helix(v, half);
+        // A spike in a level run is trimmed away entirely.
+        let mut level: Vec<Option<f64>> = vec![Some(1.0); 30];
+        level[15] = Some(1.5);
+        assert!(smooth(&level, 5).iter().all(|h| (h.unwrap() - 1.0).abs() < 1e-12), "{:?}", smooth(&level, 5));
+        // Alternating ±10 µm scatter: each bin's own value is 10 µm off, the mean of the kept middle
+        // is within 10/7 µm (7 of 11 kept: at most one sign in excess).
+        let scatter: Vec<Option<f64>> = (0..40).map(|i| Some(1.0 + if i % 2 == 0 { 0.010 } else { -0.010 })).collect();
+        let out = smooth(&scatter, 5);
+        for (i, h) in out.iter().enumerate().take(35).skip(5) {
+            assert!((h.unwrap() - 1.0).abs() <= 0.010 / 7.0 + 1e-12, "bin {i}: {h:?}");
+        }
+        // A ramp (a vanishing thread's height) is kept where the window is whole: its values are
+        // symmetric about the centre.
+        let ramp: Vec<Option<f64>> = (0..40).map(|i| Some(1.5 - 0.005 * i as f64)).collect();
+        for (i, (h, r)) in smooth(&ramp, 5).iter().zip(&ramp).enumerate() {
+            assert!((h.unwrap() - r.unwrap()).abs() < 1e-12, "bin {i}");
+        }
+        // Gaps stay gaps; next to one (and at the ends, which do not wrap) the window narrows to
+        // what is measured on both sides: bins 20 and 22 beside the gap at 21 keep their own
+        // values, bin 1 takes the median of bins 0–2.
+        let mut gappy = scatter.clone();
+        gappy[21] = None;
+        let out = smooth(&gappy, 5);
+        assert_eq!(out[21], None);
+        assert_eq!((out[20], out[22]), (gappy[20], gappy[22]));
+        assert_eq!(out[0], gappy[0], "the first bin has no bin before it");
+        assert_eq!(out[1], Some(1.0 + 0.010), "three bins: the median");
+        // Half width 0 reports each bin's own value.
+        assert_eq!(smooth(&scatter, 0), scatter);
+    }
+
+    #[test]
+    fn centred_medians_need_the_whole_window() {
+        let mut v: Vec<Option<f64>> = (0..10).map(|i| Some(i as f64)).collect();
+        v[6] = None;
+        let m = centred_median(&v, 2);
+        assert_eq!(&m[..], &[None, None, Some(2.0), Some(3.0), None, None, None, None, None, None]);
+    }
+
     use crate::fuse::GridSpec;
 
     /// A synthetic fused map of an ideal buttress thread.
@@ -582,7 +682,7 @@ mod tests {
             }
         }
         let first = estimate_helix(&map, &form).unwrap();
-        let threads = measure_threads(&map, &form, &first);
+        let threads = measure_threads(&map, &form, &first, &ProfileOptions::default());
         let refined = refine_helix(&map, &form, &first, &threads);
         assert!(refined.z_h_mm != first.z_h_mm, "two full threads were found, so the phase was read again");
         let after_um = 1e3 * (refined.z_h_mm - z_h).abs();
@@ -623,7 +723,7 @@ mod tests {
         let helix = estimate_helix(&map, &form).unwrap();
         assert!((helix.z_h_mm - 1.234).abs() < 0.01, "{}", helix.z_h_mm);
         assert!((helix.taper_on_diameter - 0.0625).abs() < 0.005, "{}", helix.taper_on_diameter);
-        let threads = measure_threads(&map, &form, &helix);
+        let threads = measure_threads(&map, &form, &helix, &ProfileOptions::default());
         let mut checked = 0;
         for t in &threads {
             for b in &t.bins {
@@ -641,10 +741,42 @@ mod tests {
         let (map, form) = ideal_map(3.9, 0.06);
         let helix = estimate_helix(&map, &form).unwrap();
         assert!((helix.z_h_mm - 3.9).abs() < 0.02, "{}", helix.z_h_mm);
-        let threads = measure_threads(&map, &form, &helix);
+        let threads = measure_threads(&map, &form, &helix, &ProfileOptions::default());
         let heights: Vec<f64> = threads.iter().flat_map(|t| t.bins.iter().filter_map(|b| b.height_mm)).collect();
         let rms = (heights.iter().map(|h| (h - 1.5748).powi(2)).sum::<f64>() / heights.len() as f64).sqrt();
         assert!(rms < 0.01, "{rms}");
+    }
+
+    /// The map's first cell on the part holds the end face's edge, whose silhouette pulls the
+    /// fused radius off the surface: no root window reaches into it.
+    #[test]
+    fn the_end_face_cell_is_not_taken_for_a_root() {
+        let form = ThreadForm::api_round(3.175, 1.810, 0.05, 0.0625, None).unwrap();
+        let (mut map, form) = ideal_map_of(form, 1.1, 0.01);
+        let helix = estimate_helix(&map, &form).unwrap();
+        let options = ProfileOptions { height_window_half_bins: 0 };
+        let clean = measure_threads(&map, &form, &helix, &options);
+        // The edge reads 12 µm low all round (within the noise's reach: no outlier to reject).
+        let ntheta = map.grid.ntheta;
+        map.radius_mm[..ntheta].iter_mut().for_each(|r| *r -= 0.012);
+        let edged = measure_threads(&map, &form, &helix, &options);
+        // Every height as before, but for the shared section's curvature, refitted over windows
+        // that include the edge (−0.017 µm on every bin here). With the root windows allowed into
+        // the edge cell, thread 1's first bin reads +0.44 µm.
+        let mut measured = 0;
+        for (e, c) in edged[0].bins.iter().zip(&clean[0].bins) {
+            assert_eq!(e.height_mm.is_some(), c.height_mm.is_some());
+            if let (Some(edged_mm), Some(clean_mm)) = (e.height_mm, c.height_mm) {
+                assert!(
+                    (edged_mm - clean_mm).abs() < 1e-4,
+                    "{}° moved {} µm",
+                    e.angle_deg,
+                    (edged_mm - clean_mm) * 1e3
+                );
+                measured += 1;
+            }
+        }
+        assert!(measured > 200, "{measured}");
     }
 
     /// A round thread's crest and root arcs: the shared curvature is measured from the map (here
@@ -659,7 +791,7 @@ mod tests {
         let (map, form) = ideal_map_of(form, 2.2, 0.03);
         let helix = estimate_helix(&map, &form).unwrap();
         assert!((helix.z_h_mm - 2.2).abs() < 0.02, "{}", helix.z_h_mm);
-        let threads = measure_threads(&map, &form, &helix);
+        let threads = measure_threads(&map, &form, &helix, &ProfileOptions::default());
         let heights: Vec<f64> = threads.iter().flat_map(|t| t.bins.iter().filter_map(|b| b.height_mm)).collect();
         assert!(heights.len() > 360 * 5, "{}", heights.len());
         let mean = heights.iter().sum::<f64>() / heights.len() as f64;
