@@ -26,6 +26,45 @@ impl SurfacePoint {
     }
 }
 
+/// Angles about the pipe axis measured from a reference angle, for the points of one view.
+///
+/// A view sees a few degrees either side of its own angle, so a point's direction turned by the
+/// reference has a small slope t = v/u, and atan t = t − t³/3 + t⁵/5 − … gives the angle to
+/// within an ulp in ten multiply-adds for |t| ≤ 1/8 (the first term left out is below 1e-17 rad);
+/// `atan2` and the wrap into (−π, π] cost several times that, once per point of every view in
+/// registration and fusion (5% of an inspection). Directions farther out take `atan2`.
+#[derive(Clone, Copy, Debug)]
+pub struct AngleFrom {
+    cos: f64,
+    sin: f64,
+}
+
+impl AngleFrom {
+    pub fn new(reference_rad: f64) -> Self {
+        let (sin, cos) = reference_rad.sin_cos();
+        Self { cos, sin }
+    }
+
+    /// The angle of the direction (x, y) from the reference, in (−π, π].
+    #[inline]
+    pub fn of(&self, x: f64, y: f64) -> f64 {
+        let (u, v) = (x * self.cos + y * self.sin, y * self.cos - x * self.sin);
+        if u > 0.0 && v.abs() <= 0.125 * u {
+            let t = v / u;
+            let t2 = t * t;
+            // (atan t − t) / −t³ = 1/3 − t²(1/5 − t²(1/7 − …)), by Horner from 1/19 inwards.
+            const INVERSE_ODD: [f64; 9] =
+                [1.0 / 19.0, 1.0 / 17.0, 1.0 / 15.0, 1.0 / 13.0, 1.0 / 11.0, 1.0 / 9.0, 1.0 / 7.0, 1.0 / 5.0, 1.0 / 3.0];
+            let series = INVERSE_ODD.iter().fold(0.0, |acc, &c| c - t2 * acc);
+            t - t * t2 * series
+        } else {
+            // atan2 gives −π for a direction straight back whose v is −0.
+            let angle = v.atan2(u);
+            if angle == -std::f64::consts::PI { std::f64::consts::PI } else { angle }
+        }
+    }
+}
+
 /// Room for every item an iterator may yield (its upper bound: pages never written cost nothing),
 /// so that collecting a view's points does not copy them as the vector grows.
 pub fn capacity_for<T>(items: &impl Iterator<Item = T>) -> usize {
@@ -69,6 +108,27 @@ pub fn points_of<'a>(
 mod tests {
     use super::*;
     use crate::optics::Projection;
+
+    #[test]
+    fn angles_from_a_reference_match_atan2_and_wrap_into_the_half_open_circle() {
+        for reference_deg in [0.0, 8.0, 90.0, 179.0, 184.0, 352.0, -30.0] {
+            let frame = AngleFrom::new(f64::to_radians(reference_deg));
+            // Offsets across the series' range (±7.1°) and beyond it, all round the circle.
+            for k in -1800..=1800 {
+                let offset_deg = 0.1 * k as f64;
+                let theta = f64::to_radians(reference_deg + offset_deg);
+                let (x, y) = (57.2 * theta.cos(), 57.2 * theta.sin());
+                let want = (y.atan2(x) - f64::to_radians(reference_deg)).rem_euclid(std::f64::consts::TAU);
+                let want = if want > std::f64::consts::PI { want - std::f64::consts::TAU } else { want };
+                let got = frame.of(x, y);
+                assert!(got > -std::f64::consts::PI && got <= std::f64::consts::PI, "{got}");
+                // Within a few ulps of the wrapped atan2 (away from ±π, where the wrap may flip).
+                if offset_deg.abs() < 179.0 {
+                    assert!((got - want).abs() < 4e-15, "{reference_deg}° + {offset_deg}°: {got} vs {want}");
+                }
+            }
+        }
+    }
 
     #[test]
     fn a_pixel_on_the_axis_lands_on_the_view_line() {

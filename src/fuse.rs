@@ -115,8 +115,11 @@ impl Fusion {
     /// Each point's cell and weighted contributions, for points as they come (from
     /// [`crate::cloud::points_of`]): the costly part (angle, radius), which views can compute in
     /// parallel before [`Fusion::accumulate_all`] sums them in order.
-    pub fn bin_each(&self, points: impl IntoIterator<Item = SurfacePoint>) -> Vec<Binned> {
+    /// Bins one view's points; `view_angle_rad` is the view's own angle (any angle gives the same
+    /// bins: the points' angles are measured from it, see [`crate::cloud::AngleFrom`]).
+    pub fn bin_each(&self, points: impl IntoIterator<Item = SurfacePoint>, view_angle_rad: f64) -> Vec<Binned> {
         let grid = &self.grid;
+        let angle = crate::cloud::AngleFrom::new(view_angle_rad);
         let points = points.into_iter();
         let mut out = Vec::with_capacity(crate::cloud::capacity_for(&points));
         for p in points {
@@ -124,7 +127,7 @@ impl Fusion {
             if iz < 0.0 || iz as usize >= grid.nz {
                 continue;
             }
-            let theta = p.theta_rad().rem_euclid(TAU);
+            let theta = (view_angle_rad + angle.of(p.position.x, p.position.y)).rem_euclid(TAU);
             let it = ((theta / TAU * grid.ntheta as f64) as usize).min(grid.ntheta - 1);
             out.push(Binned {
                 cell: (iz as usize * grid.ntheta + it) as u32,
@@ -183,7 +186,7 @@ mod tests {
     fn fuse(views: &[&[SurfacePoint]], grid: GridSpec) -> UnrolledMap {
         let mut fusion = Fusion::new(grid);
         for v in views {
-            let binned = fusion.bin_each(v.iter().copied());
+            let binned = fusion.bin_each(v.iter().copied(), 0.0);
             fusion.accumulate(&binned);
         }
         fusion.finish()
@@ -212,7 +215,7 @@ mod tests {
             .collect();
         let sequential = fuse(&views.iter().map(Vec::as_slice).collect::<Vec<_>>(), grid.clone());
         let mut banded = Fusion::new(grid);
-        let binned: Vec<Vec<Binned>> = views.iter().map(|v| banded.bin_each(v.iter().copied())).collect();
+        let binned: Vec<Vec<Binned>> = views.iter().map(|v| banded.bin_each(v.iter().copied(), 0.0)).collect();
         banded.accumulate_all(&binned);
         let banded = banded.finish();
         let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();

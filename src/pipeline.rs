@@ -220,7 +220,7 @@ pub fn inspect(
         .par_iter()
         .zip(&depth_maps)
         .map(|(pose, depth)| {
-            let binned = fusion.bin_each(cloud::points_of(optics, pose, depth));
+            let binned = fusion.bin_each(cloud::points_of(optics, pose, depth), pose.angle_deg.to_radians());
             // Binning is most of the work; the sums follow in one parallel pass.
             progress(Stage::Fuse, 0.9 * (binned_views.fetch_add(1, Ordering::Relaxed) + 1) as f64 / total as f64);
             binned

@@ -130,8 +130,9 @@ pub fn view_samples(points: impl IntoIterator<Item = SurfacePoint>, view_angle_r
     let mut half_extent_rad = 0f64;
     let mut z_range_mm = (f64::MAX, f64::MIN);
     let mut row_of_last = None;
+    let angle = crate::cloud::AngleFrom::new(view_angle_rad);
     for (i, p) in points.enumerate() {
-        let phi = wrap(p.theta_rad() - view_angle_rad);
+        let phi = angle.of(p.position.x, p.position.y);
         let s = Sample {
             phi_rad: phi,
             z_mm: p.position.z,
