@@ -53,8 +53,17 @@ impl AngleFrom {
             let t = v / u;
             let t2 = t * t;
             // (atan t − t) / −t³ = 1/3 − t²(1/5 − t²(1/7 − …)), by Horner from 1/19 inwards.
-            const INVERSE_ODD: [f64; 9] =
-                [1.0 / 19.0, 1.0 / 17.0, 1.0 / 15.0, 1.0 / 13.0, 1.0 / 11.0, 1.0 / 9.0, 1.0 / 7.0, 1.0 / 5.0, 1.0 / 3.0];
+            const INVERSE_ODD: [f64; 9] = [
+                1.0 / 19.0,
+                1.0 / 17.0,
+                1.0 / 15.0,
+                1.0 / 13.0,
+                1.0 / 11.0,
+                1.0 / 9.0,
+                1.0 / 7.0,
+                1.0 / 5.0,
+                1.0 / 3.0,
+            ];
             let series = INVERSE_ODD.iter().fold(0.0, |acc, &c| c - t2 * acc);
             t - t * t2 * series
         } else {
