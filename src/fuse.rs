@@ -114,9 +114,9 @@ impl Fusion {
 
     /// Each point's cell and weighted contributions, for points as they come (from
     /// [`crate::cloud::points_of`]): the costly part (angle, radius), which views can compute in
-    /// parallel before [`Fusion::accumulate_all`] sums them in order.
-    /// Bins one view's points; `view_angle_rad` is the view's own angle (any angle gives the same
-    /// bins: the points' angles are measured from it, see [`crate::cloud::AngleFrom`]).
+    /// parallel before [`Fusion::accumulate_all`] sums them in order. `view_angle_rad` is the
+    /// view's own angle: the points' angles are measured from it ([`crate::cloud::AngleFrom`]; any
+    /// angle gives the same bins, the view's own the cheapest).
     pub fn bin_each(&self, points: impl IntoIterator<Item = SurfacePoint>, view_angle_rad: f64) -> Vec<Binned> {
         let grid = &self.grid;
         let angle = crate::cloud::AngleFrom::new(view_angle_rad);

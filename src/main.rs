@@ -46,9 +46,9 @@ enum Command {
         /// How the buttress 25% limit applies.
         #[arg(long, value_enum, default_value_t = ArcRuleArg::PerThread)]
         arc_rule: ArcRuleArg,
-        /// Report each 1° bin's height as the interquartile mean of the 2N + 1 bins centred on it
-        /// along the helix (0: each bin's own fit, noisier; a dent shorter than about N degrees is
-        /// averaged away).
+        /// Report each 1° bin's height as the trimmed mean (the middle half or so) of the 2N + 1
+        /// bins centred on it along the helix (0: each bin's own fit, noisier; a dent of a degree
+        /// or two is trimmed away, one of a few degrees flattened).
         #[arg(long, default_value_t = crestscan::profile::ProfileOptions::default().height_window_half_bins)]
         height_window_half_bins: usize,
     },

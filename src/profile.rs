@@ -45,14 +45,14 @@ pub struct BinMeasure {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct ProfileOptions {
-    /// Each 1° bin's reported height is the interquartile mean of the 2h + 1 bins centred on it
-    /// along the helix, h being this half width (fewer at the ends of a measured run). One bin's
-    /// own fit scatters by several µm on a round crest (its depth is noisy and the fit spans a few
-    /// dozen samples); the thread's true height changes slowly along the helix (taper, run-out,
-    /// the mill surface meeting the cone at a shallow angle), so averaging over a few degrees
-    /// lowers the scatter, and trimming a quarter at each end keeps a spike out. The price is
-    /// resolution: a dent shorter than about h degrees is averaged away. 0 reports each bin's
-    /// own fit.
+    /// Each 1° bin's reported height is the trimmed mean of the 2h + 1 bins centred on it along
+    /// the helix (a quarter of them, rounded down, dropped at each end: the middle 7 of 11), h
+    /// being this half width (fewer at the ends of a measured run). One bin's own fit scatters by
+    /// 4–13 µm RMS (its depth is noisy and the fit spans a few dozen samples); the thread's true
+    /// height changes slowly along the helix (taper, run-out, the mill surface meeting the cone at
+    /// a shallow angle), so averaging over a few degrees lowers the scatter, and the trimming
+    /// keeps a spike out. The price is resolution: a dent of a degree or two is trimmed away and
+    /// one of a few degrees flattened. 0 reports each bin's own fit.
     pub height_window_half_bins: usize,
 }
 
@@ -523,10 +523,9 @@ pub fn measure_threads(
     threads
 }
 
-/// Each bin's value replaced by the interquartile mean of the 2·`half` + 1 bins centred on it
-/// along the helix (the values between the quarter ranks: a quarter, at least one, dropped from
-/// each end; the median of three), where all were measured, else over the widest centred window
-/// that was. Unmeasured bins stay unmeasured. As in [`median_along_helix`], the sequence is the
+/// Each bin's value replaced by the trimmed mean of the 2·`half` + 1 bins centred on it along the
+/// helix (a quarter of them, rounded down but at least one, dropped at each end: the median of
+/// three), where all were measured, else over the widest centred window that was. Unmeasured bins stay unmeasured. As in [`median_along_helix`], the sequence is the
 /// helix, not the circle.
 pub(crate) fn trimmed_mean_along_helix(values: &[Option<f64>], half: usize) -> Vec<Option<f64>> {
     let n = values.len();
@@ -552,9 +551,8 @@ pub(crate) fn trimmed_mean_along_helix(values: &[Option<f64>], half: usize) -> V
 /// around it along the helix (three, else its own, at the ends of the measured runs), where all
 /// were measured. One bin's fit can be thrown by a few bad samples (a specular pixel, a flank
 /// leaking into a window); a real change (a black crest) spans many bins and keeps its edges,
-/// which a median does not move. The
-/// sequence is the helix, not the circle: across 360° → 0° a crest continues as the next thread,
-/// whose height on a run-out differs.
+/// which a median does not move. The sequence is the helix, not the circle: across 360° → 0° a
+/// crest continues as the next thread.
 pub(crate) fn median_along_helix(heights: &[Option<f64>]) -> Vec<Option<f64>> {
     let (five, three) = (centred_median(heights, 2), centred_median(heights, 1));
     five.into_iter().zip(three).zip(heights).map(|((five, three), &own)| own.and(five.or(three).or(own))).collect()
@@ -598,7 +596,7 @@ mod tests {
         assert_eq!((m[0], m[15]), (Some(1.0), Some(0.8)), "ends are not wrapped");
     }
     #[test]
-    fn the_interquartile_mean_along_the_helix_drops_spikes_averages_scatter_and_keeps_a_ramp() {
+    fn the_trimmed_mean_along_the_helix_drops_spikes_averages_scatter_and_keeps_a_ramp() {
         let smooth = |v: &[Option<f64>], half| trimmed_mean_along_helix(v, half);
         // A spike in a level run is trimmed away entirely.
         let mut level: Vec<Option<f64>> = vec![Some(1.0); 30];
