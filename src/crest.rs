@@ -506,7 +506,8 @@ mod tests {
         let mut thread = one_thread(1, 1.1, None, |k| if k < 2 || k == 200 || k == 201 { 0.51 } else { 0.6 });
         thread.bins[202].crest_gray = None;
         let findings = observations(&[thread.clone()], 40.0, 5.08, 0.0, &CrestOptions::default());
-        assert!(findings.observations[0].black_crest_arcs_deg.is_empty(), "{:?}", findings.observations[0]);
+        let arcs = &findings.observations[0].black_crest_arcs_deg;
+        assert!(arcs.is_empty(), "{arcs:?}");
         // Five faint bins in a row at the start are a dip, as anywhere else.
         thread.bins[..5].iter_mut().for_each(|b| b.crest_gray = Some(0.51));
         let findings = observations(&[thread], 40.0, 5.08, 0.0, &CrestOptions::default());
