@@ -525,25 +525,20 @@ pub fn measure_threads(
 
 /// Each bin's value replaced by the trimmed mean of the 2·`half` + 1 bins centred on it along the
 /// helix (a quarter of them, rounded down but at least one, dropped at each end: the median of
-/// three), where all were measured, else over the widest centred window that was. Unmeasured bins stay unmeasured. As in [`median_along_helix`], the sequence is the
-/// helix, not the circle.
+/// three), where all were measured, else over the widest centred window that was. Unmeasured bins
+/// stay unmeasured. As in [`median_along_helix`], the sequence is the helix, not the circle.
 pub(crate) fn trimmed_mean_along_helix(values: &[Option<f64>], half: usize) -> Vec<Option<f64>> {
-    let n = values.len();
     let mut window = Vec::with_capacity(2 * half + 1);
-    (0..n)
+    (0..values.len())
         .map(|i| {
-            values[i]?;
-            let h =
-                (1..=half).rev().find(|&h| i >= h && i + h < n && values[i - h..=i + h].iter().all(Option::is_some))?;
-            window.clear();
-            window.extend(values[i - h..=i + h].iter().flatten());
-            window.sort_by(f64::total_cmp);
+            let own = values[i]?;
+            if !widest_whole_window(values, i, half, 1, &mut window) {
+                return Some(own);
+            }
             let trim = (window.len() / 4).max(1);
             let kept = &window[trim..window.len() - trim];
             Some(kept.iter().sum::<f64>() / kept.len() as f64)
         })
-        .zip(values)
-        .map(|(smoothed, &own)| smoothed.or(own))
         .collect()
 }
 
@@ -554,28 +549,44 @@ pub(crate) fn trimmed_mean_along_helix(values: &[Option<f64>], half: usize) -> V
 /// which a median does not move. The sequence is the helix, not the circle: across 360° → 0° a
 /// crest continues as the next thread.
 pub(crate) fn median_along_helix(heights: &[Option<f64>]) -> Vec<Option<f64>> {
-    let (five, three) = (centred_median(heights, 2), centred_median(heights, 1));
-    five.into_iter().zip(three).zip(heights).map(|((five, three), &own)| own.and(five.or(three).or(own))).collect()
+    let mut window = Vec::with_capacity(5);
+    (0..heights.len())
+        .map(|i| {
+            let own = heights[i]?;
+            Some(if widest_whole_window(heights, i, 2, 1, &mut window) { window[window.len() / 2] } else { own })
+        })
+        .collect()
 }
 
 /// The median of the 2·`half` + 1 bins centred on each bin along the helix; None wherever one of
 /// them is unmeasured or the window runs off either end of the helix.
 pub(crate) fn centred_median(values: &[Option<f64>], half: usize) -> Vec<Option<f64>> {
-    let n = values.len();
     let mut window = Vec::with_capacity(2 * half + 1);
-    (0..n)
-        .map(|i| {
-            if i < half || i + half >= n {
-                return None;
-            }
-            window.clear();
-            for v in &values[i - half..=i + half] {
-                window.push((*v)?);
-            }
+    (0..values.len()).map(|i| widest_whole_window(values, i, half, half, &mut window).then(|| window[half])).collect()
+}
+
+/// Fills `window` with the 2h + 1 values centred on bin `i`, sorted, for the widest half width h
+/// from `widest` down to `narrowest` whose window lies within the sequence and was measured
+/// throughout; false (and `window` unspecified) when none does.
+fn widest_whole_window(
+    values: &[Option<f64>],
+    i: usize,
+    widest: usize,
+    narrowest: usize,
+    window: &mut Vec<f64>,
+) -> bool {
+    for h in (narrowest..=widest).rev() {
+        if i < h || i + h >= values.len() {
+            continue;
+        }
+        window.clear();
+        window.extend(values[i - h..=i + h].iter().map_while(|v| *v));
+        if window.len() == 2 * h + 1 {
             window.sort_by(f64::total_cmp);
-            Some(window[half])
-        })
-        .collect()
+            return true;
+        }
+    }
+    false
 }
 
 #[cfg(test)]
