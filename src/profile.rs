@@ -441,49 +441,69 @@ pub fn measure_threads(
         root_after: Vec<(f64, f64)>,
         crest_gray: Option<f32>,
     }
-    let mut pending: Vec<Pending> = Vec::with_capacity(360 * threads.len());
-    for bin in 0..360 {
-        let centre_deg = bin as f64 + 0.5;
-        // Samples of the bin in thread coordinates u = (z − z_h)/p − θ/360 (crest of thread i at u = i − 1).
+    // A window's samples in thread coordinates u = (z − z_h)/p − θ/360 (crest of thread i at
+    // u = i − 1): per column of the bin, the rows whose u falls in the window (found from the
+    // window's z range, then each one checked on u itself), sorted by u; ties keep the order of
+    // the columns, then the rows.
+    let window = |columns: std::ops::Range<usize>, centre_u: f64, half_mm: f64| -> Vec<(f64, f64, f32)> {
+        let (lo, hi) = (centre_u - half_mm / p, centre_u + half_mm / p);
         let mut samples: Vec<(f64, f64, f32)> = Vec::new();
-        for it in bin_columns(g, bin) {
+        for it in columns {
             let theta = g.theta_deg_at(it);
-            for iz in 0..g.nz {
+            // Rows whose centre z is in the window's z range, a row's slack either side.
+            let row_of =
+                |u: f64| ((helix.z_h_mm + p * (u + theta / 360.0) - g.z0_mm) / g.dz_mm - 0.5).clamp(-1.0, g.nz as f64);
+            let first = (row_of(lo).floor() - 1.0).max(0.0) as usize;
+            let last = ((row_of(hi).ceil() + 1.0).max(0.0) as usize).min(g.nz.saturating_sub(1));
+            for iz in first..=last {
                 let i = map.index(iz, it);
                 let r = map.radius_mm[i];
                 if r.is_finite() {
                     let u = (g.z_at(iz) - helix.z_h_mm) / p - theta / 360.0;
-                    samples.push((u, r as f64, map.gray(i)));
+                    if u >= lo && u <= hi {
+                        samples.push((u, r as f64, map.gray(i)));
+                    }
                 }
             }
         }
         samples.sort_by(|a, b| a.0.total_cmp(&b.0));
-        let window = |centre_u: f64, half_mm: f64| -> Vec<(f64, f64, f32)> {
-            let (lo, hi) = (centre_u - half_mm / p, centre_u + half_mm / p);
-            let start = samples.partition_point(|s| s.0 < lo);
-            samples[start..].iter().take_while(|s| s.0 <= hi).map(|&(u, r, g)| ((u - centre_u) * p, r, g)).collect()
-        };
-        for (t, thread) in threads.iter().enumerate() {
-            let u_crest = (thread.index - 1) as f64;
-            let crest_z = helix.z_h_mm + p * (u_crest + centre_deg / 360.0);
-            let crest = window(u_crest, crest_half);
-            let xy = |w: &[(f64, f64, f32)]| w.iter().map(|&(x, r, _)| (x, r)).collect::<Vec<_>>();
-            // Black is defined on the crest centre line: its brightness, not the whole flat's (at
-            // the onset of a black crest only a strip around the centre line keeps the mill scale).
-            let centre_line: Vec<f32> = crest.iter().filter(|s| s.0.abs() <= CREST_LINE_HALF_MM).map(|s| s.2).collect();
-            let crest_gray =
-                (!centre_line.is_empty()).then(|| centre_line.iter().sum::<f32>() / centre_line.len() as f32);
-            pending.push(Pending {
-                thread: t,
-                angle_deg: centre_deg,
-                crest_z_mm: crest_z,
-                crest: xy(&crest),
-                root_before: xy(&window(u_crest + before / p, root_half)),
-                root_after: xy(&window(u_crest + after / p, root_half)),
-                crest_gray,
-            });
-        }
-    }
+        samples.into_iter().map(|(u, r, g)| ((u - centre_u) * p, r, g)).collect()
+    };
+    // Bins are gathered in parallel and kept in bin order, then thread order.
+    let pending: Vec<Pending> = (0..360)
+        .into_par_iter()
+        .map(|bin| {
+            let centre_deg = bin as f64 + 0.5;
+            let columns = bin_columns(g, bin);
+            threads
+                .iter()
+                .enumerate()
+                .map(|(t, thread)| {
+                    let u_crest = (thread.index - 1) as f64;
+                    let crest_z = helix.z_h_mm + p * (u_crest + centre_deg / 360.0);
+                    let crest = window(columns.clone(), u_crest, crest_half);
+                    let xy = |w: &[(f64, f64, f32)]| w.iter().map(|&(x, r, _)| (x, r)).collect::<Vec<_>>();
+                    // Black is defined on the crest centre line: its brightness, not the whole flat's
+                    // (at the onset of a black crest only a strip around the centre line keeps the
+                    // mill scale).
+                    let centre_line: Vec<f32> =
+                        crest.iter().filter(|s| s.0.abs() <= CREST_LINE_HALF_MM).map(|s| s.2).collect();
+                    let crest_gray =
+                        (!centre_line.is_empty()).then(|| centre_line.iter().sum::<f32>() / centre_line.len() as f32);
+                    Pending {
+                        thread: t,
+                        angle_deg: centre_deg,
+                        crest_z_mm: crest_z,
+                        crest: xy(&crest),
+                        root_before: xy(&window(columns.clone(), u_crest + before / p, root_half)),
+                        root_after: xy(&window(columns.clone(), u_crest + after / p, root_half)),
+                        crest_gray,
+                    }
+                })
+                .collect::<Vec<_>>()
+        })
+        .flatten_iter()
+        .collect();
     let (crest_section, root_section) = match nominal_curvatures(form) {
         None => (Section::Flat, Section::Flat),
         Some((crest_c, root_c)) => {
@@ -493,26 +513,34 @@ pub fn measure_threads(
             (shared_section(&crests, crest_c), shared_section(&roots, root_c))
         }
     };
-    for w in pending {
-        let crest_r = fit_at_centre(&w.crest, crest_section, crest_half);
-        let rb = fit_at_centre(&w.root_before, root_section, root_half);
-        let ra = fit_at_centre(&w.root_after, root_section, root_half);
-        // A root whose window reaches past the end face is not on the part (or is the chamfer):
-        // there is no adjacent root to measure from. Nor is one whose window reaches into the
-        // map's first cell on the part: that cell holds the end face's edge, whose silhouette
-        // pulls the fused radius off the root (round thread 1's first bins read 25–50 µm high).
-        let root_on_part = w.crest_z_mm + before - root_half > g.dz_mm;
-        let height = match (crest_r, rb, ra) {
-            (Some(c), Some(b), Some(a)) if root_on_part => Some(c - (b + (a - b) * (0.0 - before) / (after - before))),
-            _ => None,
-        };
-        threads[w.thread].bins.push(BinMeasure {
-            angle_deg: w.angle_deg,
-            crest_z_mm: w.crest_z_mm,
-            height_mm: height,
-            crest_radius_mm: crest_r,
-            crest_gray: w.crest_gray,
-        });
+    let measured: Vec<BinMeasure> = pending
+        .par_iter()
+        .map(|w| {
+            let crest_r = fit_at_centre(&w.crest, crest_section, crest_half);
+            let rb = fit_at_centre(&w.root_before, root_section, root_half);
+            let ra = fit_at_centre(&w.root_after, root_section, root_half);
+            // A root whose window reaches past the end face is not on the part (or is the chamfer):
+            // there is no adjacent root to measure from. Nor is one whose window reaches into the
+            // map's first cell on the part: that cell holds the end face's edge, whose silhouette
+            // pulls the fused radius off the root (round thread 1's first bins read 25–50 µm high).
+            let root_on_part = w.crest_z_mm + before - root_half > g.dz_mm;
+            let height = match (crest_r, rb, ra) {
+                (Some(c), Some(b), Some(a)) if root_on_part => {
+                    Some(c - (b + (a - b) * (0.0 - before) / (after - before)))
+                }
+                _ => None,
+            };
+            BinMeasure {
+                angle_deg: w.angle_deg,
+                crest_z_mm: w.crest_z_mm,
+                height_mm: height,
+                crest_radius_mm: crest_r,
+                crest_gray: w.crest_gray,
+            }
+        })
+        .collect();
+    for (w, bin) in pending.iter().zip(measured) {
+        threads[w.thread].bins.push(bin);
     }
     // Along the helix, thread i's last bin (359.5°) is followed by thread i + 1's first (0.5°).
     let helix_order: Vec<Option<f64>> = threads.iter().flat_map(|t| t.bins.iter().map(|b| b.height_mm)).collect();
