@@ -118,10 +118,20 @@ impl Fusion {
     /// view's own angle: the points' angles are measured from it ([`crate::cloud::AngleFrom`]; any
     /// angle gives the same bins, the view's own the cheapest).
     pub fn bin_each(&self, points: impl IntoIterator<Item = SurfacePoint>, view_angle_rad: f64) -> Vec<Binned> {
+        let mut out = Vec::new();
+        self.bin_into(&mut out, points, view_angle_rad);
+        out
+    }
+
+    /// [`Fusion::bin_each`] into a buffer the caller reuses from view to view (its old contents
+    /// are dropped): a view's binned points are tens of megabytes, and fresh ones cost a page
+    /// fault per 4 kB.
+    pub fn bin_into(&self, out: &mut Vec<Binned>, points: impl IntoIterator<Item = SurfacePoint>, view_angle_rad: f64) {
         let grid = &self.grid;
         let angle = crate::cloud::AngleFrom::new(view_angle_rad);
         let points = points.into_iter();
-        let mut out = Vec::with_capacity(crate::cloud::capacity_for(&points));
+        out.clear();
+        out.reserve(crate::cloud::capacity_for(&points));
         for p in points {
             let iz = ((p.position.z - grid.z0_mm) / grid.dz_mm).floor();
             if iz < 0.0 || iz as usize >= grid.nz {
@@ -136,7 +146,6 @@ impl Fusion {
                 rgb: p.rgb,
             });
         }
-        out
     }
 
     /// Adds binned points; views are summed in the order given, so the result does not depend on

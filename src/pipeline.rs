@@ -214,20 +214,19 @@ pub fn inspect(
     );
     let grid = GridSpec::spanning(z_range_mm, cell_mm, part.pipe_od_mm / 2.0).ok_or(PipelineError::NoDepth)?;
     let mut fusion = Fusion::new(grid);
-    // Binning (angle and radius per point) runs per view in parallel; the sums stay in view order.
-    let binned_views = AtomicUsize::new(0);
-    let binned: Vec<Vec<crate::fuse::Binned>> = poses
-        .par_iter()
-        .zip(&depth_maps)
-        .map(|(pose, depth)| {
-            let binned = fusion.bin_each(cloud::points_of(optics, pose, depth), pose.angle_deg.to_radians());
-            // Binning is most of the work; the sums follow in one parallel pass.
-            progress(Stage::Fuse, 0.9 * (binned_views.fetch_add(1, Ordering::Relaxed) + 1) as f64 / total as f64);
-            binned
-        })
-        .collect();
-    fusion.accumulate_all(&binned);
-    drop(binned);
+    // Binning (angle and radius per point) runs per view in parallel, a few views at a time into
+    // buffers reused from batch to batch; each batch is summed in view order before the next.
+    let batch = 2 * rayon::current_num_threads().max(1);
+    let mut buffers: Vec<Vec<crate::fuse::Binned>> = vec![Vec::new(); batch.min(total)];
+    for (first, views) in poses.iter().zip(&depth_maps).collect::<Vec<_>>().chunks(batch).enumerate() {
+        buffers.par_iter_mut().zip(views).for_each(|(buffer, &(pose, depth))| {
+            fusion.bin_into(buffer, cloud::points_of(optics, pose, depth), pose.angle_deg.to_radians());
+        });
+        fusion.accumulate_all(&buffers[..views.len()]);
+        // Binning is most of the work; the sums follow each batch.
+        progress(Stage::Fuse, 0.9 * ((first * batch + views.len()) as f64 / total as f64));
+    }
+    drop(buffers);
     progress(Stage::Fuse, 1.0);
     let map = fusion.finish();
     lap(Stage::Fuse, &mut timings);
