@@ -99,7 +99,16 @@ pub fn build(map: &UnrolledMap, options: &MeshOptions) -> Result<Mesh, MeshError
         let r = map.radius_mm[i] as f64;
         mesh.vertices.push([(r * theta.cos()) as f32, (r * theta.sin()) as f32, z as f32]);
         mesh.colors.push(map.rgb[i].map(|c| (c.clamp(0.0, 1.0) * 255.0).round() as u8));
-        sites.push(Site { position: Point2::new(z, it as f64 * arc_per_column), index: k as u32 });
+        // Sites on the grid are nudged by up to 1/20000 of a cell (a fixed hash of the index, so the
+        // mesh is the same every run): the corners of every grid square are exactly cocircular, and
+        // each such incircle test falls through to exact arithmetic (a fifth of the
+        // triangulation's time). The nudge only picks one of a square's two diagonals; vertices
+        // keep their grid positions.
+        let (jz, js) = nudge(k as u64);
+        sites.push(Site {
+            position: Point2::new(z + jz * g.dz_mm, it as f64 * arc_per_column + js * arc_per_column),
+            index: k as u32,
+        });
     }
     if sites.len() < 3 {
         return Ok(mesh);
@@ -114,9 +123,23 @@ pub fn build(map: &UnrolledMap, options: &MeshOptions) -> Result<Mesh, MeshError
         if long(pa, pb) || long(pb, pc) || long(pc, pa) {
             continue;
         }
-        mesh.triangles.push([a.data().index, b.data().index, c.data().index]);
+        let corners = [a.data().index, b.data().index, c.data().index];
+        // Three sites in a row on the grid (along a data border) make a sliver once nudged: its
+        // vertices, on their grid positions, are collinear. (Exact: the grid indices are integers.)
+        let [(z0, t0), (z1, t1), (z2, t2)] = corners.map(|k| chosen[k as usize]).map(|(iz, it)| (iz as i64, it as i64));
+        if (z1 - z0) * (t2 - t0) == (z2 - z0) * (t1 - t0) {
+            continue;
+        }
+        mesh.triangles.push(corners);
     }
     Ok(mesh)
+}
+
+/// Two offsets in [−0.5e-4, 0.5e-4) from a site's index (Weyl sequence bits: cheap, fixed).
+fn nudge(index: u64) -> (f64, f64) {
+    let h = (index + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    let unit = |bits: u64| (bits >> 11) as f64 / (1u64 << 53) as f64 - 0.5;
+    (1e-4 * unit(h), 1e-4 * unit(h.rotate_left(29)))
 }
 
 /// Binary little-endian PLY with per-vertex colour.
@@ -209,5 +232,20 @@ mod tests {
         write_stl(&mesh, &mut stl).unwrap();
         assert_eq!(stl.len(), 84 + 50 * mesh.triangles.len());
         assert_eq!(u32::from_le_bytes(stl[80..84].try_into().unwrap()) as usize, mesh.triangles.len());
+    }
+
+    #[test]
+    fn a_full_grid_is_split_into_two_triangles_per_square() {
+        // Every square's corners are cocircular; the nudged sites still give each square one
+        // diagonal, and the same mesh every time.
+        let grid = GridSpec { z0_mm: 0.0, dz_mm: 0.05, nz: 20, ntheta: 360 };
+        let cells = grid.nz * grid.ntheta;
+        let map =
+            UnrolledMap { grid, radius_mm: vec![55.0; cells], weight: vec![1.0; cells], rgb: vec![[0.5; 3]; cells] };
+        let mesh = build(&map, &MeshOptions::default()).unwrap();
+        assert_eq!(mesh.vertices.len(), cells);
+        // The last column is not joined back to the first (the unrolled domain is a strip).
+        assert_eq!(mesh.triangles.len(), 2 * 19 * 359);
+        assert_eq!(build(&map, &MeshOptions::default()).unwrap(), mesh);
     }
 }
