@@ -163,27 +163,31 @@ pub fn inspect(
     progress(Stage::Register, 0.0);
     let part = &bundle.part;
     let encoder_poses: Vec<ViewPose> = bundle.views.iter().map(|v| v.pose).collect();
-    // Each view's points are reduced as they are projected (to registration's samples here, to
+    // Each view's points are reduced as they are projected (to registration's grids here, to
     // fusion's bins below): no stage holds every view's cloud.
     let optics = &bundle.optics;
-    let samples: Vec<register::ViewSamples> = encoder_poses
-        .par_iter()
-        .zip(&depth_maps)
-        .map(|(pose, depth)| register::view_samples(cloud::points_of(optics, pose, depth), pose.angle_deg.to_radians()))
-        .collect();
     let pixel_mm = bundle.optics.object_pixel_mm(bundle.optics.focus_distance_mm);
     let format = bundle.views[0].format;
     let radius_ref = part.pipe_od_mm / 2.0;
+    let register_options = RegisterOptions { cell_mm: pixel_mm, ..options.register.clone() };
+    let lattice = register::Lattice::new(radius_ref, register_options.cell_mm);
+    let grids: Vec<register::ViewGrid> = encoder_poses
+        .par_iter()
+        .zip(&depth_maps)
+        .map_init(register::GridScratch::default, |scratch, (pose, depth)| {
+            register::view_grid(cloud::points_of(optics, pose, depth), pose.angle_deg.to_radians(), &lattice, scratch)
+        })
+        .collect();
     let registration = register::register(
-        &samples,
+        &grids,
         &encoder_poses,
-        radius_ref,
+        &lattice,
         (format.height as f64 * pixel_mm / 2.0 / radius_ref).to_degrees(),
         format.width as f64 * pixel_mm / 2.0,
-        &RegisterOptions { cell_mm: pixel_mm, ..options.register.clone() },
+        &register_options,
     );
-    let encoder_z_ranges_mm: Vec<(f64, f64)> = samples.iter().map(|s| s.z_range_mm()).collect();
-    drop(samples);
+    let encoder_z_ranges_mm: Vec<(f64, f64)> = grids.iter().map(|g| g.z_range_mm()).collect();
+    drop(grids);
     let mut poses: Vec<ViewPose> =
         encoder_poses.iter().zip(&registration.corrections).map(|(p, c)| c.apply(p)).collect();
     // Absolute z from the end face, where the views show it.

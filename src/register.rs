@@ -5,7 +5,8 @@
 //! two overlapping views slide along the helix. The surface texture (mill-scale grain, chaser marks,
 //! albedo variation) is tied to the part and breaks that symmetry: each overlapping pair is aligned
 //! by normalised cross-correlation of the high-passed all-in-focus brightness in the unrolled
-//! (arc, z) plane, coarse to fine with sub-cell peak interpolation; the radial offset is the median
+//! (arc, z) plane (each view binned once, on one lattice for the ring: [`Lattice`]), coarse to fine
+//! with sub-cell peak interpolation; the radial offset is the median
 //! radius difference over the aligned overlap. All pair measurements then enter a pose graph (one
 //! least-squares problem per axis over the whole ring, Huber-reweighted, the mean correction fixed
 //! at zero since the encoders' mean error is), so no error accumulates around the circumference.
@@ -80,7 +81,39 @@ fn wrap(a: f64) -> f64 {
     if w > PI { w - TAU } else { w }
 }
 
-/// A view's points binned on a grid in (arc, z) around a reference angle.
+/// The unrolled (arc, z) lattice every view is binned on: arc measured from angle 0 at the
+/// reference radius, in cells that divide the circumference evenly (an even number of them, so
+/// that the half-resolution lattice divides it too), and z in cells of the nominal size. One
+/// lattice for the ring lets each view be binned once, whichever neighbour it is compared with: a
+/// pair across angle 0 differs by whole turns, which are whole cells.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Lattice {
+    pub radius_ref_mm: f64,
+    /// Cells around the circumference (even).
+    pub cells_around: i64,
+    pub cell_arc_mm: f64,
+    pub cell_z_mm: f64,
+}
+
+impl Lattice {
+    /// `cell_mm` is the nominal cell; along the arc it is adjusted (by less than a cell per turn)
+    /// to divide the circumference.
+    pub fn new(radius_ref_mm: f64, cell_mm: f64) -> Self {
+        let circumference = TAU * radius_ref_mm;
+        let cells_around = (2.0 * (circumference / cell_mm / 2.0).round()).max(2.0) as i64;
+        Self { radius_ref_mm, cells_around, cell_arc_mm: circumference / cells_around as f64, cell_z_mm: cell_mm }
+    }
+
+    /// Lattice cells from view b's arc indices to view a's: both are measured from angle 0 at each
+    /// view's own (unwrapped) angle, so they differ by the whole turns between the two angles as
+    /// given and as wrapped.
+    fn turn_cells(&self, angle_a_rad: f64, angle_b_rad: f64) -> i64 {
+        let raw = angle_b_rad - angle_a_rad;
+        ((wrap(raw) - raw) / TAU).round() as i64 * self.cells_around
+    }
+}
+
+/// A view's points binned on a grid of lattice cells.
 struct Patch {
     s0: i64,
     z0: i64,
@@ -90,29 +123,29 @@ struct Patch {
     radius: Vec<f32>,
 }
 
-/// What registration needs of a surface point, computed once per view (every pair reuses it).
-#[derive(Clone, Copy)]
-struct Sample {
-    /// Angle about the pipe axis from the view's own angle, wrapped to (−π, π].
-    phi_rad: f64,
-    z_mm: f64,
-    gray: f32,
-    radius_mm: f32,
-    weight: f32,
-}
-
-/// A view's samples in image order, with each image row's span and its angular extent about the
-/// view's own angle (rows run along θ), so that a pair's patches visit only the rows that can
-/// reach the overlap, and the view's half extent along the arc.
-pub struct ViewSamples {
-    samples: Vec<Sample>,
-    /// (samples of the row, least and greatest wrap(θ − view angle) in it, rad).
-    rows: Vec<(std::ops::Range<usize>, f64, f64)>,
-    half_extent_rad: f64,
+/// What registration keeps of a view, computed once (every pair that includes the view reuses
+/// it): its texture and radius on the [`Lattice`], and the texture's grids for the coarse and the
+/// fine correlation.
+pub struct ViewGrid {
+    /// The view's own angle, rad.
+    angle_rad: f64,
+    /// Texture ([`texture`]) and mean radius per cell.
+    patch: Patch,
+    /// The half-resolution texture's origin and its stride-two grids ([`StrideTwo`]).
+    coarse_origin: (i64, i64),
+    coarse: StrideTwo,
     z_range_mm: (f64, f64),
 }
 
-impl ViewSamples {
+/// Buffers [`view_grid`] reuses from view to view: a view's binned points and cell sums are
+/// megabytes, and fresh ones cost a page fault per 4 kB.
+#[derive(Default)]
+pub struct GridScratch {
+    cells: Vec<(i64, i64, f32, f32, f32)>,
+    sum: Vec<(f32, f32, f32)>,
+}
+
+impl ViewGrid {
     /// Least and greatest z of the view's points at the pose they were projected with. A pose's z
     /// enters a point's z as its axial position alone, so a refined pose's range is this one moved
     /// by the axial correction (no second projection needed to size the fused grid).
@@ -121,90 +154,55 @@ impl ViewSamples {
     }
 }
 
-/// What registration keeps of a view's points (in image order, as [`crate::cloud::points_of`]
-/// gives them) seen from the view's own angle.
-pub fn view_samples(points: impl IntoIterator<Item = SurfacePoint>, view_angle_rad: f64) -> ViewSamples {
+/// Bins a view's points (as [`crate::cloud::points_of`] gives them) on the lattice: brightness and
+/// radius per cell, weighted by the points' focus peak ratios; then the view's texture and its
+/// correlation grid (the fine one is built per pair, in buffers the pairs reuse).
+pub fn view_grid(
+    points: impl IntoIterator<Item = SurfacePoint>,
+    view_angle_rad: f64,
+    lattice: &Lattice,
+    scratch: &mut GridScratch,
+) -> ViewGrid {
     let points = points.into_iter();
-    let mut samples: Vec<Sample> = Vec::with_capacity(crate::cloud::capacity_for(&points));
-    let mut rows: Vec<(std::ops::Range<usize>, f64, f64)> = Vec::new();
-    let mut half_extent_rad = 0f64;
+    let GridScratch { cells, sum } = scratch;
+    cells.clear();
+    cells.reserve(crate::cloud::capacity_for(&points));
     let mut z_range_mm = (f64::MAX, f64::MIN);
-    let mut row_of_last = None;
     let angle = crate::cloud::AngleFrom::new(view_angle_rad);
-    for (i, p) in points.enumerate() {
-        let phi = angle.of(p.position.x, p.position.y);
-        let s = Sample {
-            phi_rad: phi,
-            z_mm: p.position.z,
-            gray: crate::bundle::luminance(p.rgb),
-            radius_mm: p.radius_mm() as f32,
-            weight: crate::fuse::point_weight(p.weight),
-        };
-        half_extent_rad = half_extent_rad.max(phi.abs());
-        z_range_mm = (z_range_mm.0.min(s.z_mm), z_range_mm.1.max(s.z_mm));
-        match rows.last_mut() {
-            Some((range, lo, hi)) if row_of_last == Some(p.pixel[1]) => {
-                range.end = i + 1;
-                (*lo, *hi) = (lo.min(phi), hi.max(phi));
-            }
-            _ => rows.push((i..i + 1, phi, phi)),
-        }
-        row_of_last = Some(p.pixel[1]);
-        samples.push(s);
+    let (per_arc, per_z) = (lattice.radius_ref_mm / lattice.cell_arc_mm, 1.0 / lattice.cell_z_mm);
+    for p in points {
+        // Near the view's own angle a point's arc is its angle from the view plus the view's angle.
+        let s = (view_angle_rad + angle.of(p.position.x, p.position.y)) * per_arc;
+        let z = p.position.z;
+        z_range_mm = (z_range_mm.0.min(z), z_range_mm.1.max(z));
+        let (g, r, w) = (crate::bundle::luminance(p.rgb), p.radius_mm() as f32, crate::fuse::point_weight(p.weight));
+        cells.push((s.floor() as i64, (z * per_z).floor() as i64, g, r, w));
     }
-    ViewSamples { samples, rows, half_extent_rad, z_range_mm }
+    let (s0, s1) = cells.iter().fold((i64::MAX, i64::MIN), |(a, b), c| (a.min(c.0), b.max(c.0)));
+    let (z0, z1) = cells.iter().fold((i64::MAX, i64::MIN), |(a, b), c| (a.min(c.1), b.max(c.1)));
+    let (ns, nz) = if cells.is_empty() { (0, 0) } else { ((s1 - s0 + 1) as usize, (z1 - z0 + 1) as usize) };
+    sum.clear();
+    sum.resize(ns * nz, (0.0, 0.0, 0.0));
+    for &(s, z, g, r, w) in cells.iter() {
+        let i = (z - z0) as usize * ns + (s - s0) as usize;
+        sum[i].0 += w * g;
+        sum[i].1 += w * r;
+        sum[i].2 += w;
+    }
+    let gray: Vec<f32> = sum.iter().map(|c| if c.2 > 0.0 { c.0 / c.2 } else { f32::NAN }).collect();
+    let radius: Vec<f32> = sum.iter().map(|c| if c.2 > 0.0 { c.1 / c.2 } else { f32::NAN }).collect();
+    let patch = Patch { s0, z0, ns, nz, gray: texture(&gray, &radius, ns, nz), radius };
+    let half = patch.halved();
+    ViewGrid {
+        angle_rad: view_angle_rad,
+        coarse_origin: (half.s0, half.z0),
+        coarse: StrideTwo::new(&half.gray, (half.ns, half.nz)),
+        patch,
+        z_range_mm,
+    }
 }
 
 impl Patch {
-    /// The cells of `view` (whose own angle is `view_angle`) within `s_range` of arc around
-    /// `ref_angle`.
-    fn build(
-        view: &ViewSamples,
-        view_angle: f64,
-        ref_angle: f64,
-        radius_ref: f64,
-        cell: f64,
-        s_range: (f64, f64),
-    ) -> Option<Patch> {
-        // Rows are skipped on their extent about the view's angle shifted to the reference; the
-        // slack covers rounding, and near ±π (no neighbour is there) nothing is skipped.
-        const SLACK_MM: f64 = 1e-6;
-        let delta = wrap(view_angle - ref_angle);
-        let mut cells: Vec<(i64, i64, f32, f32, f32)> = Vec::new();
-        for (range, lo, hi) in &view.rows {
-            let (lo, hi) = (lo + delta, hi + delta);
-            let far = lo.abs().max(hi.abs()) > PI - 0.1;
-            if !far && (radius_ref * hi + SLACK_MM < s_range.0 || radius_ref * lo - SLACK_MM > s_range.1) {
-                continue;
-            }
-            for p in &view.samples[range.clone()] {
-                // Near the view's own angle the arc from the reference is the sample's angle from
-                // its view plus the views' separation; only a row near ±π needs wrapping again.
-                let s = if far { radius_ref * wrap(p.phi_rad + delta) } else { radius_ref * (p.phi_rad + delta) };
-                if s < s_range.0 || s > s_range.1 {
-                    continue;
-                }
-                cells.push(((s / cell).floor() as i64, (p.z_mm / cell).floor() as i64, p.gray, p.radius_mm, p.weight));
-            }
-        }
-        if cells.is_empty() {
-            return None;
-        }
-        let (s0, s1) = cells.iter().fold((i64::MAX, i64::MIN), |(a, b), c| (a.min(c.0), b.max(c.0)));
-        let (z0, z1) = cells.iter().fold((i64::MAX, i64::MIN), |(a, b), c| (a.min(c.1), b.max(c.1)));
-        let (ns, nz) = ((s1 - s0 + 1) as usize, (z1 - z0 + 1) as usize);
-        let mut sum = vec![(0f32, 0f32, 0f32); ns * nz];
-        for (s, z, g, r, w) in cells {
-            let i = (z - z0) as usize * ns + (s - s0) as usize;
-            sum[i].0 += w * g;
-            sum[i].1 += w * r;
-            sum[i].2 += w;
-        }
-        let gray: Vec<f32> = sum.iter().map(|c| if c.2 > 0.0 { c.0 / c.2 } else { f32::NAN }).collect();
-        let radius: Vec<f32> = sum.iter().map(|c| if c.2 > 0.0 { c.1 / c.2 } else { f32::NAN }).collect();
-        Some(Patch { s0, z0, ns, nz, gray: texture(&gray, &radius, ns, nz), radius })
-    }
-
     /// The patch at half resolution (2×2 cells averaged; origins floored to even cells).
     fn halved(&self) -> Patch {
         let (s0, z0) = (self.s0.div_euclid(2), self.z0.div_euclid(2));
@@ -271,6 +269,7 @@ fn texture(gray: &[f32], radius: &[f32], ns: usize, nz: usize) -> Vec<f32> {
 /// squares and 0 in the mask, so that the sums over a shifted overlap need no branches (and run
 /// eight cells at a time). Stored by arc column (z fastest): an overlap between neighbours is long
 /// in z and short in arc, and long rows keep the per-row overhead small.
+#[derive(Default)]
 struct TextureGrid {
     /// Arc cells (rows of the layout) and z cells (along a row).
     ns: usize,
@@ -283,10 +282,21 @@ struct TextureGrid {
 impl TextureGrid {
     /// Every `step`-th cell of the (z-major) `field` starting at (s_phase, z_phase).
     fn sampled(field: &[f32], ns: usize, nz: usize, step: usize, s_phase: usize, z_phase: usize) -> Self {
+        let mut grid = Self::default();
+        grid.sample(field, ns, nz, step, s_phase, z_phase);
+        grid
+    }
+
+    /// [`TextureGrid::sampled`] into this grid's buffers.
+    fn sample(&mut self, field: &[f32], ns: usize, nz: usize, step: usize, s_phase: usize, z_phase: usize) {
         let (gs, gz) = (ns.saturating_sub(s_phase).div_ceil(step), nz.saturating_sub(z_phase).div_ceil(step));
         let cells = gs * gz;
-        let mut grid =
-            Self { ns: gs, nz: gz, value: vec![0.0; cells], square: vec![0.0; cells], mask: vec![0.0; cells] };
+        let grid = self;
+        (grid.ns, grid.nz) = (gs, gz);
+        for buffer in [&mut grid.value, &mut grid.square, &mut grid.mask] {
+            buffer.clear();
+            buffer.resize(cells, 0.0);
+        }
         for s in 0..gs {
             for z in 0..gz {
                 let v = field[(z_phase + z * step) * ns + s_phase + s * step];
@@ -296,28 +306,26 @@ impl TextureGrid {
                 }
             }
         }
-        grid
     }
 }
 
-/// Every other cell of two grids, for the coarse search: a's even cells, and b's cells in the
-/// four parities a shift can bring onto them.
+/// Every other cell of a grid in each of the four parities (s, z), for the coarse search: a's
+/// even cells are met by b's cells in the parity a shift brings onto them.
 struct StrideTwo {
-    a: TextureGrid,
-    b: [TextureGrid; 4],
+    parities: [TextureGrid; 4],
 }
 
 impl StrideTwo {
-    fn new(a: &[f32], (ans, anz): (usize, usize), b: &[f32], (bns, bnz): (usize, usize)) -> Self {
-        let b_at = |p: usize| TextureGrid::sampled(b, bns, bnz, 2, p % 2, p / 2);
-        Self { a: TextureGrid::sampled(a, ans, anz, 2, 0, 0), b: [b_at(0), b_at(1), b_at(2), b_at(3)] }
+    fn new(field: &[f32], (ns, nz): (usize, usize)) -> Self {
+        let at = |p: usize| TextureGrid::sampled(field, ns, nz, 2, p % 2, p / 2);
+        Self { parities: [at(0), at(1), at(2), at(3)] }
     }
 
     /// NCC over a's even cells (s, z) against b's (s + off_s, z + off_z): a's cell 2i meets b's
     /// cell 2i + off = 2(i + off.div_euclid(2)) + off.rem_euclid(2).
-    fn ncc(&self, off_s: i64, off_z: i64, min_cells: usize) -> (f64, usize) {
+    fn ncc(a: &StrideTwo, b: &StrideTwo, off_s: i64, off_z: i64, min_cells: usize) -> (f64, usize) {
         let phase = (off_s.rem_euclid(2) + 2 * off_z.rem_euclid(2)) as usize;
-        ncc_grids(&self.a, &self.b[phase], off_s.div_euclid(2), off_z.div_euclid(2), min_cells)
+        ncc_grids(&a.parities[0], &b.parities[phase], off_s.div_euclid(2), off_z.div_euclid(2), min_cells)
     }
 }
 
@@ -371,50 +379,49 @@ fn sub_cell(left: f64, centre: f64, right: f64) -> f64 {
     if denom < 0.0 { (0.5 * (left - right) / denom).clamp(-0.5, 0.5) } else { 0.0 }
 }
 
-/// Measures one pair of overlapping views.
+/// Measures one pair of overlapping views. `fine` holds the two views' full-resolution
+/// correlation grids (buffers reused from pair to pair).
 fn measure_pair(
     a: usize,
     b: usize,
-    views: &[ViewSamples],
-    angles_rad: &[f64],
-    radius_ref: f64,
+    views: &[ViewGrid],
+    lattice: &Lattice,
     options: &RegisterOptions,
+    fine: &mut (TextureGrid, TextureGrid),
 ) -> Option<PairMeasure> {
-    let cell = options.cell_mm;
-    let ref_angle = angles_rad[a];
-    let margin = radius_ref * options.max_angle_deg.to_radians();
-    // a's data near b, and b's data near a, in a's frame.
-    let offset_b = radius_ref * wrap(angles_rad[b] - ref_angle);
-    let half = |v: usize| (radius_ref * views[v].half_extent_rad).min(radius_ref * PI / 2.0);
-    let (half_a, half_b) = (half(a), half(b));
-    let lo = (offset_b - half_b - margin).max(-half_a);
-    let hi = (offset_b + half_b + margin).min(half_a);
-    if hi <= lo {
-        return None;
-    }
-    let patch = |v: usize, s_range| Patch::build(&views[v], angles_rad[v], ref_angle, radius_ref, cell, s_range);
-    let pa = patch(a, (lo.max(offset_b - half_b - margin), hi))?;
-    let pb = patch(b, (-half_a - margin, half_a + margin))?;
+    let (va, vb) = (&views[a], &views[b]);
+    let (pa, pb) = (&va.patch, &vb.patch);
+    // b's arc indices in a's turn.
+    let turn = lattice.turn_cells(va.angle_rad, vb.angle_rad);
+    let b_s0 = pb.s0 + turn;
+    let (b_coarse_s0, b_coarse_z0) = (vb.coarse_origin.0 + turn / 2, vb.coarse_origin.1);
+    let (a_coarse_s0, a_coarse_z0) = va.coarse_origin;
 
     // The grain's correlation peak is a cell or two wide: search every shift at half resolution,
-    // then ±2 cells around the best at full resolution, then sub-cell.
-    let (ca, cb) = (pa.halved(), pb.halved());
-    let rs = (margin / cell / 2.0).ceil() as i64;
-    let rz = (options.max_axial_mm / cell / 2.0).ceil() as i64;
-    // Every other cell of the overlap is plenty to find the peak at this level.
-    let coarse = StrideTwo::new(&ca.gray, (ca.ns, ca.nz), &cb.gray, (cb.ns, cb.nz));
+    // then ±2 cells around the best at full resolution, then sub-cell. A shift (ds, dz) moves b's
+    // content onto a's: a's cell c meets b's cell c − d.
+    let rs = (lattice.radius_ref_mm * options.max_angle_deg.to_radians() / lattice.cell_arc_mm / 2.0).ceil() as i64;
+    let rz = (options.max_axial_mm / lattice.cell_z_mm / 2.0).ceil() as i64;
     let mut best = (f64::MIN, 0i64, 0i64);
     for dz in -rz..=rz {
         for ds in -rs..=rs {
-            let (c, _) = coarse.ncc(ca.s0 - ds - cb.s0, ca.z0 - dz - cb.z0, 70);
+            // Every other cell of the overlap is plenty to find the peak at this level.
+            let (c, _) = StrideTwo::ncc(
+                &va.coarse,
+                &vb.coarse,
+                a_coarse_s0 - ds - b_coarse_s0,
+                a_coarse_z0 - dz - b_coarse_z0,
+                70,
+            );
             if c > best.0 {
                 best = (c, ds, dz);
             }
         }
     }
-    let (fine_a, fine_b) =
-        (TextureGrid::sampled(&pa.gray, pa.ns, pa.nz, 1, 0, 0), TextureGrid::sampled(&pb.gray, pb.ns, pb.nz, 1, 0, 0));
-    let ncc = |ds: i64, dz: i64| ncc_grids(&fine_a, &fine_b, pa.s0 - ds - pb.s0, pa.z0 - dz - pb.z0, 220);
+    fine.0.sample(&pa.gray, pa.ns, pa.nz, 1, 0, 0);
+    fine.1.sample(&pb.gray, pb.ns, pb.nz, 1, 0, 0);
+    let (fine_a, fine_b) = (&fine.0, &fine.1);
+    let ncc = |ds: i64, dz: i64| ncc_grids(fine_a, fine_b, pa.s0 - ds - b_s0, pa.z0 - dz - pb.z0, 220);
     let (cs, cz) = (2 * best.1, 2 * best.2);
     let mut fine = (f64::MIN, cs, cz);
     for dz in cz - 2..=cz + 2 {
@@ -437,7 +444,7 @@ fn measure_pair(
     for z in 0..pa.nz {
         for s in 0..pa.ns {
             let ra = pa.radius[z * pa.ns + s];
-            let rb = pb.at(&pb.radius, pa.s0 + s as i64 - ds, pa.z0 + z as i64 - dz);
+            let rb = pb.at(&pb.radius, pa.s0 + s as i64 - ds - turn, pa.z0 + z as i64 - dz);
             if ra.is_finite() && rb.is_finite() {
                 dr.push((ra - rb) as f64);
             }
@@ -451,8 +458,8 @@ fn measure_pair(
     Some(PairMeasure {
         a,
         b,
-        shift_angle_deg: ((ds as f64 + frac_s) * cell / radius_ref).to_degrees(),
-        shift_axial_mm: (dz as f64 + frac_z) * cell,
+        shift_angle_deg: ((ds as f64 + frac_s) * lattice.cell_arc_mm / lattice.radius_ref_mm).to_degrees(),
+        shift_axial_mm: (dz as f64 + frac_z) * lattice.cell_z_mm,
         shift_radius_mm,
         peak_ncc: peak,
         overlap_cells: cells,
@@ -505,21 +512,23 @@ fn solve_axis(n: usize, pairs: &[(usize, usize, f64)], huber: f64) -> Vec<f64> {
     c
 }
 
-/// Registers all views. `views[v]` are the samples of view v back-projected with its encoder pose
-/// `poses[v]` ([`view_samples`]).
+/// Registers all views. `views[v]` is view v back-projected with its encoder pose `poses[v]` and
+/// binned on `lattice` ([`view_grid`]).
 pub fn register(
-    views: &[ViewSamples],
+    views: &[ViewGrid],
     poses: &[ViewPose],
-    radius_ref: f64,
+    lattice: &Lattice,
     half_angle_deg: f64,
     half_axial_mm: f64,
     options: &RegisterOptions,
 ) -> Registration {
     use rayon::prelude::*;
-    let angles: Vec<f64> = poses.iter().map(|p| p.angle_deg.to_radians()).collect();
     let candidates = overlapping_pairs(poses, half_angle_deg, half_axial_mm);
-    let mut pairs: Vec<PairMeasure> =
-        candidates.par_iter().filter_map(|&(a, b)| measure_pair(a, b, views, &angles, radius_ref, options)).collect();
+    let mut pairs: Vec<PairMeasure> = candidates
+        .par_iter()
+        .map_init(Default::default, |fine, &(a, b)| measure_pair(a, b, views, lattice, options, fine))
+        .flatten_iter()
+        .collect();
     let n = poses.len();
     let axis = |f: &dyn Fn(&PairMeasure) -> f64, huber: f64| {
         solve_axis(n, &pairs.iter().map(|p| (p.a, p.b, f(p))).collect::<Vec<_>>(), huber)
@@ -609,17 +618,34 @@ mod tests {
         let full = (TextureGrid::sampled(&a, ans, anz, 1, 0, 0), TextureGrid::sampled(&b, bns, bnz, 1, 0, 0));
         let (peak, _) = ncc_grids(&full.0, &full.1, 3, -2, 20);
         assert!((peak - 1.0).abs() < 1e-6, "{peak}");
-        let coarse = StrideTwo::new(&a, (ans, anz), &b, (bns, bnz));
+        let coarse = (StrideTwo::new(&a, (ans, anz)), StrideTwo::new(&b, (bns, bnz)));
         for off_s in -4..=5i64 {
             for off_z in -3..=4i64 {
                 let want = brute_ncc(&a, (ans, anz), &b, (bns, bnz), (off_s, off_z), 1);
                 let (got, _) = ncc_grids(&full.0, &full.1, off_s, off_z, 20);
                 assert!((got - want).abs() < 1e-5, "full ({off_s}, {off_z}): {got} vs {want}");
                 let want = brute_ncc(&a, (ans, anz), &b, (bns, bnz), (off_s, off_z), 2);
-                let (got, _) = coarse.ncc(off_s, off_z, 20);
+                let (got, _) = StrideTwo::ncc(&coarse.0, &coarse.1, off_s, off_z, 20);
                 assert!((got - want).abs() < 1e-5, "stride 2 ({off_s}, {off_z}): {got} vs {want}");
             }
         }
+    }
+
+    #[test]
+    fn the_lattice_divides_the_turn_and_carries_a_neighbour_across_angle_zero() {
+        let lattice = Lattice::new(57.15, 0.041);
+        assert_eq!(lattice.cells_around % 2, 0);
+        assert!((lattice.cell_arc_mm * lattice.cells_around as f64 - TAU * 57.15).abs() < 1e-9);
+        assert!((lattice.cell_arc_mm - 0.041).abs() < 0.041 / lattice.cells_around as f64);
+        let turn = |a_deg: f64, b_deg: f64| lattice.turn_cells(a_deg.to_radians(), b_deg.to_radians());
+        assert_eq!(turn(8.0, 16.0), 0);
+        // b at 0° is a's neighbour at 360°: its indices move up a turn, and back the other way.
+        assert_eq!(turn(352.0, 0.0), lattice.cells_around);
+        assert_eq!(turn(0.0, 352.0), -lattice.cells_around);
+        assert_eq!(turn(-8.0, 352.0), -lattice.cells_around);
+        // A point seen at 359.9° by b and 359.9° − 360° by a lands in the same cell of a's turn.
+        let cell = |deg: f64| (deg.to_radians() * lattice.radius_ref_mm / lattice.cell_arc_mm).floor() as i64;
+        assert_eq!(cell(359.9) + turn(-8.0, 352.0), cell(-0.1));
     }
 
     #[test]
