@@ -413,13 +413,31 @@ pub fn depth_from_focus(
     frame_at: impl FnMut(usize) -> Result<Frame, BundleError>,
     cancelled: &dyn Fn() -> bool,
 ) -> Result<Option<DepthMap>, BundleError> {
-    depth_from_focus_in(&mut Vec::new(), optics, view, options, frame_at, cancelled)
+    depth_from_focus_in(&mut DepthScratch::default(), optics, view, options, frame_at, cancelled)
 }
 
-/// [`depth_from_focus`] with the focus volume (frames × pixels, tens of MB) in a buffer the caller
-/// keeps from view to view: a fresh one costs a page fault per 4 kB.
+/// The working buffers of [`depth_from_focus_in`]: the focus volume (frames × pixels, tens of MB)
+/// and a few frame-sized planes, which a caller keeps from view to view: fresh ones cost a page
+/// fault per 4 kB.
+#[derive(Default)]
+pub struct DepthScratch {
+    volume: Vec<f32>,
+    best: Vec<f32>,
+    best_frame: Vec<u32>,
+    gray: Vec<f32>,
+    native: Vec<f32>,
+    scratch: Vec<f32>,
+}
+
+/// `buffer` holding `len` copies of `value` (its allocation kept).
+fn refill<T: Copy>(buffer: &mut Vec<T>, len: usize, value: T) {
+    buffer.clear();
+    buffer.resize(len, value);
+}
+
+/// [`depth_from_focus`] in buffers the caller keeps from view to view ([`DepthScratch`]).
 pub fn depth_from_focus_in(
-    volume: &mut Vec<f32>,
+    buffers: &mut DepthScratch,
     optics: &Optics,
     view: &View,
     options: &DepthOptions,
@@ -434,13 +452,16 @@ pub fn depth_from_focus_in(
     // pixel-major layout would scatter every write to its own cache line); the peak search gathers
     // a row's curves from the n planes.
     let plane = w * h;
+    let DepthScratch { volume, best, best_frame, gray, native, scratch } = buffers;
     // Every cell is written before it is read (each frame fills its whole plane).
     volume.resize(plane * n, 0.0);
-    let mut best = vec![f32::MIN; w * h];
+    refill(best, w * h, f32::MIN);
     // The frame (index) where each pixel's measure is highest so far (the first such).
-    let mut best_frame = vec![0u32; w * h];
+    refill(best_frame, w * h, 0u32);
     let mut all_in_focus = vec![0f32; w * h * 3];
-    let (mut gray, mut native, mut scratch) = (Vec::with_capacity(w * h), vec![0f32; w * h], vec![0f32; w * h]);
+    // Every cell of these is written before it is read, frame by frame.
+    native.resize(w * h, 0.0);
+    scratch.resize(w * h, 0.0);
     let mut end_edges = Vec::new();
     // The last few frames and their taps: a pixel's colour is sampled from a frame that is still
     // its sharpest when the frame leaves this window (or the stack ends), not at every frame that
@@ -464,9 +485,9 @@ pub fn depth_from_focus_in(
             Projection::Perspective => (big_f - entry.offset_mm) / big_f,
             Projection::Telecentric => 1.0,
         };
-        frame.gray_into(&mut gray);
-        focus_measure(&gray, w, h, options.window_radius_px, &mut scratch, &mut native);
-        end_edges.extend(crate::endface::frame_edge(&gray, w, h, entry.offset_mm));
+        frame.gray_into(gray);
+        focus_measure(gray, w, h, options.window_radius_px, scratch, native);
+        end_edges.extend(crate::endface::frame_edge(gray, w, h, entry.offset_mm));
         let taps = Taps { xs: axis_taps(w, principal[0], scale), ys: axis_taps(h, principal[1], scale) };
         let (spans, fxs) = (tap_spans(&taps.xs), taps.xs.iter().map(|t| t.2).collect::<Vec<f32>>());
         let k32 = k as u32;
@@ -481,11 +502,11 @@ pub fn depth_from_focus_in(
         if recent.len() > COLOUR_WINDOW_FRAMES
             && let Some((k_old, frame, taps)) = recent.pop_front()
         {
-            sample_where_sharpest(k_old, &frame, &taps, &best_frame, &mut all_in_focus);
+            sample_where_sharpest(k_old, &frame, &taps, best_frame, &mut all_in_focus);
         }
     }
     for (k, frame, taps) in &recent {
-        sample_where_sharpest(*k, frame, taps, &best_frame, &mut all_in_focus);
+        sample_where_sharpest(*k, frame, taps, best_frame, &mut all_in_focus);
     }
     drop(recent);
     let offsets: Vec<f64> = view.frames.iter().map(|f| f.offset_mm).collect();
@@ -499,6 +520,7 @@ pub fn depth_from_focus_in(
     let mut depth_mm = vec![f32::NAN; w * h];
     let mut peak_ratio = vec![1f32; w * h];
     let network = MedianNetwork::new(n);
+    let volume: &[f32] = volume;
     // Per row: the n frames' rows are copied out of the volume (frame-major, so each is one
     // contiguous run), the maximum and the median are found for all of the row's pixels at once,
     // and only trusted pixels' curves are walked one by one.

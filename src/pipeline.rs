@@ -6,7 +6,7 @@
 use crate::bundle::{Bundle, BundleError};
 use crate::cloud;
 use crate::crest::{self, CrestOptions};
-use crate::depth::{DepthMap, DepthOptions, depth_from_focus_in};
+use crate::depth::{DepthMap, DepthOptions, DepthScratch, depth_from_focus_in};
 use crate::fuse::{Fusion, GridSpec, UnrolledMap};
 use crate::mesh::{self, MeshOptions};
 use crate::optics::ViewPose;
@@ -118,8 +118,8 @@ pub fn inspect(
     progress(Stage::Depth, 0.0);
     let done = AtomicUsize::new(0);
     let total = bundle.views.len();
-    // Focus volumes are handed from view to view (one per view in flight, not one per view).
-    let volumes = std::sync::Mutex::new(Vec::<Vec<f32>>::new());
+    // Depth buffers are handed from view to view (one set per view in flight, not one per view).
+    let volumes = std::sync::Mutex::new(Vec::<DepthScratch>::new());
     let depth_options = options.depth.for_form(&bundle.part.form);
     let depth_maps: Vec<Option<DepthMap>> = bundle
         .views
