@@ -3,10 +3,12 @@
 //! where the seed needed a learned 3D method. A vertex budget bounds the mesh: cells where the
 //! profile bends (flank edges, crest and root corners, data borders) are kept, flat regions are
 //! thinned on a regular stride chosen to fit the budget. Triangles longer than the stride allows
-//! (bridging unseen regions) are dropped. Binary PLY (with colour) and binary STL writers are a few
+//! (bridging unseen regions) are dropped. The strip is triangulated in a fixed number of column
+//! bands in parallel, which share their boundary columns. Binary PLY (with colour) and binary STL writers are a few
 //! lines each, so they are written here rather than pulled in as crates.
 
 use crate::fuse::UnrolledMap;
+use rayon::prelude::*;
 use spade::{DelaunayTriangulation, HasPosition, Point2, Triangulation};
 use std::io::{self, Write};
 
@@ -110,12 +112,42 @@ pub fn build(map: &UnrolledMap, options: &MeshOptions) -> Result<Mesh, MeshError
             index: k as u32,
         });
     }
+    let max_edge = 1.5 * (stride as f64 + 1.0) * g.dz_mm.max(arc_per_column);
+    // The strip is triangulated in TILES bands of columns, in parallel; neighbouring bands share
+    // their boundary column (a multiple of the stride, so flats have sites there), whose sites on
+    // both sides give the same edges between them. The count is fixed, not taken from the cores,
+    // so that every machine builds the same mesh.
+    const TILES: usize = 8;
+    let bounds: Vec<usize> =
+        (0..=TILES).map(|t| if t == TILES { g.ntheta } else { t * g.ntheta / TILES / stride * stride }).collect();
+    let tiles: Vec<Vec<[u32; 3]>> = bounds
+        .windows(2)
+        .collect::<Vec<_>>()
+        .into_par_iter()
+        .map(|w| {
+            let (first, last) = (w[0], w[1]);
+            let tile: Vec<Site> = chosen
+                .iter()
+                .zip(&sites)
+                .filter(|((_, it), _)| (first..=last).contains(it))
+                .map(|(_, site)| Site { position: site.position, index: site.index })
+                .collect();
+            triangulate(tile, &chosen, max_edge)
+        })
+        .collect::<Result<_, MeshError>>()?;
+    mesh.triangles = tiles.concat();
+    Ok(mesh)
+}
+
+/// The triangles of one tile's sites, less those bridging unseen regions (an edge over
+/// `max_edge`) and slivers along data borders.
+fn triangulate(sites: Vec<Site>, chosen: &[(usize, usize)], max_edge: f64) -> Result<Vec<[u32; 3]>, MeshError> {
     if sites.len() < 3 {
-        return Ok(mesh);
+        return Ok(Vec::new());
     }
     let triangulation: DelaunayTriangulation<Site> =
         DelaunayTriangulation::bulk_load(sites).map_err(|e| MeshError(format!("{e:?}")))?;
-    let max_edge = 1.5 * (stride as f64 + 1.0) * g.dz_mm.max(arc_per_column);
+    let mut triangles = Vec::with_capacity(triangulation.num_inner_faces());
     for face in triangulation.inner_faces() {
         let [a, b, c] = face.vertices();
         let (pa, pb, pc) = (a.position(), b.position(), c.position());
@@ -130,9 +162,9 @@ pub fn build(map: &UnrolledMap, options: &MeshOptions) -> Result<Mesh, MeshError
         if (z1 - z0) * (t2 - t0) == (z2 - z0) * (t1 - t0) {
             continue;
         }
-        mesh.triangles.push(corners);
+        triangles.push(corners);
     }
-    Ok(mesh)
+    Ok(triangles)
 }
 
 /// Two offsets in [−0.5e-4, 0.5e-4) from a site's index (Weyl sequence bits: cheap, fixed).
