@@ -4,8 +4,8 @@
 //! profile bends (flank edges, crest and root corners, data borders) are kept, flat regions are
 //! thinned on a regular stride chosen to fit the budget. Triangles longer than the stride allows
 //! (bridging unseen regions) are dropped. The strip is triangulated in a fixed number of column
-//! bands in parallel, which share their boundary columns. Binary PLY (with colour) and binary STL writers are a few
-//! lines each, so they are written here rather than pulled in as crates.
+//! bands in parallel, which share their boundary columns. Binary PLY (with colour) and binary STL
+//! writers are a few lines each, so they are written here rather than pulled in as crates.
 
 use crate::fuse::UnrolledMap;
 use rayon::prelude::*;
