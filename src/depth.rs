@@ -118,15 +118,24 @@ struct Taps {
 }
 
 impl Taps {
-    /// The frame's colour at reference pixel (x, y), RGB (a gray frame's value thrice).
-    fn sample(&self, frame: &Frame, w: usize, x: usize, y: usize, out: &mut [f32]) {
-        let ((x0, x1, fx), (y0, y1, fy)) = (self.xs[x], self.ys[y]);
-        let corners = ((x0, x1, fx), (y0, y1, fy));
-        // Per sample type, so that reading a sample is a table lookup or a load, not a match.
-        match &frame.samples {
-            Samples::Eight(s) => mix_corners(s, frame.channels, w, corners, out),
-            Samples::Sixteen(s) => mix_corners(s, frame.channels, w, corners, out),
-            Samples::Float(s) => mix_corners(s, frame.channels, w, corners, out),
+    /// The frame's colour (RGB; a gray frame's value thrice) into `colours` at every reference
+    /// pixel whose `best_frame` is `k`.
+    fn sample_where<T: SampleValue>(
+        &self,
+        samples: &[T],
+        channels: u8,
+        w: usize,
+        k: u32,
+        best_frame: &[u32],
+        colours: &mut [f32],
+    ) {
+        for (y, (row, colours)) in best_frame.chunks_exact(w).zip(colours.chunks_exact_mut(3 * w)).enumerate() {
+            let ys = self.ys[y];
+            for ((&b, colour), &xs) in row.iter().zip(colours.chunks_exact_mut(3)).zip(&self.xs) {
+                if b == k {
+                    mix_corners(samples, channels, w, (xs, ys), colour);
+                }
+            }
         }
     }
 }
@@ -468,12 +477,11 @@ pub fn depth_from_focus_in(
     // rises on the way to its peak or jitters on its plateau.
     let mut recent: std::collections::VecDeque<(u32, Frame, Taps)> = std::collections::VecDeque::new();
     let sample_where_sharpest = |k: u32, frame: &Frame, taps: &Taps, best_frame: &[u32], colours: &mut [f32]| {
-        for (y, (row, colours)) in best_frame.chunks_exact(w).zip(colours.chunks_exact_mut(3 * w)).enumerate() {
-            for (x, (_, colour)) in
-                row.iter().zip(colours.chunks_exact_mut(3)).enumerate().filter(|(_, (b, _))| **b == k)
-            {
-                taps.sample(frame, w, x, y, colour);
-            }
+        // Per sample type once per frame, so that the pixel loop is a table lookup or a load.
+        match &frame.samples {
+            Samples::Eight(samples) => taps.sample_where(samples, frame.channels, w, k, best_frame, colours),
+            Samples::Sixteen(samples) => taps.sample_where(samples, frame.channels, w, k, best_frame, colours),
+            Samples::Float(samples) => taps.sample_where(samples, frame.channels, w, k, best_frame, colours),
         }
     };
     for (k, entry) in view.frames.iter().enumerate() {
