@@ -74,6 +74,32 @@ impl AngleFrom {
     }
 }
 
+/// ⌊x⌋ as an integer, for |x| < 2⁶³. Without SSE4.1 (the baseline x86-64 target) `f64::floor`
+/// is a call into libm, once or twice per point of every view in registration and fusion.
+#[inline]
+pub fn floor_i64(x: f64) -> i64 {
+    let t = x as i64;
+    t - ((t as f64) > x) as i64
+}
+
+/// `theta.rem_euclid(TAU)`, bit for bit, without its `fmod` call where theta is within a turn
+/// of [0, 2π) (as a point's angle from its view's angle is): there the remainder is theta itself
+/// or theta ∓ 2π, which floating point subtracts exactly (Sterbenz) or rounds the same way.
+#[inline]
+pub fn wrap_turn(theta: f64) -> f64 {
+    use std::f64::consts::TAU;
+    if (0.0..TAU).contains(&theta) {
+        theta
+    } else if theta > -TAU && theta < 0.0 {
+        // (At −2π itself the library gives −0.)
+        theta + TAU
+    } else if (TAU..2.0 * TAU).contains(&theta) {
+        theta - TAU
+    } else {
+        theta.rem_euclid(TAU)
+    }
+}
+
 /// Room for every item an iterator may yield (its upper bound: pages never written cost nothing),
 /// so that collecting a view's points does not copy them as the vector grows.
 pub fn capacity_for<T>(items: &impl Iterator<Item = T>) -> usize {
@@ -117,6 +143,23 @@ pub fn points_of<'a>(
 mod tests {
     use super::*;
     use crate::optics::Projection;
+
+    #[test]
+    fn the_fast_floor_and_turn_wrap_agree_with_the_library_bit_for_bit() {
+        use std::f64::consts::TAU;
+        let mut x = -3.0 * TAU;
+        while x < 3.0 * TAU {
+            for v in [x, -x, x.next_up(), x.next_down()] {
+                assert_eq!(floor_i64(v), v.floor() as i64, "{v}");
+                assert_eq!(wrap_turn(v).to_bits(), v.rem_euclid(TAU).to_bits(), "{v}");
+            }
+            x += 0.0137;
+        }
+        for v in [0.0, -0.0, TAU, -TAU, 2.0 * TAU, -1e-300, 1e-300, 12.5, -12.5, -0.5, 4e15 + 0.5] {
+            assert_eq!(floor_i64(v), v.floor() as i64, "{v}");
+            assert_eq!(wrap_turn(v).to_bits(), v.rem_euclid(TAU).to_bits(), "{v}");
+        }
+    }
 
     #[test]
     fn angles_from_a_reference_match_atan2_and_wrap_into_the_half_open_circle() {

@@ -133,11 +133,11 @@ impl Fusion {
         out.clear();
         out.reserve(crate::cloud::capacity_for(&points));
         for p in points {
-            let iz = ((p.position.z - grid.z0_mm) / grid.dz_mm).floor();
-            if iz < 0.0 || iz as usize >= grid.nz {
+            let iz = crate::cloud::floor_i64((p.position.z - grid.z0_mm) / grid.dz_mm);
+            if iz < 0 || iz as usize >= grid.nz {
                 continue;
             }
-            let theta = (view_angle_rad + angle.of(p.position.x, p.position.y)).rem_euclid(TAU);
+            let theta = crate::cloud::wrap_turn(view_angle_rad + angle.of(p.position.x, p.position.y));
             let it = ((theta / TAU * grid.ntheta as f64) as usize).min(grid.ntheta - 1);
             out.push(Binned {
                 cell: (iz as usize * grid.ntheta + it) as u32,

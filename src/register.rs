@@ -176,7 +176,7 @@ pub fn view_grid(
         let z = p.position.z;
         z_range_mm = (z_range_mm.0.min(z), z_range_mm.1.max(z));
         let (g, r, w) = (crate::bundle::luminance(p.rgb), p.radius_mm() as f32, crate::fuse::point_weight(p.weight));
-        cells.push((s.floor() as i64, (z * per_z).floor() as i64, g, r, w));
+        cells.push((crate::cloud::floor_i64(s), crate::cloud::floor_i64(z * per_z), g, r, w));
     }
     let (s0, s1) = cells.iter().fold((i64::MAX, i64::MIN), |(a, b), c| (a.min(c.0), b.max(c.0)));
     let (z0, z1) = cells.iter().fold((i64::MAX, i64::MIN), |(a, b), c| (a.min(c.1), b.max(c.1)));
