@@ -119,23 +119,23 @@ pub fn inspect(
     let done = AtomicUsize::new(0);
     let total = bundle.views.len();
     // Depth buffers are handed from view to view (one set per view in flight, not one per view).
-    let volumes = std::sync::Mutex::new(Vec::<DepthScratch>::new());
+    let scratches = std::sync::Mutex::new(Vec::<DepthScratch>::new());
     let depth_options = options.depth.for_form(&bundle.part.form);
     let depth_maps: Vec<Option<DepthMap>> = bundle
         .views
         .par_iter()
         .enumerate()
         .map(|(v, view)| {
-            let mut volume = volumes.lock().expect("no panics while held").pop().unwrap_or_default();
+            let mut scratch = scratches.lock().expect("no panics while held").pop().unwrap_or_default();
             let map = depth_from_focus_in(
-                &mut volume,
+                &mut scratch,
                 &bundle.optics,
                 view,
                 &depth_options,
                 |k| bundle.read_frame(v, k),
                 &cancelled,
             );
-            volumes.lock().expect("no panics while held").push(volume);
+            scratches.lock().expect("no panics while held").push(scratch);
             let map = map?;
             progress(Stage::Depth, (done.fetch_add(1, Ordering::Relaxed) + 1) as f64 / total as f64);
             Ok(map)
@@ -144,7 +144,7 @@ pub fn inspect(
     if cancelled() || depth_maps.iter().any(Option::is_none) {
         return Ok(None);
     }
-    drop(volumes);
+    drop(scratches);
     let mut depth_maps: Vec<DepthMap> = depth_maps.into_iter().flatten().collect();
     if options.depth.equalize_phase {
         let grids: Vec<Option<(f64, f64)>> = bundle
@@ -222,13 +222,16 @@ pub fn inspect(
     // buffers reused from batch to batch; each batch is summed in view order before the next.
     let batch = 2 * rayon::current_num_threads().max(1);
     let mut buffers: Vec<Vec<crate::fuse::Binned>> = vec![Vec::new(); batch.min(total)];
-    for (first, views) in poses.iter().zip(&depth_maps).collect::<Vec<_>>().chunks(batch).enumerate() {
+    for (batch_index, views) in poses.iter().zip(&depth_maps).collect::<Vec<_>>().chunks(batch).enumerate() {
+        if cancelled() {
+            return Ok(None);
+        }
         buffers.par_iter_mut().zip(views).for_each(|(buffer, &(pose, depth))| {
             fusion.bin_into(buffer, cloud::points_of(optics, pose, depth), pose.angle_deg.to_radians());
         });
         fusion.accumulate_all(&buffers[..views.len()]);
         // Binning is most of the work; the sums follow each batch.
-        progress(Stage::Fuse, 0.9 * ((first * batch + views.len()) as f64 / total as f64));
+        progress(Stage::Fuse, 0.9 * ((batch_index * batch + views.len()) as f64 / total as f64));
     }
     drop(buffers);
     progress(Stage::Fuse, 1.0);

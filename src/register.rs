@@ -180,7 +180,9 @@ pub fn view_grid(
     }
     let (s0, s1) = cells.iter().fold((i64::MAX, i64::MIN), |(a, b), c| (a.min(c.0), b.max(c.0)));
     let (z0, z1) = cells.iter().fold((i64::MAX, i64::MIN), |(a, b), c| (a.min(c.1), b.max(c.1)));
-    let (ns, nz) = if cells.is_empty() { (0, 0) } else { ((s1 - s0 + 1) as usize, (z1 - z0 + 1) as usize) };
+    // A view without a trusted point has an empty grid (no pair with it is measured).
+    let (s0, z0, ns, nz) =
+        if cells.is_empty() { (0, 0, 0, 0) } else { (s0, z0, (s1 - s0 + 1) as usize, (z1 - z0 + 1) as usize) };
     sum.clear();
     sum.resize(ns * nz, (0.0, 0.0, 0.0));
     for &(s, z, g, r, w) in cells.iter() {
@@ -391,6 +393,9 @@ fn measure_pair(
 ) -> Option<PairMeasure> {
     let (va, vb) = (&views[a], &views[b]);
     let (pa, pb) = (&va.patch, &vb.patch);
+    if pa.gray.is_empty() || pb.gray.is_empty() {
+        return None;
+    }
     // b's arc indices in a's turn.
     let turn = lattice.turn_cells(va.angle_rad, vb.angle_rad);
     let b_s0 = pb.s0 + turn;
@@ -646,6 +651,21 @@ mod tests {
         // A point seen at 359.9° by b and 359.9° − 360° by a lands in the same cell of a's turn.
         let cell = |deg: f64| (deg.to_radians() * lattice.radius_ref_mm / lattice.cell_arc_mm).floor() as i64;
         assert_eq!(cell(359.9) + turn(-8.0, 352.0), cell(-0.1));
+    }
+
+    #[test]
+    fn a_view_without_trusted_points_is_left_where_the_encoder_put_it() {
+        let lattice = Lattice::new(57.15, 0.041);
+        let poses: Vec<ViewPose> =
+            // 352°, 0° and 8°: the first pair spans angle 0.
+            [352.0, 0.0, 8.0].map(|angle_deg| ViewPose { angle_deg, axial_mm: 10.0, lens_radius_mm: 200.0 }).into();
+        let grids: Vec<ViewGrid> = poses
+            .iter()
+            .map(|p| view_grid(std::iter::empty(), p.angle_deg.to_radians(), &lattice, &mut GridScratch::default()))
+            .collect();
+        let registration = register(&grids, &poses, &lattice, 7.0, 17.0, &RegisterOptions::default());
+        assert!(registration.pairs.is_empty());
+        assert!(registration.corrections.iter().all(|c| *c == PoseCorrection::default()));
     }
 
     #[test]
