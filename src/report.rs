@@ -104,11 +104,25 @@ impl Report {
             )),
             None => out.push_str("  z from the encoders (no end face in view)\n"),
         }
-        let total: f64 = self.timings.iter().map(|t| t.seconds).sum();
+        // The mesh and the profile run at the same time: together they take the longer of the two.
+        let seconds_of = |stage: &str| self.timings.iter().find(|t| t.stage == stage).map(|t| t.seconds);
+        let overlap = match (seconds_of("mesh"), seconds_of("profile")) {
+            (Some(mesh), Some(profile)) => mesh.min(profile),
+            _ => 0.0,
+        };
+        let total: f64 = self.timings.iter().map(|t| t.seconds).sum::<f64>() - overlap;
+        let stages: Vec<String> = self
+            .timings
+            .iter()
+            .map(|t| match t.stage.as_str() {
+                "profile" if overlap > 0.0 => format!("beside it profile {:.2}", t.seconds),
+                _ => format!("{} {:.2}", t.stage, t.seconds),
+            })
+            .collect();
         out.push_str(&format!(
             "  {:.2} s ({}){}",
             total,
-            self.timings.iter().map(|t| format!("{} {:.2}", t.stage, t.seconds)).collect::<Vec<_>>().join(", "),
+            stages.join(", "),
             self.peak_memory_mb.map(|m| format!("; peak memory {m:.0} MB")).unwrap_or_default()
         ));
         out

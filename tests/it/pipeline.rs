@@ -49,6 +49,18 @@ fn inspection_of_the_ci_bundle_matches_truth() {
     }
     assert!(seen.iter().all(|(_, f)| (0.0..=1.0).contains(f)));
     assert_eq!(seen.last().unwrap(), &(Stage::Rules, 1.0));
+    // The summary's time counts the mesh and the profile, which run together, once: the longer.
+    let seconds = |stage: &str| inspection.report.timings.iter().find(|t| t.stage == stage).unwrap().seconds;
+    let wall = seconds("depth")
+        + seconds("register")
+        + seconds("fuse")
+        + seconds("mesh").max(seconds("profile"))
+        + seconds("crest_and_rules");
+    let summary = inspection.report.summary();
+    let timing_line = summary.lines().find(|l| l.contains("(depth ")).expect("a timing line");
+    let printed: f64 = timing_line.split_whitespace().next().unwrap().parse().unwrap();
+    assert!((printed - wall).abs() <= 0.005 + 1e-9, "{timing_line} (wall {wall:.3})");
+    assert!(timing_line.contains("beside it profile"), "{timing_line}");
 }
 
 #[test]
