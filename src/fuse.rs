@@ -116,16 +116,9 @@ impl Fusion {
     /// [`crate::cloud::points_of`]): the costly part (angle, radius), which views can compute in
     /// parallel before [`Fusion::accumulate_all`] sums them in order. `view_angle_rad` is the
     /// view's own angle: the points' angles are measured from it ([`crate::cloud::AngleFrom`]; any
-    /// angle gives the same bins, the view's own the cheapest).
-    pub fn bin_each(&self, points: impl IntoIterator<Item = SurfacePoint>, view_angle_rad: f64) -> Vec<Binned> {
-        let mut out = Vec::new();
-        self.bin_into(&mut out, points, view_angle_rad);
-        out
-    }
-
-    /// [`Fusion::bin_each`] into a buffer the caller reuses from view to view (its old contents
-    /// are dropped): a view's binned points are tens of megabytes, and fresh ones cost a page
-    /// fault per 4 kB.
+    /// angle gives the same bins, the view's own the cheapest). Written into `out`, which the
+    /// caller reuses from view to view (its old contents are dropped): a view's binned points are
+    /// tens of megabytes, and fresh ones cost a page fault per 4 kB.
     pub fn bin_into(&self, out: &mut Vec<Binned>, points: impl IntoIterator<Item = SurfacePoint>, view_angle_rad: f64) {
         let grid = &self.grid;
         let angle = crate::cloud::AngleFrom::new(view_angle_rad);
@@ -191,11 +184,17 @@ mod tests {
     use super::*;
     use nalgebra::Point3;
 
+    fn bin(fusion: &Fusion, points: &[SurfacePoint]) -> Vec<Binned> {
+        let mut binned = Vec::new();
+        fusion.bin_into(&mut binned, points.iter().copied(), 0.0);
+        binned
+    }
+
     /// The views binned and summed one after the other: the sequential reference.
     fn fuse(views: &[&[SurfacePoint]], grid: GridSpec) -> UnrolledMap {
         let mut fusion = Fusion::new(grid);
         for v in views {
-            let binned = fusion.bin_each(v.iter().copied(), 0.0);
+            let binned = bin(&fusion, v);
             fusion.accumulate(&binned);
         }
         fusion.finish()
@@ -224,7 +223,7 @@ mod tests {
             .collect();
         let sequential = fuse(&views.iter().map(Vec::as_slice).collect::<Vec<_>>(), grid.clone());
         let mut banded = Fusion::new(grid);
-        let binned: Vec<Vec<Binned>> = views.iter().map(|v| banded.bin_each(v.iter().copied(), 0.0)).collect();
+        let binned: Vec<Vec<Binned>> = views.iter().map(|v| bin(&banded, v)).collect();
         banded.accumulate_all(&binned);
         let banded = banded.finish();
         let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
