@@ -242,7 +242,9 @@ pub fn run_case(case: &Case, work: &std::path::Path, repeat: usize) -> Result<Ca
         let bytes = std::fs::read(dir.join(format!("truth/{}.depth.pfm", view.id)))
             .map_err(|e| BenchError::Other(e.to_string()))?;
         let (_, _, t) = crate::sim::pfm::read(&bytes).map_err(BenchError::Other)?;
-        for (d, t) in depth.depth_mm.iter().zip(&t) {
+        // The map holds every `row_step`-th pixel row; truth holds every row.
+        let truth_rows = t.chunks_exact(depth.width).step_by(depth.row_step.max(1)).flatten();
+        for (d, t) in depth.depth_mm.iter().zip(truth_rows) {
             if t.is_finite() {
                 total += 1;
                 if d.is_finite() {

@@ -122,10 +122,12 @@ pub fn points_of<'a>(
     // A pixel ray's x parts depend on its column only and its y parts on its row only: taken from
     // `pixel_ray` once per column and row (the same numbers it gives per pixel), not per point.
     let columns: Vec<Ray> = (0..depth.width).map(|u| optics.pixel_ray(u as f64, 0.0, principal, 0.0)).collect();
-    let rows: Vec<Ray> = (0..depth.height).map(|v| optics.pixel_ray(0.0, v as f64, principal, 0.0)).collect();
+    let step = depth.row_step.max(1);
+    let rows: Vec<Ray> =
+        (0..depth.rows()).map(|r| optics.pixel_ray(0.0, (r * step) as f64, principal, 0.0)).collect();
     depth.depth_mm.iter().enumerate().filter(|(_, d)| d.is_finite()).map(move |(i, &d)| {
-        let (u, v) = (i % width, i / width);
-        let (column, row) = (&columns[u], &rows[v]);
+        let (u, r) = (i % width, i / width);
+        let (column, row) = (&columns[u], &rows[r]);
         let ray = Ray {
             origin: Point3::new(column.origin.x, row.origin.y, column.origin.z),
             direction: nalgebra::Vector3::new(column.direction.x, row.direction.y, column.direction.z),
@@ -134,7 +136,7 @@ pub fn points_of<'a>(
             position: iso * ray.at(d as f64),
             rgb: [depth.all_in_focus[3 * i], depth.all_in_focus[3 * i + 1], depth.all_in_focus[3 * i + 2]],
             weight: depth.peak_ratio[i],
-            pixel: [u as u32, v as u32],
+            pixel: [u as u32, (r * step) as u32],
         }
     })
 }
@@ -196,6 +198,7 @@ mod tests {
         let depth = DepthMap {
             width: 3,
             height: 3,
+            row_step: 1,
             depth_mm: vec![220.0; 9],
             peak_ratio: vec![2.0; 9],
             all_in_focus: vec![0.5; 27],

@@ -38,6 +38,13 @@ pub struct DepthOptions {
     /// Undo the sub-frame phase bias over the bundle ([`equalize_sub_frame_phase`]).
     #[serde(default = "yes")]
     pub equalize_phase: bool,
+    /// Depth is estimated on every `row_step`-th pixel row (rows run across the arc: the frames'
+    /// height spans the view's angle, their width the pipe's axis). A pixel's focus curve is the
+    /// sum over a box 2·radius + 1 rows tall, so neighbouring rows' curves share all but one of
+    /// its rows and their depths say nearly the same thing; along the arc the thread changes
+    /// slowly (a pitch per turn). Every row of every frame still feeds the focus measure.
+    #[serde(default = "row_step")]
+    pub row_step: usize,
 }
 
 fn yes() -> bool {
@@ -48,6 +55,10 @@ fn flat_window_radius_px() -> usize {
     DepthOptions::default().flat_window_radius_px
 }
 
+fn row_step() -> usize {
+    DepthOptions::default().row_step
+}
+
 impl Default for DepthOptions {
     fn default() -> Self {
         Self {
@@ -56,6 +67,7 @@ impl Default for DepthOptions {
             min_peak_ratio: 1.6,
             peak_fraction: 0.3,
             equalize_phase: true,
+            row_step: 2,
         }
     }
 }
@@ -73,11 +85,15 @@ impl DepthOptions {
     }
 }
 
-/// A view's depth map on the offset-0 pixel grid.
+/// A view's depth map on the offset-0 pixel grid: every column, every `row_step`-th row.
 #[derive(Clone, Debug, PartialEq)]
 pub struct DepthMap {
+    /// The frames' size in pixels.
     pub width: usize,
     pub height: usize,
+    /// Map row r is pixel row r · `row_step` ([`DepthOptions::row_step`]); the map holds
+    /// [`DepthMap::rows`] rows of `width` values.
+    pub row_step: usize,
     /// Depth along the camera axis from the offset-0 lens centre; NaN where not trusted.
     pub depth_mm: Vec<f32>,
     /// Peak focus measure over its floor (median over the stack); ≥ 1.
@@ -89,6 +105,11 @@ pub struct DepthMap {
 }
 
 impl DepthMap {
+    /// Rows of the map: the pixel rows 0, `row_step`, 2·`row_step`, … below `height`.
+    pub fn rows(&self) -> usize {
+        self.height.div_ceil(self.row_step.max(1))
+    }
+
     pub fn coverage(&self) -> f64 {
         self.depth_mm.iter().filter(|d| d.is_finite()).count() as f64 / self.depth_mm.len() as f64
     }
@@ -119,18 +140,20 @@ struct Taps {
 
 impl Taps {
     /// The frame's colour (RGB; a gray frame's value thrice) into `colours` at every reference
-    /// pixel whose `best_frame` is `k`.
+    /// pixel of the map (every `row_step`-th row) whose `best_frame` is `k`.
+    #[allow(clippy::too_many_arguments)]
     fn sample_where<T: SampleValue>(
         &self,
         samples: &[T],
         channels: u8,
         w: usize,
+        row_step: usize,
         k: u32,
         best_frame: &[u32],
         colours: &mut [f32],
     ) {
-        for (y, (row, colours)) in best_frame.chunks_exact(w).zip(colours.chunks_exact_mut(3 * w)).enumerate() {
-            let ys = self.ys[y];
+        for (r, (row, colours)) in best_frame.chunks_exact(w).zip(colours.chunks_exact_mut(3 * w)).enumerate() {
+            let ys = self.ys[r * row_step];
             for ((&b, colour), &xs) in row.iter().zip(colours.chunks_exact_mut(3)).zip(&self.xs) {
                 if b == k {
                     mix_corners(samples, channels, w, (xs, ys), colour);
@@ -454,20 +477,23 @@ pub fn depth_from_focus_in(
     cancelled: &dyn Fn() -> bool,
 ) -> Result<Option<DepthMap>, BundleError> {
     let (w, h) = (view.format.width as usize, view.format.height as usize);
+    let step = options.row_step.max(1);
+    // Map rows: pixel rows 0, step, 2·step, …
+    let rows = h.div_ceil(step);
     let n = view.frames.len();
     let principal = optics.principal_point(view.format.width, view.format.height);
     let big_f = optics.focus_distance_mm;
     // Focus volume, frame-major: each frame's measure is written as one contiguous plane (a
     // pixel-major layout would scatter every write to its own cache line); the peak search gathers
     // a row's curves from the n planes.
-    let plane = w * h;
+    let plane = w * rows;
     let DepthScratch { volume, best, best_frame, gray, native, scratch } = buffers;
     // Every cell is written before it is read (each frame fills its whole plane).
     volume.resize(plane * n, 0.0);
-    refill(best, w * h, f32::MIN);
+    refill(best, plane, f32::MIN);
     // The frame (index) where each pixel's measure is highest so far (the first such).
-    refill(best_frame, w * h, 0u32);
-    let mut all_in_focus = vec![0f32; w * h * 3];
+    refill(best_frame, plane, 0u32);
+    let mut all_in_focus = vec![0f32; plane * 3];
     // Every cell of these is written before it is read, frame by frame.
     native.resize(w * h, 0.0);
     scratch.resize(w * h, 0.0);
@@ -479,9 +505,9 @@ pub fn depth_from_focus_in(
     let sample_where_sharpest = |k: u32, frame: &Frame, taps: &Taps, best_frame: &[u32], colours: &mut [f32]| {
         // Per sample type once per frame, so that the pixel loop is a table lookup or a load.
         match &frame.samples {
-            Samples::Eight(samples) => taps.sample_where(samples, frame.channels, w, k, best_frame, colours),
-            Samples::Sixteen(samples) => taps.sample_where(samples, frame.channels, w, k, best_frame, colours),
-            Samples::Float(samples) => taps.sample_where(samples, frame.channels, w, k, best_frame, colours),
+            Samples::Eight(samples) => taps.sample_where(samples, frame.channels, w, step, k, best_frame, colours),
+            Samples::Sixteen(samples) => taps.sample_where(samples, frame.channels, w, step, k, best_frame, colours),
+            Samples::Float(samples) => taps.sample_where(samples, frame.channels, w, step, k, best_frame, colours),
         }
     };
     for (k, entry) in view.frames.iter().enumerate() {
@@ -499,7 +525,7 @@ pub fn depth_from_focus_in(
         let taps = Taps { xs: axis_taps(w, principal[0], scale), ys: axis_taps(h, principal[1], scale) };
         let (spans, fxs) = (tap_spans(&taps.xs), taps.xs.iter().map(|t| t.2).collect::<Vec<f32>>());
         let k32 = k as u32;
-        for (y, &(y0, y1, fy)) in taps.ys.iter().enumerate() {
+        for (y, &(y0, y1, fy)) in taps.ys.iter().step_by(step).enumerate() {
             let (above, below) = (&native[y0 * w..(y0 + 1) * w], &native[y1 * w..(y1 + 1) * w]);
             let measures = &mut volume[k * plane + y * w..k * plane + (y + 1) * w];
             resample_row(above, below, fy, &taps.xs, &spans, &fxs, measures);
@@ -525,8 +551,8 @@ pub fn depth_from_focus_in(
         Projection::Telecentric => 0,
     };
     let border = options.window_radius_px + 1 + breathing_px;
-    let mut depth_mm = vec![f32::NAN; w * h];
-    let mut peak_ratio = vec![1f32; w * h];
+    let mut depth_mm = vec![f32::NAN; plane];
+    let mut peak_ratio = vec![1f32; plane];
     let network = MedianNetwork::new(n);
     let volume: &[f32] = volume;
     // Per row: the n frames' rows are copied out of the volume (frame-major, so each is one
@@ -535,9 +561,10 @@ pub fn depth_from_focus_in(
     let init = || (vec![0f32; n * w], vec![0f32; n * w], vec![0f32; w], vec![0u32; w], vec![0f32; n]);
     depth_mm.par_chunks_mut(w).zip(peak_ratio.par_chunks_mut(w)).enumerate().for_each_init(
         init,
-        |(rows, sorted, peak, k_best, column), (y, (depth_row, ratio_row))| {
+        |(rows, sorted, peak, k_best, column), (r, (depth_row, ratio_row))| {
+            let y = r * step;
             for k in 0..n {
-                rows[k * w..(k + 1) * w].copy_from_slice(&volume[k * plane + y * w..k * plane + (y + 1) * w]);
+                rows[k * w..(k + 1) * w].copy_from_slice(&volume[k * plane + r * w..k * plane + (r + 1) * w]);
             }
             sorted.copy_from_slice(rows);
             // The last maximum, as `max_by` would give.
@@ -568,7 +595,7 @@ pub fn depth_from_focus_in(
             }
         },
     );
-    Ok(Some(DepthMap { width: w, height: h, depth_mm, peak_ratio, all_in_focus, end_edges }))
+    Ok(Some(DepthMap { width: w, height: h, row_step: step, depth_mm, peak_ratio, all_in_focus, end_edges }))
 }
 
 /// The frame grid of a stack whose offsets are evenly spaced (within 1% of the step), as
@@ -687,6 +714,7 @@ mod tests {
         let options: DepthOptions = serde_json::from_str(old).unwrap();
         assert_eq!((options.window_radius_px, options.flat_window_radius_px), (3, 5));
         assert!(options.equalize_phase);
+        assert_eq!(options.row_step, 2);
     }
 
     #[test]
@@ -879,6 +907,32 @@ mod tests {
             };
             assert_eq!(bits(&eight), bits(&sixteen), "{channels} channels: 8 vs 16 bits");
             assert_eq!(bits(&eight), bits(&float), "{channels} channels: 8 bits vs f32");
+
+            // Depth on every row and on every second or third row: the sparser maps are the full
+            // map's rows 0, step, 2·step, … bit for bit (the focus measure still sees every row).
+            let frames = frames_as(&Samples::Eight);
+            let with_step = |row_step: usize| {
+                let options = DepthOptions { row_step, ..DepthOptions::default() };
+                depth_from_focus(&optics, &view, &options, |k| Ok(frames[k].clone()), &|| false).unwrap().unwrap()
+            };
+            let full = with_step(1);
+            assert_eq!(full.rows(), h);
+            for step in [2, 3] {
+                let sparse = with_step(step);
+                assert_eq!((sparse.width, sparse.height, sparse.row_step, sparse.rows()), (w, h, step, h.div_ceil(step)));
+                let rows_of = |m: &DepthMap, values: &[f32], per: usize| -> Vec<Vec<u32>> {
+                    values.chunks_exact(per * m.width).map(|r| r.iter().map(|v| v.to_bits()).collect()).collect()
+                };
+                for (values_full, values_sparse, per) in [
+                    (&full.depth_mm, &sparse.depth_mm, 1),
+                    (&full.peak_ratio, &sparse.peak_ratio, 1),
+                    (&full.all_in_focus, &sparse.all_in_focus, 3),
+                ] {
+                    let want: Vec<Vec<u32>> = rows_of(&full, values_full, per).into_iter().step_by(step).collect();
+                    assert_eq!(rows_of(&sparse, values_sparse, per), want, "{channels} channels, step {step}");
+                }
+                assert!(sparse.depth_mm.iter().any(|d| d.is_finite()), "step {step}");
+            }
         }
     }
 
@@ -936,12 +990,14 @@ mod tests {
         let map = depth_from_focus(&optics, &view, &DepthOptions::default(), |k| Ok(frames[k].clone()), &|| false)
             .unwrap()
             .unwrap();
-        // Pixels clear of the band edges by more than the focus window.
-        for y in 5..h - 5 {
+        // Pixels clear of the band edges by more than the focus window, on the map's rows.
+        assert_eq!(map.row_step, DepthOptions::default().row_step);
+        for y in (5..h - 5).filter(|y| y.is_multiple_of(map.row_step)) {
+            let i = (y / map.row_step) * w;
             for x in (0..w).filter(|&x| (6..=7).contains(&(x % 12)) || (1..4).contains(&x)) {
                 let k = sharpest[x / 12];
                 let expected = frames[k].samples.value(y * w + x);
-                assert_eq!(&map.all_in_focus[3 * (y * w + x)..3 * (y * w + x) + 3], &[expected; 3], "({x}, {y})");
+                assert_eq!(&map.all_in_focus[3 * (i + x)..3 * (i + x) + 3], &[expected; 3], "({x}, {y})");
             }
         }
     }
@@ -989,6 +1045,7 @@ mod tests {
         let map = DepthMap {
             width: w,
             height: h,
+            row_step: 1,
             depth_mm: depth,
             peak_ratio: vec![5.0; w * h],
             all_in_focus: vec![0.5; 3 * w * h],

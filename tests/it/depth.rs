@@ -25,15 +25,18 @@ fn depth_errors(
         let truth_pfm = std::fs::read(dir.join(format!("truth/{}.depth.pfm", view.id))).unwrap();
         let (w, h, truth) = pfm::read(&truth_pfm).unwrap();
         assert_eq!((w, h), (map.width, map.height));
+        assert_eq!(map.depth_mm.len(), w * map.rows());
         let first_pixel = pixels;
-        pixels += truth.len();
-        for (i, (d, t)) in map.depth_mm.iter().zip(&truth).enumerate() {
+        pixels += map.depth_mm.len();
+        for (i, &d) in map.depth_mm.iter().enumerate() {
+            // Map row r is pixel row r · row_step.
+            let (x, y) = (i % w, (i / w) * map.row_step);
+            let t = truth[y * w + x];
             if !(d.is_finite() && t.is_finite()) {
                 continue;
             }
             let error_um = (d - t) as f64 * 1e3;
             all.push(error_um);
-            let (x, y) = (i % w, i / w);
             if x >= r && y >= r && x + r < w && y + r < h {
                 let (mut lo, mut hi) = (f32::MAX, f32::MIN);
                 for yy in y - r..=y + r {
@@ -101,7 +104,8 @@ fn a_flat_crested_forms_wider_focus_window_measures_flats_with_less_noise() {
     let wide_by_pixel: std::collections::HashMap<usize, f64> = wide_smooth.into_iter().collect();
     let (narrow_errors, wide_errors): (Vec<f64>, Vec<f64>) =
         narrow_smooth.iter().filter_map(|(pixel, e)| Some((*e, *wide_by_pixel.get(pixel)?))).unzip();
-    assert!(narrow_errors.len() > 100_000, "{} pixels in common", narrow_errors.len());
+    // The maps hold every second pixel row (DepthOptions::row_step): 57 905 pixels on ci.
+    assert!(narrow_errors.len() > 50_000, "{} pixels in common", narrow_errors.len());
     let (narrow, wide) = (median_abs(&narrow_errors), median_abs(&wide_errors));
     eprintln!("ci smooth pixels trusted in both ({}), median |error|: {narrow:.2} → {wide:.2} µm", narrow_errors.len());
     assert!(wide < 0.95 * narrow, "{narrow} → {wide}");
