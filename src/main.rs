@@ -51,6 +51,11 @@ enum Command {
         /// or two is trimmed away, one of a few degrees flattened).
         #[arg(long, default_value_t = crestscan::profile::ProfileOptions::default().height_window_half_bins)]
         height_window_half_bins: usize,
+        /// Estimate depth on every Nth pixel row across the arc (1: every row; the focus measure
+        /// sees every row either way).
+        #[arg(long, default_value_t = crestscan::depth::DepthOptions::default().row_step as u16,
+              value_parser = clap::value_parser!(u16).range(1..))]
+        depth_row_step: u16,
     },
     /// Run a benchmark suite: render its cases (cached in --work), inspect, compare with truth.
     Bench {
@@ -242,7 +247,7 @@ fn main() -> Result<()> {
                 summary.verdict.as_str()
             );
         }
-        Command::Inspect { bundle, out, json, arc_rule, height_window_half_bins } => {
+        Command::Inspect { bundle, out, json, arc_rule, height_window_half_bins, depth_row_step } => {
             let table = ConnectionTable::api5b();
             let b = Bundle::open(&bundle, &table, OpenOptions::default())
                 .map_err(|e| anyhow::anyhow!("[{}] {e}", e.code()))?;
@@ -252,6 +257,7 @@ fn main() -> Result<()> {
                     ArcRuleArg::Combined => ArcRule::Combined,
                 },
                 profile: crestscan::profile::ProfileOptions { height_window_half_bins },
+                depth: crestscan::depth::DepthOptions { row_step: depth_row_step.into(), ..Default::default() },
                 ..Default::default()
             };
             let cancel = AtomicBool::new(false);
