@@ -172,7 +172,12 @@ pub enum BenchError {
 /// Renders the case into `work/<preset>-<seed>` unless a complete rendering is there, times a plain
 /// decode of every frame (the yardstick), inspects it, and compares with truth. With `repeat` > 1
 /// the decode and the inspection alternate that many times and the median times are reported.
-pub fn run_case(case: &Case, work: &std::path::Path, repeat: usize) -> Result<CaseResult, BenchError> {
+pub fn run_case(
+    case: &Case,
+    work: &std::path::Path,
+    repeat: usize,
+    options: &crate::pipeline::PipelineOptions,
+) -> Result<CaseResult, BenchError> {
     use crate::bundle::{Bundle, OpenOptions};
     use rayon::prelude::*;
     let spec = crate::sim::preset(case.preset).ok_or_else(|| BenchError::Preset(case.preset.into()))?;
@@ -218,7 +223,7 @@ pub fn run_case(case: &Case, work: &std::path::Path, repeat: usize) -> Result<Ca
         let decode_seconds = decode()?;
         drop(last.take()); // the previous run's maps are not held while this one runs
         let started = std::time::Instant::now();
-        let inspection = crate::pipeline::inspect(&bundle, &Default::default(), &|_, _| {}, &cancel)?
+        let inspection = crate::pipeline::inspect(&bundle, options, &|_, _| {}, &cancel)?
             .ok_or_else(|| BenchError::Other("cancelled".into()))?;
         let stages: Vec<(String, f64)> =
             inspection.report.timings.iter().map(|t| (t.stage.clone(), t.seconds)).collect();

@@ -41,8 +41,10 @@ pub struct DepthOptions {
     /// Depth is estimated on every `row_step`-th pixel row (rows run across the arc: the frames'
     /// height spans the view's angle, their width the pipe's axis). A pixel's focus curve is the
     /// sum over a box 2·radius + 1 rows tall, so neighbouring rows' curves share all but one of
-    /// its rows and their depths say nearly the same thing; along the arc the thread changes
-    /// slowly (a pitch per turn). Every row of every frame still feeds the focus measure.
+    /// its rows, and along the arc the thread changes slowly (a pitch per turn); every row of
+    /// every frame still feeds the focus measure. 2 inspects the standard ring about 18% faster
+    /// with heights as accurate, but registration loses precision (README, "Depth on every
+    /// second row"): the default is every row.
     #[serde(default = "row_step")]
     pub row_step: usize,
 }
@@ -67,7 +69,7 @@ impl Default for DepthOptions {
             min_peak_ratio: 1.6,
             peak_fraction: 0.3,
             equalize_phase: true,
-            row_step: 2,
+            row_step: 1,
         }
     }
 }
@@ -714,7 +716,7 @@ mod tests {
         let options: DepthOptions = serde_json::from_str(old).unwrap();
         assert_eq!((options.window_radius_px, options.flat_window_radius_px), (3, 5));
         assert!(options.equalize_phase);
-        assert_eq!(options.row_step, 2);
+        assert_eq!(options.row_step, 1);
     }
 
     #[test]

@@ -73,6 +73,10 @@ enum Command {
         /// medians: single timings on a shared machine scatter by tens of percent.
         #[arg(long, default_value_t = 1)]
         repeat: usize,
+        /// As inspect's --depth-row-step.
+        #[arg(long, default_value_t = crestscan::depth::DepthOptions::default().row_step as u16,
+              value_parser = clap::value_parser!(u16).range(1..))]
+        depth_row_step: u16,
     },
     /// Compare an inspection report with a simulated bundle's truth/truth.json.
     Compare { report: PathBuf, truth: PathBuf },
@@ -297,17 +301,21 @@ fn main() -> Result<()> {
                 }
             }
         }
-        Command::Bench { suite, work, only, json, repeat } => {
+        Command::Bench { suite, work, only, json, repeat, depth_row_step } => {
             if suite != "accuracy" {
                 bail!("unknown suite {suite:?}; suites: accuracy");
             }
+            let options = PipelineOptions {
+                depth: crestscan::depth::DepthOptions { row_step: depth_row_step.into(), ..Default::default() },
+                ..Default::default()
+            };
             let mut results = Vec::new();
             for case in crestscan::bench::ACCURACY_SUITE
                 .iter()
                 .filter(|c| only.is_empty() || only.iter().any(|o| o == c.preset))
             {
                 eprintln!("bench: {} (seed {})", case.preset, case.seed);
-                results.push(crestscan::bench::run_case(case, &work, repeat)?);
+                results.push(crestscan::bench::run_case(case, &work, repeat, &options)?);
             }
             println!("{}", crestscan::bench::table(&results));
             if let Some(path) = json {

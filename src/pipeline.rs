@@ -175,7 +175,14 @@ pub fn inspect(
         .par_iter()
         .zip(&depth_maps)
         .map_init(register::GridScratch::default, |scratch, (pose, depth)| {
-            register::view_grid(cloud::points_of(optics, pose, depth), pose.angle_deg.to_radians(), &lattice, scratch)
+            let fill_arc_gaps = depth.row_step > 1;
+            register::view_grid(
+                cloud::points_of(optics, pose, depth),
+                pose.angle_deg.to_radians(),
+                &lattice,
+                fill_arc_gaps,
+                scratch,
+            )
         })
         .collect();
     let registration = register::register(
