@@ -123,8 +123,7 @@ pub fn points_of<'a>(
     // `pixel_ray` once per column and row (the same numbers it gives per pixel), not per point.
     let columns: Vec<Ray> = (0..depth.width).map(|u| optics.pixel_ray(u as f64, 0.0, principal, 0.0)).collect();
     let step = depth.row_step.max(1);
-    let rows: Vec<Ray> =
-        (0..depth.rows()).map(|r| optics.pixel_ray(0.0, (r * step) as f64, principal, 0.0)).collect();
+    let rows: Vec<Ray> = (0..depth.rows()).map(|r| optics.pixel_ray(0.0, (r * step) as f64, principal, 0.0)).collect();
     depth.depth_mm.iter().enumerate().filter(|(_, d)| d.is_finite()).map(move |(i, &d)| {
         let (u, r) = (i % width, i / width);
         let (column, row) = (&columns[u], &rows[r]);

@@ -921,7 +921,10 @@ mod tests {
             assert_eq!(full.rows(), h);
             for step in [2, 3] {
                 let sparse = with_step(step);
-                assert_eq!((sparse.width, sparse.height, sparse.row_step, sparse.rows()), (w, h, step, h.div_ceil(step)));
+                assert_eq!(
+                    (sparse.width, sparse.height, sparse.row_step, sparse.rows()),
+                    (w, h, step, h.div_ceil(step))
+                );
                 let rows_of = |m: &DepthMap, values: &[f32], per: usize| -> Vec<Vec<u32>> {
                     values.chunks_exact(per * m.width).map(|r| r.iter().map(|v| v.to_bits()).collect()).collect()
                 };

@@ -734,7 +734,9 @@ mod tests {
             [352.0, 0.0, 8.0].map(|angle_deg| ViewPose { angle_deg, axial_mm: 10.0, lens_radius_mm: 200.0 }).into();
         let grids: Vec<ViewGrid> = poses
             .iter()
-            .map(|p| view_grid(std::iter::empty(), p.angle_deg.to_radians(), &lattice, false, &mut GridScratch::default()))
+            .map(|p| {
+                view_grid(std::iter::empty(), p.angle_deg.to_radians(), &lattice, false, &mut GridScratch::default())
+            })
             .collect();
         let registration = register(&grids, &poses, &lattice, 7.0, 17.0, &RegisterOptions::default());
         assert!(registration.pairs.is_empty());
