@@ -527,11 +527,12 @@ pub fn depth_from_focus_in(
         let taps = Taps { xs: axis_taps(w, principal[0], scale), ys: axis_taps(h, principal[1], scale) };
         let (spans, fxs) = (tap_spans(&taps.xs), taps.xs.iter().map(|t| t.2).collect::<Vec<f32>>());
         let k32 = k as u32;
-        for (y, &(y0, y1, fy)) in taps.ys.iter().step_by(step).enumerate() {
+        // Map row r is pixel row r · step.
+        for (r, &(y0, y1, fy)) in taps.ys.iter().step_by(step).enumerate() {
             let (above, below) = (&native[y0 * w..(y0 + 1) * w], &native[y1 * w..(y1 + 1) * w]);
-            let measures = &mut volume[k * plane + y * w..k * plane + (y + 1) * w];
+            let measures = &mut volume[k * plane + r * w..k * plane + (r + 1) * w];
             resample_row(above, below, fy, &taps.xs, &spans, &fxs, measures);
-            let (best_row, best_frame_row) = (&mut best[y * w..(y + 1) * w], &mut best_frame[y * w..(y + 1) * w]);
+            let (best_row, best_frame_row) = (&mut best[r * w..(r + 1) * w], &mut best_frame[r * w..(r + 1) * w]);
             keep_sharpest(measures, k32, best_row, best_frame_row, Ties::KeepEarlier);
         }
         recent.push_back((k32, frame, taps));
