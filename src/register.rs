@@ -99,15 +99,9 @@ impl Lattice {
     /// `cell_mm` is the nominal cell; along the arc it is adjusted (by less than a cell per turn)
     /// to divide the circumference.
     pub fn new(radius_ref_mm: f64, cell_mm: f64) -> Self {
-        Self::with_cells(radius_ref_mm, cell_mm, cell_mm)
-    }
-
-    /// Cells of a nominal `cell_arc_mm` along the arc (adjusted as in [`Lattice::new`]) and
-    /// `cell_z_mm` along the axis.
-    pub fn with_cells(radius_ref_mm: f64, cell_arc_mm: f64, cell_z_mm: f64) -> Self {
         let circumference = TAU * radius_ref_mm;
-        let cells_around = (2.0 * (circumference / cell_arc_mm / 2.0).round()).max(2.0) as i64;
-        Self { radius_ref_mm, cells_around, cell_arc_mm: circumference / cells_around as f64, cell_z_mm }
+        let cells_around = (2.0 * (circumference / cell_mm / 2.0).round()).max(2.0) as i64;
+        Self { radius_ref_mm, cells_around, cell_arc_mm: circumference / cells_around as f64, cell_z_mm: cell_mm }
     }
 
     /// Lattice cells from view b's arc indices to view a's: both are measured from angle 0 at each
