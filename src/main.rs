@@ -37,7 +37,7 @@ enum Command {
     /// Inspect a bundle (directory, .zip or .tar): thread heights, black crests, the 5B verdict.
     Inspect {
         bundle: PathBuf,
-        /// Write report.json, height-map.png, all-in-focus.png, mesh.ply and mesh.stl here.
+        /// Write report.json, height-map.png, all-in-focus.png, mesh.ply, mesh.stl and mesh.glb here.
         #[arg(long)]
         out: Option<PathBuf>,
         /// Print the report as JSON instead of the summary.
@@ -280,6 +280,7 @@ fn main() -> Result<()> {
                             as fn(&crestscan::mesh::Mesh, std::io::BufWriter<std::fs::File>) -> std::io::Result<()>,
                     ),
                     ("mesh.stl", crestscan::mesh::write_stl),
+                    ("mesh.glb", crestscan::mesh::write_glb),
                 ] {
                     let path = dir.join(name);
                     let file = std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?;
@@ -293,7 +294,7 @@ fn main() -> Result<()> {
                 println!("{}", inspection.report.summary());
                 if let Some(dir) = &out {
                     println!(
-                        "  wrote report.json, height-map.png, all-in-focus.png, mesh.ply and mesh.stl ({} vertices, {} triangles) to {}",
+                        "  wrote report.json, height-map.png, all-in-focus.png, mesh.ply, mesh.stl and mesh.glb ({} vertices, {} triangles) to {}",
                         inspection.mesh.vertices.len(),
                         inspection.mesh.triangles.len(),
                         dir.display()

@@ -4,8 +4,9 @@
 //! profile bends (flank edges, crest and root corners, data borders) are kept, flat regions are
 //! thinned on a regular stride chosen to fit the budget. Triangles longer than the stride allows
 //! (bridging unseen regions) are dropped. The strip is triangulated in a fixed number of column
-//! bands in parallel, which share their boundary columns. Binary PLY (with colour) and binary STL
-//! writers are a few lines each, so they are written here rather than pulled in as crates.
+//! bands in parallel, which share their boundary columns. Binary PLY (with colour), binary STL and
+//! binary glTF (GLB) writers are a few lines each, so they are written here rather than pulled in
+//! as crates; the tests read the GLB back with the `gltf` crate.
 
 use crate::fuse::UnrolledMap;
 use rayon::prelude::*;
@@ -174,17 +175,19 @@ fn nudge(index: u64) -> (f64, f64) {
     (1e-4 * unit(h), 1e-4 * unit(h.rotate_left(29)))
 }
 
+/// The header [`write_ply`] writes for `vertices` and `faces`.
+fn ply_header(vertices: usize, faces: usize) -> String {
+    format!(
+        "ply\nformat binary_little_endian 1.0\ncomment crestscan fused thread surface (mm, pipe frame)\n\
+         element vertex {vertices}\nproperty float x\nproperty float y\nproperty float z\n\
+         property uchar red\nproperty uchar green\nproperty uchar blue\n\
+         element face {faces}\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+}
+
 /// Binary little-endian PLY with per-vertex colour.
 pub fn write_ply(mesh: &Mesh, mut out: impl Write) -> io::Result<()> {
-    write!(
-        out,
-        "ply\nformat binary_little_endian 1.0\ncomment crestscan fused thread surface (mm, pipe frame)\n\
-         element vertex {}\nproperty float x\nproperty float y\nproperty float z\n\
-         property uchar red\nproperty uchar green\nproperty uchar blue\n\
-         element face {}\nproperty list uchar int vertex_indices\nend_header\n",
-        mesh.vertices.len(),
-        mesh.triangles.len()
-    )?;
+    out.write_all(ply_header(mesh.vertices.len(), mesh.triangles.len()).as_bytes())?;
     let mut buf = Vec::with_capacity(mesh.vertices.len() * 15 + mesh.triangles.len() * 13);
     for (v, c) in mesh.vertices.iter().zip(&mesh.colors) {
         for x in v {
@@ -220,6 +223,124 @@ pub fn write_stl(mesh: &Mesh, mut out: impl Write) -> io::Result<()> {
         buf.extend_from_slice(&[0, 0]);
     }
     out.write_all(&buf)
+}
+
+/// Binary glTF 2.0 (GLB): one triangle mesh with per-vertex colour. Vertices stay in the pipe
+/// frame's millimetres (z along the pipe axis) and the node scales them by 1/1000, since glTF's
+/// unit is the metre. Colours are RGB bytes padded to four (vertex attributes are 4-byte aligned).
+pub fn write_glb(mesh: &Mesh, mut out: impl Write) -> io::Result<()> {
+    let (v, t) = (mesh.vertices.len(), mesh.triangles.len());
+    let (positions_len, colors_len, indices_len) = (12 * v, 4 * v, 12 * t);
+    let mut min = [f32::INFINITY; 3];
+    let mut max = [f32::NEG_INFINITY; 3];
+    for p in &mesh.vertices {
+        for k in 0..3 {
+            min[k] = min[k].min(p[k]);
+            max[k] = max[k].max(p[k]);
+        }
+    }
+    // An empty mesh has no bounds; glTF wants finite numbers there.
+    if v == 0 {
+        (min, max) = ([0.0; 3], [0.0; 3]);
+    }
+    let json = serde_json::json!({
+        "asset": { "version": "2.0", "generator": concat!("crestscan ", env!("CARGO_PKG_VERSION")) },
+        "scene": 0,
+        "scenes": [{ "nodes": [0] }],
+        "nodes": [{ "mesh": 0, "name": "thread surface (pipe frame, mm)", "scale": [0.001, 0.001, 0.001] }],
+        "meshes": [{ "primitives": [{ "attributes": { "POSITION": 0, "COLOR_0": 1 }, "indices": 2, "mode": 4 }] }],
+        "buffers": [{ "byteLength": positions_len + colors_len + indices_len }],
+        "bufferViews": [
+            { "buffer": 0, "byteOffset": 0, "byteLength": positions_len, "byteStride": 12, "target": 34962 },
+            { "buffer": 0, "byteOffset": positions_len, "byteLength": colors_len, "byteStride": 4, "target": 34962 },
+            { "buffer": 0, "byteOffset": positions_len + colors_len, "byteLength": indices_len, "target": 34963 },
+        ],
+        "accessors": [
+            { "bufferView": 0, "componentType": 5126, "count": v, "type": "VEC3", "min": min, "max": max },
+            { "bufferView": 1, "componentType": 5121, "normalized": true, "count": v, "type": "VEC3" },
+            { "bufferView": 2, "componentType": 5125, "count": 3 * t, "type": "SCALAR" },
+        ],
+    });
+    let mut json = serde_json::to_vec(&json).map_err(io::Error::other)?;
+    // Chunks are 4-byte aligned: JSON padded with spaces (the binary chunk already is).
+    json.resize(json.len().next_multiple_of(4), b' ');
+    let binary_len = positions_len + colors_len + indices_len;
+    let total = 12 + 8 + json.len() + 8 + binary_len;
+    let too_big = || io::Error::other("the mesh is too large for a GLB file (4 GiB)");
+    let mut buf = Vec::with_capacity(total);
+    buf.extend_from_slice(b"glTF");
+    buf.extend_from_slice(&2u32.to_le_bytes());
+    buf.extend_from_slice(&u32::try_from(total).map_err(|_| too_big())?.to_le_bytes());
+    buf.extend_from_slice(&(json.len() as u32).to_le_bytes());
+    buf.extend_from_slice(b"JSON");
+    buf.extend_from_slice(&json);
+    buf.extend_from_slice(&(binary_len as u32).to_le_bytes());
+    buf.extend_from_slice(b"BIN\0");
+    for p in &mesh.vertices {
+        for x in p {
+            buf.extend_from_slice(&x.to_le_bytes());
+        }
+    }
+    for c in &mesh.colors {
+        buf.extend_from_slice(&[c[0], c[1], c[2], 0]);
+    }
+    for tri in &mesh.triangles {
+        for i in tri {
+            buf.extend_from_slice(&i.to_le_bytes());
+        }
+    }
+    out.write_all(&buf)
+}
+
+/// A stored mesh that is not a PLY file as [`write_ply`] writes it.
+#[derive(Debug, thiserror::Error)]
+#[error("not a crestscan PLY mesh: {0}")]
+pub struct PlyError(String);
+
+/// Reads back a PLY file as [`write_ply`] writes it, and no other layout: this is for meshes this
+/// program stored (the service serves its GLB from the stored PLY rather than keep a third copy).
+pub fn read_ply(bytes: &[u8]) -> Result<Mesh, PlyError> {
+    let bad = |what: String| PlyError(what);
+    let header_end =
+        bytes.windows(11).position(|w| w == b"end_header\n").ok_or_else(|| bad("no end_header".into()))? + 11;
+    let header = std::str::from_utf8(&bytes[..header_end]).map_err(|_| bad("the header is not text".into()))?;
+    let count = |element: &str| -> Result<usize, PlyError> {
+        header
+            .lines()
+            .find_map(|l| l.strip_prefix(element))
+            .and_then(|n| n.trim().parse().ok())
+            .ok_or_else(|| bad(format!("no {element}count")))
+    };
+    let (v, t) = (count("element vertex ")?, count("element face ")?);
+    if header != ply_header(v, t) {
+        return Err(bad("a header other than the one crestscan writes".into()));
+    }
+    let body = &bytes[header_end..];
+    if Some(body.len()) != v.checked_mul(15).and_then(|a| t.checked_mul(13).and_then(|b| a.checked_add(b))) {
+        return Err(bad(format!("{} bytes of data for {v} vertices and {t} faces", body.len())));
+    }
+    let (vertex_bytes, face_bytes) = body.split_at(15 * v);
+    let f32_at = |b: &[u8]| f32::from_le_bytes(b.try_into().expect("4 bytes"));
+    let (vertices, colors) = vertex_bytes
+        .chunks_exact(15)
+        .map(|b| ([f32_at(&b[0..4]), f32_at(&b[4..8]), f32_at(&b[8..12])], [b[12], b[13], b[14]]))
+        .unzip();
+    let triangles = face_bytes
+        .chunks_exact(13)
+        .enumerate()
+        .map(|(k, b)| {
+            let index = |j: usize| i32::from_le_bytes(b[1 + 4 * j..5 + 4 * j].try_into().expect("4 bytes"));
+            let tri = [index(0), index(1), index(2)];
+            if b[0] != 3 {
+                Err(bad(format!("face {k} is not a triangle")))
+            } else if tri.iter().any(|&i| i < 0 || i as usize >= v) {
+                Err(bad(format!("face {k} refers to a vertex that is not there")))
+            } else {
+                Ok(tri.map(|i| i as u32))
+            }
+        })
+        .collect::<Result<_, _>>()?;
+    Ok(Mesh { vertices, colors, triangles })
 }
 
 #[cfg(test)]
@@ -264,6 +385,51 @@ mod tests {
         write_stl(&mesh, &mut stl).unwrap();
         assert_eq!(stl.len(), 84 + 50 * mesh.triangles.len());
         assert_eq!(u32::from_le_bytes(stl[80..84].try_into().unwrap()) as usize, mesh.triangles.len());
+    }
+
+    #[test]
+    fn the_glb_reads_back_through_a_gltf_reader_as_the_same_mesh_in_metres() {
+        let mesh = build(&map(), &MeshOptions { max_vertices: 10_000, ..Default::default() }).unwrap();
+        let mut glb = Vec::new();
+        write_glb(&mesh, &mut glb).unwrap();
+        assert_eq!(u32::from_le_bytes(glb[8..12].try_into().unwrap()) as usize, glb.len());
+        // `from_slice` validates the document (required bounds, alignment, indices in range).
+        let gltf = gltf::Gltf::from_slice(&glb).unwrap();
+        let blob = gltf.blob.clone().unwrap();
+        let node = gltf.nodes().next().unwrap();
+        assert_eq!(node.transform().decomposed().2, [0.001; 3]);
+        let primitive = node.mesh().unwrap().primitives().next().unwrap();
+        assert_eq!(primitive.mode(), gltf::mesh::Mode::Triangles);
+        let reader = primitive.reader(|_| Some(&blob));
+        let positions: Vec<[f32; 3]> = reader.read_positions().unwrap().collect();
+        assert_eq!(positions, mesh.vertices);
+        let colors: Vec<[u8; 3]> = reader.read_colors(0).unwrap().into_rgb_u8().collect();
+        assert_eq!(colors, mesh.colors);
+        let indices: Vec<u32> = reader.read_indices().unwrap().into_u32().collect();
+        assert_eq!(indices, mesh.triangles.iter().flatten().copied().collect::<Vec<_>>());
+        let bounds = primitive.bounding_box();
+        for k in 0..3 {
+            assert_eq!(bounds.min[k], mesh.vertices.iter().map(|v| v[k]).fold(f32::INFINITY, f32::min));
+            assert_eq!(bounds.max[k], mesh.vertices.iter().map(|v| v[k]).fold(f32::NEG_INFINITY, f32::max));
+        }
+    }
+
+    #[test]
+    fn a_stored_ply_reads_back_as_the_mesh_and_a_damaged_one_is_refused() {
+        let mesh = build(&map(), &MeshOptions { max_vertices: 10_000, ..Default::default() }).unwrap();
+        let mut ply = Vec::new();
+        write_ply(&mesh, &mut ply).unwrap();
+        assert_eq!(read_ply(&ply).unwrap(), mesh);
+        let message = |bytes: &[u8]| read_ply(bytes).unwrap_err().to_string();
+        assert!(message(&ply[..ply.len() - 1]).contains("bytes of data"), "{}", message(&ply[..ply.len() - 1]));
+        let ascii = String::from_utf8_lossy(&ply[..200]).replace("binary_little_endian", "ascii").into_bytes();
+        assert!(message(&[ascii.as_slice(), &ply[200..]].concat()).contains("header"));
+        // A face pointing past the last vertex.
+        let mut bad = ply.clone();
+        let last_index = bad.len() - 4;
+        bad[last_index..].copy_from_slice(&(mesh.vertices.len() as i32).to_le_bytes());
+        assert!(message(&bad).contains("refers to a vertex"), "{}", message(&bad));
+        assert!(message(b"solid not a ply").contains("end_header"));
     }
 
     #[test]

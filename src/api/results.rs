@@ -41,11 +41,16 @@ async fn succeeded(state: &AppState, id: &str) -> Result<InspectionId, ApiError>
 
 /// 200 with a strong ETag, or 304 when the client already has it (If-None-Match compares weakly,
 /// as RFC 9110 asks). Representations chosen by `Accept` say so in `Vary`.
-fn immutable(headers: &HeaderMap, etag: &str, content_type: &str, body: impl Into<axum::body::Body>) -> Response {
-    let matches = headers
+/// Whether the request's If-None-Match names `etag` (or `*`).
+fn if_none_match(headers: &HeaderMap, etag: &str) -> bool {
+    headers
         .get(header::IF_NONE_MATCH)
         .and_then(|v| v.to_str().ok())
-        .is_some_and(|v| v.split(',').map(|t| t.trim().trim_start_matches("W/")).any(|t| t == etag || t == "*"));
+        .is_some_and(|v| v.split(',').map(|t| t.trim().trim_start_matches("W/")).any(|t| t == etag || t == "*"))
+}
+
+fn immutable(headers: &HeaderMap, etag: &str, content_type: &str, body: impl Into<axum::body::Body>) -> Response {
+    let matches = if_none_match(headers, etag);
     let etag_value = HeaderValue::from_str(etag).expect("etags are hex");
     let cache = HeaderValue::from_static("private, max-age=31536000, immutable");
     let vary = HeaderValue::from_static("Accept");
@@ -253,8 +258,9 @@ pub async fn get_threads(
     Ok(immutable(&headers, &etag, media, body))
 }
 
-/// The surface mesh: binary PLY (default; `application/x-ply`) or binary STL (`model/stl`), by
-/// `?format=ply|stl` or `Accept`.
+/// The surface mesh: binary PLY (default; `application/x-ply`), binary STL (`model/stl`) or binary
+/// glTF (`model/gltf-binary`; millimetres scaled to glTF's metres by its node), by
+/// `?format=ply|stl|glb` or `Accept`.
 #[utoipa::path(
     get,
     path = "/v1/inspections/{id}/mesh",
@@ -265,6 +271,7 @@ pub async fn get_threads(
         (status = 200, description = "The mesh", content(
             (Binary = "application/x-ply"),
             (Binary = "model/stl"),
+            (Binary = "model/gltf-binary"),
         ), headers(("ETag" = String))),
         (status = 304, description = "Not modified"),
         (status = 404, description = "No such inspection", body = Problem, content_type = "application/problem+json"),
@@ -279,9 +286,29 @@ pub async fn get_mesh(
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
     let id = succeeded(&state, &id).await?;
-    let (format, _) = negotiate(&headers, q.format.as_deref(), &[("ply", "application/x-ply"), ("stl", "model/stl")])?;
+    let offered = [("ply", "application/x-ply"), ("stl", "model/stl"), ("glb", "model/gltf-binary")];
+    let (format, media) = negotiate(&headers, q.format.as_deref(), &offered)?;
     let a = state.store.artifact(&id.0, if format == "stl" { "mesh.stl" } else { "mesh.ply" }).await?;
-    let mut response = immutable(&headers, &a.etag, &a.content_type, a.body);
+    let mut response = if format == "glb" {
+        // Made from the stored PLY on request (a third stored copy would add as much again per
+        // result); its validator follows the PLY's, so a revalidation costs no conversion.
+        let etag = crate::store::etag_of(format!("glb {}", a.etag).as_bytes());
+        if if_none_match(&headers, &etag) {
+            immutable(&headers, &etag, media, Vec::new())
+        } else {
+            let body = tokio::task::spawn_blocking(move || -> Result<Vec<u8>, ApiError> {
+                let mesh = crate::mesh::read_ply(&a.body).map_err(ApiError::internal)?;
+                let mut glb = Vec::new();
+                crate::mesh::write_glb(&mesh, &mut glb).map_err(ApiError::internal)?;
+                Ok(glb)
+            })
+            .await
+            .map_err(ApiError::internal)??;
+            immutable(&headers, &etag, media, body)
+        }
+    } else {
+        immutable(&headers, &a.etag, &a.content_type, a.body)
+    };
     let disposition = format!("attachment; filename=\"{}.{format}\"", id.0);
     response.headers_mut().insert(header::CONTENT_DISPOSITION, HeaderValue::from_str(&disposition).expect("ASCII"));
     Ok(response)

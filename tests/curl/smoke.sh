@@ -39,11 +39,13 @@ curl -sS -f -H 'Accept: text/csv' "$base$location/threads" -o "$work/threads.csv
 rows=$(($(wc -l < "$work/threads.csv") - 1))
 [ "$rows" -gt 0 ] || fail "empty threads CSV"
 
-# Mesh, both formats.
+# Mesh, all three formats.
 curl -sS -f "$base$location/mesh?format=ply" -o "$work/mesh.ply"
 [ "$(head -c 4 "$work/mesh.ply")" = "ply" ] || [ "$(head -c 3 "$work/mesh.ply")" = "ply" ] || fail "not a PLY"
 curl -sS -f -H 'Accept: model/stl' "$base$location/mesh" -o "$work/mesh.stl"
 [ "$(stat -c %s "$work/mesh.stl")" -gt 84 ] || fail "STL too small"
+curl -sS -f -H 'Accept: model/gltf-binary' "$base$location/mesh" -o "$work/mesh.glb"
+[ "$(head -c 4 "$work/mesh.glb")" = "glTF" ] || fail "not a GLB"
 
 # CMM: crestscan's own measured heights + 3 µm → the comparison's bias is exactly -3 µm.
 awk -F, 'NR > 1 && $3 != "" { printf "%s,%s,%.6f\n", $1, $2, $3 + 0.003 }' "$work/threads.csv" > "$work/cmm.body"

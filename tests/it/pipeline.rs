@@ -129,6 +129,8 @@ fn cli_inspect_writes_the_report_in_the_contract_shape() {
     assert_eq!(thread["height_mm"]["values"].as_array().unwrap().len(), 360);
     assert!(std::fs::read(out.path().join("mesh.ply")).unwrap().starts_with(b"ply\nformat binary_little_endian"));
     assert!(std::fs::metadata(out.path().join("mesh.stl")).unwrap().len() > 84 + 50 * 1000);
+    let glb = gltf::Gltf::open(out.path().join("mesh.glb")).unwrap();
+    assert!(glb.accessors().next().unwrap().count() > 1000, "vertices in the GLB");
     for image in ["height-map.png", "all-in-focus.png"] {
         let decoded = image::open(out.path().join(image)).unwrap();
         assert!(decoded.width() >= 360, "{image}");

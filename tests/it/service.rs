@@ -219,15 +219,39 @@ async fn round_trip_on_the_ci_preset() {
         .unwrap();
     assert!(weighted.headers()["content-type"].to_str().unwrap().starts_with("application/json"));
 
-    // Mesh in both formats, images as PNG.
+    // Mesh in all three formats, images as PNG.
     let ply = app.get(&format!("{location}/mesh")).await;
     assert_eq!(ply.headers()["content-type"], "application/x-ply");
-    assert!(ply.bytes().await.unwrap().starts_with(b"ply\n"));
+    let ply_etag = ply.headers()["etag"].clone();
+    let ply = ply.bytes().await.unwrap();
+    assert!(ply.starts_with(b"ply\n"));
     let stl = app.client.get(app.url(&format!("{location}/mesh"))).header("accept", "model/stl").send().await.unwrap();
     assert_eq!(stl.headers()["content-type"], "model/stl");
     let stl = stl.bytes().await.unwrap();
     let triangles = u32::from_le_bytes(stl[80..84].try_into().unwrap()) as usize;
     assert_eq!(stl.len(), 84 + 50 * triangles);
+    // The GLB is made from the stored PLY: the same mesh, read back by a glTF reader.
+    let glb = app.get(&format!("{location}/mesh?format=glb")).await;
+    assert_eq!(glb.headers()["content-type"], "model/gltf-binary");
+    let glb_etag = glb.headers()["etag"].clone();
+    assert_ne!(glb_etag, ply_etag, "each representation has its own validator");
+    assert!(glb.headers()["content-disposition"].to_str().unwrap().ends_with(".glb\""));
+    let glb = gltf::Gltf::from_slice(&glb.bytes().await.unwrap()).unwrap();
+    let blob = glb.blob.clone().unwrap();
+    let primitive = glb.meshes().next().unwrap().primitives().next().unwrap();
+    let reader = primitive.reader(|_| Some(&blob));
+    let stored = crestscan::mesh::read_ply(&ply).unwrap();
+    assert_eq!(reader.read_positions().unwrap().collect::<Vec<_>>(), stored.vertices);
+    assert_eq!(reader.read_indices().unwrap().into_u32().count(), 3 * triangles);
+    let revalidated = app
+        .client
+        .get(app.url(&format!("{location}/mesh")))
+        .header("accept", "model/gltf-binary")
+        .header("if-none-match", glb_etag)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(revalidated.status(), StatusCode::NOT_MODIFIED);
     for kind in ["height-map", "all-in-focus"] {
         let png = app.get(&format!("{location}/images/{kind}")).await;
         assert_eq!(png.headers()["content-type"], "image/png");
