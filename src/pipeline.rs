@@ -263,7 +263,7 @@ pub fn inspect(
         || {
             timed(|| {
                 let helix = profile::estimate_helix(&map, form).map(|first| {
-                    let threads = profile::measure_threads(&map, form, &first, &options.profile);
+                    let threads = profile::survey_threads(&map, form, &first, &options.profile);
                     profile::refine_helix(&map, form, &first, &threads)
                 });
                 let threads = helix.as_ref().map(|h| profile::measure_threads(&map, form, h, &options.profile));

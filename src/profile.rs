@@ -420,6 +420,32 @@ pub fn measure_threads(
     helix: &Helix,
     options: &ProfileOptions,
 ) -> Vec<ThreadMeasure> {
+    measure_threads_every(map, form, helix, options, 1)
+}
+
+/// Bins between surveyed ones in [`survey_threads`].
+const SURVEY_BIN_STEP: usize = 6;
+
+/// [`measure_threads`] on every sixth 1° bin only (0.5°, 6.5°, …), for [`refine_helix`], which
+/// asks of the first helix estimate only which threads are full (fractions of each thread's
+/// bins): a sixth of the work, and on every benchmark and held-out case the same threads, hence
+/// the same refined helix and report, as all 360 bins.
+pub fn survey_threads(
+    map: &UnrolledMap,
+    form: &ThreadForm,
+    helix: &Helix,
+    options: &ProfileOptions,
+) -> Vec<ThreadMeasure> {
+    measure_threads_every(map, form, helix, options, SURVEY_BIN_STEP)
+}
+
+fn measure_threads_every(
+    map: &UnrolledMap,
+    form: &ThreadForm,
+    helix: &Helix,
+    options: &ProfileOptions,
+    bin_step: usize,
+) -> Vec<ThreadMeasure> {
     let g = &map.grid;
     let p = helix.pitch_mm;
     let (crest_half, root_half) = windows(form);
@@ -472,6 +498,7 @@ pub fn measure_threads(
     // Bins are gathered in parallel and kept in bin order, then thread order.
     let pending: Vec<Pending> = (0..360)
         .into_par_iter()
+        .step_by(bin_step.max(1))
         .map(|bin| {
             let centre_deg = bin as f64 + 0.5;
             let columns = bin_columns(g, bin);
@@ -724,6 +751,11 @@ mod tests {
         assert!(refined.z_h_mm != first.z_h_mm, "two full threads were found, so the phase was read again");
         let after_um = 1e3 * (refined.z_h_mm - z_h).abs();
         assert!(after_um < 1.0, "full threads {after_um} µm");
+        // The survey of every sixth bin (what the pipeline hands refine_helix) finds the same full
+        // threads, so the same helix, bit for bit.
+        let surveyed = survey_threads(&map, &form, &first, &ProfileOptions::default());
+        assert!(surveyed.iter().all(|t| t.bins.len() == 60 && t.bins[1].angle_deg == 6.5), "every sixth bin");
+        assert_eq!(refine_helix(&map, &form, &first, &surveyed), refined);
     }
 
     /// Over a few pitches of an asymmetric (buttress) form on a taper, a line removed first takes
