@@ -230,6 +230,10 @@ pub fn write_stl(mesh: &Mesh, mut out: impl Write) -> io::Result<()> {
 /// unit is the metre. Colours are RGB bytes padded to four (vertex attributes are 4-byte aligned).
 pub fn write_glb(mesh: &Mesh, mut out: impl Write) -> io::Result<()> {
     let (v, t) = (mesh.vertices.len(), mesh.triangles.len());
+    if t == 0 {
+        // glTF accessors hold at least one element.
+        return Err(io::Error::other("a mesh without triangles has no GLB form"));
+    }
     let (positions_len, colors_len, indices_len) = (12 * v, 4 * v, 12 * t);
     let mut min = [f32::INFINITY; 3];
     let mut max = [f32::NEG_INFINITY; 3];
@@ -238,10 +242,6 @@ pub fn write_glb(mesh: &Mesh, mut out: impl Write) -> io::Result<()> {
             min[k] = min[k].min(p[k]);
             max[k] = max[k].max(p[k]);
         }
-    }
-    // An empty mesh has no bounds; glTF wants finite numbers there.
-    if v == 0 {
-        (min, max) = ([0.0; 3], [0.0; 3]);
     }
     let json = serde_json::json!({
         "asset": { "version": "2.0", "generator": concat!("crestscan ", env!("CARGO_PKG_VERSION")) },
@@ -300,24 +300,23 @@ pub struct PlyError(String);
 /// Reads back a PLY file as [`write_ply`] writes it, and no other layout: this is for meshes this
 /// program stored (the service serves its GLB from the stored PLY rather than keep a third copy).
 pub fn read_ply(bytes: &[u8]) -> Result<Mesh, PlyError> {
-    let bad = |what: String| PlyError(what);
     let header_end =
-        bytes.windows(11).position(|w| w == b"end_header\n").ok_or_else(|| bad("no end_header".into()))? + 11;
-    let header = std::str::from_utf8(&bytes[..header_end]).map_err(|_| bad("the header is not text".into()))?;
+        bytes.windows(11).position(|w| w == b"end_header\n").ok_or_else(|| PlyError("no end_header".into()))? + 11;
+    let header = std::str::from_utf8(&bytes[..header_end]).map_err(|_| PlyError("the header is not text".into()))?;
     let count = |element: &str| -> Result<usize, PlyError> {
         header
             .lines()
             .find_map(|l| l.strip_prefix(element))
             .and_then(|n| n.trim().parse().ok())
-            .ok_or_else(|| bad(format!("no {element}count")))
+            .ok_or_else(|| PlyError(format!("no {element}count")))
     };
     let (v, t) = (count("element vertex ")?, count("element face ")?);
     if header != ply_header(v, t) {
-        return Err(bad("a header other than the one crestscan writes".into()));
+        return Err(PlyError("a header other than the one crestscan writes".into()));
     }
     let body = &bytes[header_end..];
     if Some(body.len()) != v.checked_mul(15).and_then(|a| t.checked_mul(13).and_then(|b| a.checked_add(b))) {
-        return Err(bad(format!("{} bytes of data for {v} vertices and {t} faces", body.len())));
+        return Err(PlyError(format!("{} bytes of data for {v} vertices and {t} faces", body.len())));
     }
     let (vertex_bytes, face_bytes) = body.split_at(15 * v);
     let f32_at = |b: &[u8]| f32::from_le_bytes(b.try_into().expect("4 bytes"));
@@ -332,9 +331,9 @@ pub fn read_ply(bytes: &[u8]) -> Result<Mesh, PlyError> {
             let index = |j: usize| i32::from_le_bytes(b[1 + 4 * j..5 + 4 * j].try_into().expect("4 bytes"));
             let tri = [index(0), index(1), index(2)];
             if b[0] != 3 {
-                Err(bad(format!("face {k} is not a triangle")))
+                Err(PlyError(format!("face {k} is not a triangle")))
             } else if tri.iter().any(|&i| i < 0 || i as usize >= v) {
-                Err(bad(format!("face {k} refers to a vertex that is not there")))
+                Err(PlyError(format!("face {k} refers to a vertex that is not there")))
             } else {
                 Ok(tri.map(|i| i as u32))
             }
@@ -430,6 +429,8 @@ mod tests {
         bad[last_index..].copy_from_slice(&(mesh.vertices.len() as i32).to_le_bytes());
         assert!(message(&bad).contains("refers to a vertex"), "{}", message(&bad));
         assert!(message(b"solid not a ply").contains("end_header"));
+        // glTF has no empty accessors: a mesh without triangles is refused, not written invalid.
+        assert!(write_glb(&Mesh::default(), Vec::new()).is_err());
     }
 
     #[test]
