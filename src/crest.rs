@@ -416,6 +416,7 @@ mod tests {
             nominal_height_mm: 1.5,
             height_tolerance_mm: 0.05,
             threads: findings.observations,
+            observed_arcs_deg: None,
         };
         let a = crate::rules::assess(&input, crate::rules::ArcRule::PerThread);
         assert_eq!(a.black_threads.len(), 1);
@@ -438,6 +439,7 @@ mod tests {
             nominal_height_mm: 1.5,
             height_tolerance_mm: 0.05,
             threads: findings.observations,
+            observed_arcs_deg: None,
         };
         assert_eq!(
             crate::rules::assess(&input, crate::rules::ArcRule::PerThread).verdict,

@@ -62,6 +62,12 @@ pub struct RuleInput {
     pub nominal_height_mm: f64,
     pub height_tolerance_mm: f64,
     pub threads: Vec<ThreadObservation>,
+    /// The arcs of the circumference the views saw within Lc, [from, to] in degrees within
+    /// [0, 360]; None means the whole circumference (as the simulator's truth sees it). Where they
+    /// fall short of 360°, the verdict holds for the arcs seen only, and a
+    /// [`ReasonCode::PartialCircumference`] reason says so.
+    #[serde(default)]
+    pub observed_arcs_deg: Option<Vec<[f64; 2]>>,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -111,6 +117,9 @@ pub enum ReasonCode {
     ButtressArcOverLimit,
     ButtressCombinedArcOverLimit,
     PolishedBlackCrest,
+    /// The views covered only part of the circumference within Lc: the verdict is over the arcs
+    /// seen (value: degrees seen, limit: 360). Informational; it does not change the verdict.
+    PartialCircumference,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -138,6 +147,10 @@ pub struct Assessment {
     pub arc_rule: ArcRule,
     /// The buttress arc limit in mm (25% of the circumference); None for round threads.
     pub arc_limit_mm: Option<f64>,
+    /// The arcs the views saw within Lc, where they fall short of the whole circumference
+    /// ([`RuleInput::observed_arcs_deg`]); absent when the whole circumference was seen.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub observed_arcs_deg: Option<Vec<[f64; 2]>>,
 }
 
 impl Assessment {
@@ -158,6 +171,13 @@ pub fn union_arcs(mut arcs: Vec<[f64; 2]>) -> Vec<[f64; 2]> {
         }
     }
     merged
+}
+
+/// The parts of `arcs` that lie within `within` (both lists of [from, to] in degrees).
+pub fn intersect_arcs(arcs: &[[f64; 2]], within: &[[f64; 2]]) -> Vec<[f64; 2]> {
+    let within = union_arcs(within.to_vec());
+    let pieces = arcs.iter().flat_map(|a| within.iter().map(move |w| [a[0].max(w[0]), a[1].min(w[1])])).collect();
+    union_arcs(pieces)
 }
 
 pub fn arc_length_mm(arcs_deg: &[[f64; 2]], circumference_mm: f64) -> f64 {
@@ -358,7 +378,37 @@ pub fn assess(input: &RuleInput, arc_rule: ArcRule) -> Assessment {
         }
     };
 
-    Assessment { verdict, reasons, black_threads, lc_mm: lc, circumference_mm: circ, arc_rule, arc_limit_mm }
+    // Last, after the verdict's own reason: it qualifies the verdict, it does not decide it.
+    let partial = input.observed_arcs_deg.as_ref().map(|arcs| union_arcs(arcs.clone())).filter(|arcs| {
+        let seen_deg: f64 = arcs.iter().map(|a| a[1] - a[0]).sum();
+        seen_deg < 360.0 - 1e-9
+    });
+    if let Some(arcs) = &partial {
+        let seen_deg: f64 = arcs.iter().map(|a| a[1] - a[0]).sum();
+        reasons.push(Reason {
+            code: ReasonCode::PartialCircumference,
+            message: format!(
+                "the views saw {seen_deg:.0}° of the circumference within Lc ({}): the verdict holds for those \
+                 arcs; the other {:.0}° were not inspected",
+                arcs_text(arcs),
+                360.0 - seen_deg
+            ),
+            threads: vec![],
+            value: Some(seen_deg),
+            limit: Some(360.0),
+            unit: Some("deg".into()),
+        });
+    }
+    Assessment {
+        verdict,
+        reasons,
+        black_threads,
+        lc_mm: lc,
+        circumference_mm: circ,
+        arc_rule,
+        arc_limit_mm,
+        observed_arcs_deg: partial,
+    }
 }
 
 fn arcs_text(arcs: &[[f64; 2]]) -> String {
@@ -383,6 +433,7 @@ mod tests {
             nominal_height_mm: 1.000,
             height_tolerance_mm: 0.030,
             threads,
+            observed_arcs_deg: None,
         }
     }
 
@@ -457,6 +508,39 @@ mod tests {
     }
 
     #[test]
+    fn a_partial_circumference_is_said_after_the_verdict_and_does_not_change_it() {
+        let mut input = buttress(vec![dark(6, 50.0)]);
+        let whole = assess(&input, ArcRule::PerThread);
+        assert!(whole.observed_arcs_deg.is_none());
+        assert!(whole.reasons.iter().all(|r| r.code != ReasonCode::PartialCircumference));
+        // Arcs that together make the whole circumference are the whole circumference.
+        input.observed_arcs_deg = Some(vec![[180.0, 360.0], [0.0, 180.0]]);
+        assert_eq!(assess(&input, ArcRule::PerThread), whole);
+        // 40° seen, given in pieces that overlap.
+        input.observed_arcs_deg = Some(vec![[350.0, 360.0], [0.0, 20.0], [15.0, 30.0]]);
+        let partial = assess(&input, ArcRule::PerThread);
+        assert_eq!(partial.verdict, whole.verdict);
+        assert_eq!(partial.black_threads, whole.black_threads);
+        assert_eq!(partial.reasons[..whole.reasons.len()], whole.reasons[..]);
+        let last = partial.reasons.last().unwrap();
+        assert_eq!(last.code, ReasonCode::PartialCircumference);
+        assert_eq!((last.value, last.limit, last.unit.as_deref()), (Some(40.0), Some(360.0), Some("deg")));
+        assert!(last.message.contains("40°") && last.message.contains("320°"), "{}", last.message);
+        assert_eq!(partial.observed_arcs_deg, Some(vec![[0.0, 30.0], [350.0, 360.0]]));
+        // A reject stays a reject: what was seen already fails.
+        input.threads = vec![dark(6, 100.0)];
+        assert_eq!(assess(&input, ArcRule::PerThread).verdict, Verdict::Reject);
+    }
+
+    #[test]
+    fn arcs_intersect_piecewise() {
+        let within = [[350.0, 360.0], [0.0, 20.0], [15.0, 30.0]];
+        assert_eq!(intersect_arcs(&[[0.0, 22.96]], &within), vec![[0.0, 22.96]]);
+        assert_eq!(intersect_arcs(&[[354.41, 360.0], [25.0, 40.0]], &within), vec![[25.0, 30.0], [354.41, 360.0]]);
+        assert!(intersect_arcs(&[[100.0, 200.0]], &within).is_empty());
+    }
+
+    #[test]
     fn round_thread_with_any_black_crest_within_lc_rejects() {
         let input = RuleInput {
             family: Family::Round,
@@ -465,6 +549,7 @@ mod tests {
             nominal_height_mm: 1.81,
             height_tolerance_mm: 0.051,
             threads: vec![ThreadObservation { index: 14, black_crest_arcs_deg: vec![[200.0, 200.5]], bins: vec![] }],
+            observed_arcs_deg: None,
         };
         let a = assess(&input, ArcRule::PerThread);
         assert_eq!(a.verdict, Verdict::Reject);

@@ -329,6 +329,7 @@ impl PartModel {
             nominal_height_mm: self.form.height_mm,
             height_tolerance_mm: self.form.height_tolerance_mm,
             threads: observations,
+            observed_arcs_deg: None,
         };
         (threads, input)
     }
