@@ -229,8 +229,6 @@ mod tests {
         SurfacePoint { position: Point3::new(r * t.cos(), r * t.sin(), z), rgb: [0.5; 3], weight, pixel: [0, 0] }
     }
 
-    /// The banded parallel sums are exactly the sequential ones (same additions per cell, in
-    /// view order).
     #[test]
     fn observed_arcs_are_the_degrees_with_a_measured_cell_within_z_max() {
         // 720 cells around (0.5° each), z cells centred on 0.5, 1.5 and 2.5 mm.
@@ -248,6 +246,8 @@ mod tests {
         assert!(map.observed_arcs_deg(0.1).is_empty());
     }
 
+    /// The banded parallel sums are exactly the sequential ones (same additions per cell, in
+    /// view order).
     #[test]
     fn banded_sums_equal_sequential_sums() {
         let grid = GridSpec { z0_mm: 0.0, dz_mm: 0.1, nz: 40, ntheta: 360 };

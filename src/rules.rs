@@ -379,22 +379,27 @@ pub fn assess(input: &RuleInput, arc_rule: ArcRule) -> Assessment {
     };
 
     // Last, after the verdict's own reason: it qualifies the verdict, it does not decide it.
-    let partial = input.observed_arcs_deg.as_ref().map(|arcs| union_arcs(arcs.clone())).filter(|arcs| {
-        let seen_deg: f64 = arcs.iter().map(|a| a[1] - a[0]).sum();
-        seen_deg < 360.0 - 1e-9
-    });
-    if let Some(arcs) = &partial {
-        let seen_deg: f64 = arcs.iter().map(|a| a[1] - a[0]).sum();
+    let partial = input
+        .observed_arcs_deg
+        .as_ref()
+        .map(|arcs| union_arcs(arcs.clone()))
+        .map(|arcs| (arcs.iter().map(|a| a[1] - a[0]).sum::<f64>(), arcs))
+        .filter(|(seen_deg, _)| *seen_deg < 360.0 - 1e-9);
+    if let Some((seen_deg, arcs)) = &partial {
         reasons.push(Reason {
             code: ReasonCode::PartialCircumference,
-            message: format!(
-                "the views saw {seen_deg:.0}° of the circumference within Lc ({}): the verdict holds for those \
-                 arcs; the other {:.0}° were not inspected",
-                arcs_text(arcs),
-                360.0 - seen_deg
-            ),
+            message: if arcs.is_empty() {
+                "the views saw none of the circumference within Lc: nothing within Lc was inspected".into()
+            } else {
+                format!(
+                    "the views saw {seen_deg:.0}° of the circumference within Lc ({}): the verdict holds for \
+                     those arcs; the other {:.0}° were not inspected",
+                    arcs_text(arcs),
+                    360.0 - seen_deg
+                )
+            },
             threads: vec![],
-            value: Some(seen_deg),
+            value: Some(*seen_deg),
             limit: Some(360.0),
             unit: Some("deg".into()),
         });
@@ -407,7 +412,7 @@ pub fn assess(input: &RuleInput, arc_rule: ArcRule) -> Assessment {
         circumference_mm: circ,
         arc_rule,
         arc_limit_mm,
-        observed_arcs_deg: partial,
+        observed_arcs_deg: partial.map(|(_, arcs)| arcs),
     }
 }
 
@@ -527,6 +532,12 @@ mod tests {
         assert_eq!((last.value, last.limit, last.unit.as_deref()), (Some(40.0), Some(360.0), Some("deg")));
         assert!(last.message.contains("40°") && last.message.contains("320°"), "{}", last.message);
         assert_eq!(partial.observed_arcs_deg, Some(vec![[0.0, 30.0], [350.0, 360.0]]));
+        // Nothing seen within Lc (the views all beyond it) says so in words.
+        input.observed_arcs_deg = Some(vec![]);
+        let none = assess(&input, ArcRule::PerThread);
+        let last = none.reasons.last().unwrap();
+        assert_eq!((last.code, last.value), (ReasonCode::PartialCircumference, Some(0.0)));
+        assert!(last.message.contains("none of the circumference"), "{}", last.message);
         // A reject stays a reject: what was seen already fails.
         input.threads = vec![dark(6, 100.0)];
         assert_eq!(assess(&input, ArcRule::PerThread).verdict, Verdict::Reject);
