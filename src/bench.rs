@@ -13,19 +13,19 @@ pub struct Accuracy {
     pub height_rms_um: f64,
     pub height_max_um: f64,
     pub height_bias_um: f64,
-    /// Largest |report − truth| black-crest length over threads (mm), over the arcs the views saw:
-    /// where the report says they saw part of the circumference only
-    /// (`assessment.observed_arcs_deg`), truth's arcs are clipped to those arcs first.
+    /// Largest |report − truth| black-crest length over threads (mm), over the crests the views
+    /// showed: where the report says some crest within Lc was not seen
+    /// (`assessment.seen_crest_arcs`), each thread's truth arcs are clipped to its seen arcs first.
     pub black_crest_length_max_error_mm: f64,
-    /// Degrees of the circumference the views saw within Lc (360 when they saw all of it).
-    pub observed_deg: f64,
+    /// Crest degrees within Lc the views showed, over all threads (None when they showed all).
+    pub seen_crest_deg: Option<f64>,
     pub verdict_agrees: bool,
     /// The worst bins: (thread, angle, report, truth).
     pub worst: Vec<(u32, f64, f64, f64)>,
 }
 
 /// Compares heights bin by bin (only full-coverage bins of threads present in both), black-crest
-/// lengths per thread (over the arcs the views saw), and the verdict.
+/// lengths per thread (over the crests the views showed), and the verdict.
 pub fn compare(report: &Report, truth: &Truth) -> Accuracy {
     let mut errors: Vec<(f64, u32, f64, f64, f64)> = Vec::new();
     let mut missing = 0;
@@ -47,18 +47,21 @@ pub fn compare(report: &Report, truth: &Truth) -> Accuracy {
     let bias = errors.iter().map(|e| e.0).sum::<f64>() / n;
     let max = errors.iter().map(|e| e.0.abs()).fold(0.0, f64::max);
     errors.sort_by(|a, b| b.0.abs().total_cmp(&a.0.abs()));
-    let observed = report.assessment.observed_arcs_deg.as_deref();
+    let seen = report.assessment.seen_crest_arcs.as_deref();
     let length_error = truth
         .threads
         .iter()
         .map(|t| {
             let reported = report.threads.iter().find(|r| r.index == t.index).map_or(0.0, |r| r.black_crest_length_mm);
-            let truth_mm = match observed {
+            let truth_mm = match seen {
                 None => t.black_crest_length_mm,
-                Some(seen) => crate::rules::arc_length_mm(
-                    &crate::rules::intersect_arcs(&t.black_crest_arcs_deg, seen),
-                    truth.circumference_mm,
-                ),
+                Some(seen) => {
+                    let thread_seen = seen.iter().find(|s| s.index == t.index).map_or(&[][..], |s| &s.arcs_deg[..]);
+                    crate::rules::arc_length_mm(
+                        &crate::rules::intersect_arcs(&t.black_crest_arcs_deg, thread_seen),
+                        truth.circumference_mm,
+                    )
+                }
             };
             (reported - truth_mm).abs()
         })
@@ -77,7 +80,7 @@ pub fn compare(report: &Report, truth: &Truth) -> Accuracy {
         height_max_um: max,
         height_bias_um: bias,
         black_crest_length_max_error_mm: length_error,
-        observed_deg: observed.map_or(360.0, |arcs| arcs.iter().map(|a| a[1] - a[0]).sum()),
+        seen_crest_deg: seen.map(|threads| threads.iter().flat_map(|t| &t.arcs_deg).map(|a| a[1] - a[0]).sum()),
         verdict_agrees: report.verdict == truth.verdict,
         worst: errors.iter().take(5).map(|e| (e.1, e.2, e.3, e.4)).collect(),
     }

@@ -339,6 +339,7 @@ pub fn observations(
                     height_mm: b.height_mm,
                     chamfer,
                     on_mill_surface: on_mill[i] && !chamfer && !partly_dark,
+                    seen: b.crest_gray.is_some() || b.crest_radius_mm.is_some(),
                 });
             }
             ThreadObservation { index: t.index, black_crest_arcs_deg: crate::rules::union_arcs(arcs), bins }
@@ -416,7 +417,6 @@ mod tests {
             nominal_height_mm: 1.5,
             height_tolerance_mm: 0.05,
             threads: findings.observations,
-            observed_arcs_deg: None,
         };
         let a = crate::rules::assess(&input, crate::rules::ArcRule::PerThread);
         assert_eq!(a.black_threads.len(), 1);
@@ -439,7 +439,6 @@ mod tests {
             nominal_height_mm: 1.5,
             height_tolerance_mm: 0.05,
             threads: findings.observations,
-            observed_arcs_deg: None,
         };
         assert_eq!(
             crate::rules::assess(&input, crate::rules::ArcRule::PerThread).verdict,

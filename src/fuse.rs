@@ -60,30 +60,6 @@ impl UnrolledMap {
         self.radius_mm.iter().filter(|r| r.is_finite()).count() as f64 / self.radius_mm.len() as f64
     }
 
-    /// The arcs of the circumference the map has measured cells in at z ≤ `z_max_mm`, in 1° bins
-    /// (bin k spans [k°, k + 1°); a bin counts where any cell centred in it was measured), merged
-    /// into [from, to] arcs in degrees within [0, 360] (an arc across 0° is two).
-    pub fn observed_arcs_deg(&self, z_max_mm: f64) -> Vec<[f64; 2]> {
-        let grid = &self.grid;
-        let mut seen = [false; 360];
-        for iz in (0..grid.nz).filter(|&iz| grid.z_at(iz) <= z_max_mm) {
-            let row = &self.radius_mm[iz * grid.ntheta..(iz + 1) * grid.ntheta];
-            for (it, r) in row.iter().enumerate() {
-                if r.is_finite() {
-                    seen[(grid.theta_deg_at(it) as usize).min(359)] = true;
-                }
-            }
-        }
-        let mut arcs: Vec<[f64; 2]> = Vec::new();
-        for (k, _) in seen.iter().enumerate().filter(|(_, s)| **s) {
-            match arcs.last_mut() {
-                Some(last) if last[1] == k as f64 => last[1] += 1.0,
-                _ => arcs.push([k as f64, k as f64 + 1.0]),
-            }
-        }
-        arcs
-    }
-
     pub fn gray(&self, i: usize) -> f32 {
         crate::bundle::luminance(self.rgb[i])
     }
@@ -227,23 +203,6 @@ mod tests {
     fn point(z: f64, theta_deg: f64, r: f64, weight: f32) -> SurfacePoint {
         let t = theta_deg.to_radians();
         SurfacePoint { position: Point3::new(r * t.cos(), r * t.sin(), z), rgb: [0.5; 3], weight, pixel: [0, 0] }
-    }
-
-    #[test]
-    fn observed_arcs_are_the_degrees_with_a_measured_cell_within_z_max() {
-        // 720 cells around (0.5° each), z cells centred on 0.5, 1.5 and 2.5 mm.
-        let grid = GridSpec { z0_mm: 0.0, dz_mm: 1.0, nz: 3, ntheta: 720 };
-        let mut points = Vec::new();
-        // Seen at z 0.5 mm: 10.0°–12.9° and across 0°, 358.2°–1.3°.
-        for t in [10.2, 11.0, 12.9, 358.2, 359.9, 0.1, 1.3] {
-            points.push(point(0.5, t, 50.0, 2.0));
-        }
-        // Seen only at z 2.5 mm, beyond z_max: 100°.
-        points.push(point(2.5, 100.2, 50.0, 2.0));
-        let map = fuse(&[&points], grid);
-        assert_eq!(map.observed_arcs_deg(2.0), vec![[0.0, 2.0], [10.0, 13.0], [358.0, 360.0]]);
-        assert_eq!(map.observed_arcs_deg(3.0), vec![[0.0, 2.0], [10.0, 13.0], [100.0, 101.0], [358.0, 360.0]]);
-        assert!(map.observed_arcs_deg(0.1).is_empty());
     }
 
     /// The banded parallel sums are exactly the sequential ones (same additions per cell, in

@@ -291,7 +291,6 @@ pub fn inspect(
         nominal_height_mm: form.height_mm,
         height_tolerance_mm: form.height_tolerance_mm,
         threads: observations,
-        observed_arcs_deg: Some(map.observed_arcs_deg(part.lc_mm)),
     };
     let assessment = rules::assess(&input, options.arc_rule);
     let thread_reports = threads

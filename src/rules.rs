@@ -44,6 +44,15 @@ pub struct CrestBin {
     /// The crest stage found this crest below the machined crest cone: it is the mill surface.
     #[serde(default)]
     pub on_mill_surface: bool,
+    /// The views showed this crest (its brightness or its radius was measured). Crests within Lc
+    /// that no view showed make the verdict one over the crests seen: see
+    /// [`ReasonCode::PartialCircumference`].
+    #[serde(default = "yes")]
+    pub seen: bool,
+}
+
+fn yes() -> bool {
+    true
 }
 
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -62,12 +71,6 @@ pub struct RuleInput {
     pub nominal_height_mm: f64,
     pub height_tolerance_mm: f64,
     pub threads: Vec<ThreadObservation>,
-    /// The arcs of the circumference the views saw within Lc, [from, to] in degrees within
-    /// [0, 360]; None means the whole circumference (as the simulator's truth sees it). Where they
-    /// fall short of 360°, the verdict holds for the arcs seen only, and a
-    /// [`ReasonCode::PartialCircumference`] reason says so.
-    #[serde(default)]
-    pub observed_arcs_deg: Option<Vec<[f64; 2]>>,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -117,8 +120,9 @@ pub enum ReasonCode {
     ButtressArcOverLimit,
     ButtressCombinedArcOverLimit,
     PolishedBlackCrest,
-    /// The views covered only part of the circumference within Lc: the verdict is over the arcs
-    /// seen (value: degrees seen, limit: 360). Informational; it does not change the verdict.
+    /// The views showed only part of the thread crests within Lc (value: crest degrees seen, limit:
+    /// crest degrees within Lc): the verdict is over the crests seen. Informational; it does not
+    /// change the verdict.
     PartialCircumference,
 }
 
@@ -147,10 +151,17 @@ pub struct Assessment {
     pub arc_rule: ArcRule,
     /// The buttress arc limit in mm (25% of the circumference); None for round threads.
     pub arc_limit_mm: Option<f64>,
-    /// The arcs the views saw within Lc, where they fall short of the whole circumference
-    /// ([`RuleInput::observed_arcs_deg`]); absent when the whole circumference was seen.
+    /// Per thread with crests within Lc, the crest arcs within Lc the views showed
+    /// ([`CrestBin::seen`]), where some crest within Lc was not seen; absent when every one was.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub observed_arcs_deg: Option<Vec<[f64; 2]>>,
+    pub seen_crest_arcs: Option<Vec<ThreadArcs>>,
+}
+
+/// Arcs [from, to] in degrees of one thread.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ThreadArcs {
+    pub index: u32,
+    pub arcs_deg: Vec<[f64; 2]>,
 }
 
 impl Assessment {
@@ -184,12 +195,12 @@ pub fn arc_length_mm(arcs_deg: &[[f64; 2]], circumference_mm: f64) -> f64 {
     arcs_deg.iter().map(|a| a[1] - a[0]).sum::<f64>() / 360.0 * circumference_mm
 }
 
-/// Black arcs of one thread from its geometry: bins within Lc whose crest is on the mill surface.
-/// The part of a bin beyond Lc is cut off by interpolating the crest z across the bin.
-fn geometric_arcs(bins: &[CrestBin], lc_mm: f64) -> Vec<[f64; 2]> {
+/// The arcs of one thread's bins for which `keep` holds, within Lc: the part of a bin beyond Lc is
+/// cut off by interpolating the crest z across the bin.
+fn arcs_within_lc(bins: &[CrestBin], lc_mm: f64, keep: impl Fn(&CrestBin) -> bool) -> Vec<[f64; 2]> {
     let mut arcs = Vec::new();
     for (k, bin) in bins.iter().enumerate() {
-        if bin.chamfer || !bin.on_mill_surface {
+        if !keep(bin) {
             continue;
         }
         // z grows linearly along the helix: estimate dz/dθ from the neighbours.
@@ -203,6 +214,15 @@ fn geometric_arcs(bins: &[CrestBin], lc_mm: f64) -> Vec<[f64; 2]> {
         arcs.push([start, end]);
     }
     arcs
+}
+
+/// Black arcs of one thread from its geometry: bins within Lc whose crest is on the mill surface.
+fn geometric_arcs(bins: &[CrestBin], lc_mm: f64) -> Vec<[f64; 2]> {
+    arcs_within_lc(bins, lc_mm, |b| !b.chamfer && b.on_mill_surface)
+}
+
+fn arcs_deg(arcs: &[[f64; 2]]) -> f64 {
+    arcs.iter().map(|a| a[1] - a[0]).sum()
 }
 
 fn neighbour_slope(bins: &[CrestBin], k: usize) -> f64 {
@@ -379,28 +399,38 @@ pub fn assess(input: &RuleInput, arc_rule: ArcRule) -> Assessment {
     };
 
     // Last, after the verdict's own reason: it qualifies the verdict, it does not decide it.
-    let partial = input
-        .observed_arcs_deg
-        .as_ref()
-        .map(|arcs| union_arcs(arcs.clone()))
-        .map(|arcs| (arcs.iter().map(|a| a[1] - a[0]).sum::<f64>(), arcs))
-        .filter(|(seen_deg, _)| *seen_deg < 360.0 - 1e-9);
-    if let Some((seen_deg, arcs)) = &partial {
+    let crests: Vec<(ThreadArcs, f64)> = input
+        .threads
+        .iter()
+        .map(|t| {
+            let seen = union_arcs(arcs_within_lc(&t.bins, lc, |b| b.seen));
+            (ThreadArcs { index: t.index, arcs_deg: seen }, arcs_deg(&arcs_within_lc(&t.bins, lc, |_| true)))
+        })
+        .filter(|(_, within_deg)| *within_deg > 0.0)
+        .collect();
+    let seen_deg: f64 = crests.iter().map(|(t, _)| arcs_deg(&t.arcs_deg)).sum();
+    let within_deg: f64 = crests.iter().map(|(_, d)| d).sum();
+    let partial = seen_deg < within_deg - 1e-6;
+    if partial {
+        let seen_threads: Vec<&ThreadArcs> = crests.iter().map(|(t, _)| t).filter(|t| !t.arcs_deg.is_empty()).collect();
         reasons.push(Reason {
             code: ReasonCode::PartialCircumference,
-            message: if arcs.is_empty() {
-                "the views saw none of the circumference within Lc: nothing within Lc was inspected".into()
+            message: if seen_threads.is_empty() {
+                "the views showed none of the thread crests within Lc: nothing within Lc was inspected".into()
             } else {
                 format!(
-                    "the views saw {seen_deg:.0}° of the circumference within Lc ({}): the verdict holds for \
-                     those arcs; the other {:.0}° were not inspected",
-                    arcs_text(arcs),
-                    360.0 - seen_deg
+                    "the views showed {seen_deg:.0}° of the {within_deg:.0}° of thread crest within Lc ({}): the \
+                     verdict holds for the crests seen",
+                    seen_threads
+                        .iter()
+                        .map(|t| format!("thread {} {}", t.index, arcs_text(&t.arcs_deg)))
+                        .collect::<Vec<_>>()
+                        .join("; ")
                 )
             },
-            threads: vec![],
-            value: Some(*seen_deg),
-            limit: Some(360.0),
+            threads: seen_threads.iter().map(|t| t.index).collect(),
+            value: Some(seen_deg),
+            limit: Some(within_deg),
             unit: Some("deg".into()),
         });
     }
@@ -412,7 +442,7 @@ pub fn assess(input: &RuleInput, arc_rule: ArcRule) -> Assessment {
         circumference_mm: circ,
         arc_rule,
         arc_limit_mm,
-        observed_arcs_deg: partial.map(|(_, arcs)| arcs),
+        seen_crest_arcs: partial.then(|| crests.into_iter().map(|(t, _)| t).collect()),
     }
 }
 
@@ -438,7 +468,6 @@ mod tests {
             nominal_height_mm: 1.000,
             height_tolerance_mm: 0.030,
             threads,
-            observed_arcs_deg: None,
         }
     }
 
@@ -459,6 +488,7 @@ mod tests {
                     height_mm: Some(if is_low { height } else { 1.0 }),
                     chamfer: chamfer && is_low,
                     on_mill_surface: is_low,
+                    seen: true,
                 }
             })
             .collect()
@@ -513,33 +543,47 @@ mod tests {
     }
 
     #[test]
-    fn a_partial_circumference_is_said_after_the_verdict_and_does_not_change_it() {
-        let mut input = buttress(vec![dark(6, 50.0)]);
+    fn crests_within_lc_no_view_showed_are_said_after_the_verdict_and_do_not_change_it() {
+        // Thread 2's crest runs from z 5.08 to 10.16 mm; Lc 35.8 takes all of it.
+        let mut thread =
+            ThreadObservation { index: 2, black_crest_arcs_deg: vec![], bins: bins(5.08, 5.08, (0, 0), 1.0, false) };
+        let mut input = buttress(vec![dark(6, 50.0), thread.clone()]);
         let whole = assess(&input, ArcRule::PerThread);
-        assert!(whole.observed_arcs_deg.is_none());
+        assert!(whole.seen_crest_arcs.is_none());
         assert!(whole.reasons.iter().all(|r| r.code != ReasonCode::PartialCircumference));
-        // Arcs that together make the whole circumference are the whole circumference.
-        input.observed_arcs_deg = Some(vec![[180.0, 360.0], [0.0, 180.0]]);
-        assert_eq!(assess(&input, ArcRule::PerThread), whole);
-        // 40° seen, given in pieces that overlap.
-        input.observed_arcs_deg = Some(vec![[350.0, 360.0], [0.0, 20.0], [15.0, 30.0]]);
+        // 40° of its crest seen, across 0°.
+        for b in thread.bins.iter_mut() {
+            b.seen = b.angle_deg >= 350.0 || b.angle_deg < 30.0;
+        }
+        input.threads[1] = thread.clone();
         let partial = assess(&input, ArcRule::PerThread);
         assert_eq!(partial.verdict, whole.verdict);
         assert_eq!(partial.black_threads, whole.black_threads);
         assert_eq!(partial.reasons[..whole.reasons.len()], whole.reasons[..]);
         let last = partial.reasons.last().unwrap();
         assert_eq!(last.code, ReasonCode::PartialCircumference);
-        assert_eq!((last.value, last.limit, last.unit.as_deref()), (Some(40.0), Some(360.0), Some("deg")));
-        assert!(last.message.contains("40°") && last.message.contains("320°"), "{}", last.message);
-        assert_eq!(partial.observed_arcs_deg, Some(vec![[0.0, 30.0], [350.0, 360.0]]));
-        // Nothing seen within Lc (the views all beyond it) says so in words.
-        input.observed_arcs_deg = Some(vec![]);
+        assert_eq!(last.threads, vec![2]);
+        assert_eq!((last.unit.as_deref(), last.limit), (Some("deg"), Some(360.0)));
+        assert!((last.value.unwrap() - 40.0).abs() < 1e-9, "{last:?}");
+        assert!(last.message.contains("40° of the 360°"), "{}", last.message);
+        let seen = partial.seen_crest_arcs.clone().unwrap();
+        assert_eq!(seen, vec![ThreadArcs { index: 2, arcs_deg: vec![[0.0, 30.0], [350.0, 360.0]] }]);
+        // Crests beyond Lc are not asked for: with Lc at z 7.62 mm (the crest's middle) only the
+        // first half of the turn counts, of which 30° were seen.
+        input.lc_mm = 7.62;
+        let half = assess(&input, ArcRule::PerThread);
+        let last = half.reasons.last().unwrap();
+        assert!((last.value.unwrap() - 30.0).abs() < 1e-9 && (last.limit.unwrap() - 180.0).abs() < 1e-6, "{last:?}");
+        input.lc_mm = 35.8;
+        // No crest seen at all says so in words.
+        thread.bins.iter_mut().for_each(|b| b.seen = false);
+        input.threads[1] = thread;
         let none = assess(&input, ArcRule::PerThread);
         let last = none.reasons.last().unwrap();
         assert_eq!((last.code, last.value), (ReasonCode::PartialCircumference, Some(0.0)));
-        assert!(last.message.contains("none of the circumference"), "{}", last.message);
+        assert!(last.message.contains("none of the thread crests"), "{}", last.message);
         // A reject stays a reject: what was seen already fails.
-        input.threads = vec![dark(6, 100.0)];
+        input.threads[0] = dark(6, 100.0);
         assert_eq!(assess(&input, ArcRule::PerThread).verdict, Verdict::Reject);
     }
 
@@ -560,7 +604,6 @@ mod tests {
             nominal_height_mm: 1.81,
             height_tolerance_mm: 0.051,
             threads: vec![ThreadObservation { index: 14, black_crest_arcs_deg: vec![[200.0, 200.5]], bins: vec![] }],
-            observed_arcs_deg: None,
         };
         let a = assess(&input, ArcRule::PerThread);
         assert_eq!(a.verdict, Verdict::Reject);

@@ -309,6 +309,8 @@ impl PartModel {
                     chamfer: crest.chamfered,
                     // Every black crest point is already in the traced arcs.
                     on_mill_surface: false,
+                    // Truth sees every crest.
+                    seen: true,
                 });
             }
             let arcs = self.black_arcs(index);
@@ -329,7 +331,6 @@ impl PartModel {
             nominal_height_mm: self.form.height_mm,
             height_tolerance_mm: self.form.height_tolerance_mm,
             threads: observations,
-            observed_arcs_deg: None,
         };
         (threads, input)
     }

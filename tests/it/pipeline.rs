@@ -32,14 +32,15 @@ fn inspection_of_the_ci_bundle_matches_truth() {
     assert!(accuracy.bins_compared >= 10, "{}", accuracy.bins_compared);
     assert!(accuracy.height_rms_um < 15.0, "{}", accuracy.height_rms_um);
     assert!(accuracy.height_max_um < 40.0, "{}", accuracy.height_max_um);
-    // Three views over 13°: the report says which arcs were seen, and says it after the verdict's
-    // reason; black crests are measured against truth over those arcs.
-    let observed = inspection.report.assessment.observed_arcs_deg.clone().expect("a partial circumference");
-    let observed_deg: f64 = observed.iter().map(|a| a[1] - a[0]).sum();
-    assert!((13.0..=30.0).contains(&observed_deg), "{observed:?}");
-    assert_eq!(accuracy.observed_deg, observed_deg);
+    // Three views over 13° near Lc: the report says which crests within Lc they showed, after the
+    // verdict's reason, and black crests are measured against truth over those crests.
+    let seen_crests = inspection.report.assessment.seen_crest_arcs.clone().expect("crests within Lc not seen");
+    let seen_deg: f64 = seen_crests.iter().flat_map(|t| &t.arcs_deg).map(|a| a[1] - a[0]).sum();
+    assert_eq!(accuracy.seen_crest_deg, Some(seen_deg));
     let last = inspection.report.assessment.reasons.last().unwrap();
     assert_eq!(last.code, crestscan::rules::ReasonCode::PartialCircumference);
+    assert_eq!(last.value, Some(seen_deg));
+    assert!(seen_deg > 10.0 && seen_deg < 0.1 * last.limit.unwrap(), "{last:?}");
     assert_eq!(inspection.report.reasons.last(), Some(&last.message));
     assert!(accuracy.black_crest_length_max_error_mm <= 2.0, "{}", accuracy.black_crest_length_max_error_mm);
     // Registration brings the views together: corrections match the encoder errors up to the
