@@ -46,7 +46,7 @@ pub struct CrestBin {
     pub on_mill_surface: bool,
     /// The views showed this crest (its brightness or its radius was measured). Crests within Lc
     /// that no view showed make the verdict one over the crests seen: see
-    /// [`ReasonCode::PartialCircumference`].
+    /// [`ReasonCode::PartialCoverage`].
     #[serde(default = "yes")]
     pub seen: bool,
 }
@@ -123,7 +123,7 @@ pub enum ReasonCode {
     /// The views showed only part of the thread crests within Lc (value: crest degrees seen, limit:
     /// crest degrees within Lc): the verdict is over the crests seen. Informational; it does not
     /// change the verdict.
-    PartialCircumference,
+    PartialCoverage,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -414,7 +414,7 @@ pub fn assess(input: &RuleInput, arc_rule: ArcRule) -> Assessment {
     if partial {
         let seen_threads: Vec<&ThreadArcs> = crests.iter().map(|(t, _)| t).filter(|t| !t.arcs_deg.is_empty()).collect();
         reasons.push(Reason {
-            code: ReasonCode::PartialCircumference,
+            code: ReasonCode::PartialCoverage,
             message: if seen_threads.is_empty() {
                 "the views showed none of the thread crests within Lc: nothing within Lc was inspected".into()
             } else {
@@ -550,7 +550,7 @@ mod tests {
         let mut input = buttress(vec![dark(6, 50.0), thread.clone()]);
         let whole = assess(&input, ArcRule::PerThread);
         assert!(whole.seen_crest_arcs.is_none());
-        assert!(whole.reasons.iter().all(|r| r.code != ReasonCode::PartialCircumference));
+        assert!(whole.reasons.iter().all(|r| r.code != ReasonCode::PartialCoverage));
         // 40° of its crest seen, across 0°.
         for b in thread.bins.iter_mut() {
             b.seen = b.angle_deg >= 350.0 || b.angle_deg < 30.0;
@@ -561,7 +561,7 @@ mod tests {
         assert_eq!(partial.black_threads, whole.black_threads);
         assert_eq!(partial.reasons[..whole.reasons.len()], whole.reasons[..]);
         let last = partial.reasons.last().unwrap();
-        assert_eq!(last.code, ReasonCode::PartialCircumference);
+        assert_eq!(last.code, ReasonCode::PartialCoverage);
         assert_eq!(last.threads, vec![2]);
         assert_eq!((last.unit.as_deref(), last.limit), (Some("deg"), Some(360.0)));
         assert!((last.value.unwrap() - 40.0).abs() < 1e-9, "{last:?}");
@@ -580,7 +580,7 @@ mod tests {
         input.threads[1] = thread;
         let none = assess(&input, ArcRule::PerThread);
         let last = none.reasons.last().unwrap();
-        assert_eq!((last.code, last.value), (ReasonCode::PartialCircumference, Some(0.0)));
+        assert_eq!((last.code, last.value), (ReasonCode::PartialCoverage, Some(0.0)));
         assert!(last.message.contains("none of the thread crests"), "{}", last.message);
         // A reject stays a reject: what was seen already fails.
         input.threads[0] = dark(6, 100.0);

@@ -38,7 +38,7 @@ fn inspection_of_the_ci_bundle_matches_truth() {
     let seen_deg: f64 = seen_crests.iter().flat_map(|t| &t.arcs_deg).map(|a| a[1] - a[0]).sum();
     assert_eq!(accuracy.seen_crest_deg, Some(seen_deg));
     let last = inspection.report.assessment.reasons.last().unwrap();
-    assert_eq!(last.code, crestscan::rules::ReasonCode::PartialCircumference);
+    assert_eq!(last.code, crestscan::rules::ReasonCode::PartialCoverage);
     assert_eq!(last.value, Some(seen_deg));
     assert!(seen_deg > 10.0 && seen_deg < 0.1 * last.limit.unwrap(), "{last:?}");
     assert_eq!(inspection.report.reasons.last(), Some(&last.message));
