@@ -80,7 +80,7 @@ pub fn compare(report: &Report, truth: &Truth) -> Accuracy {
         height_max_um: max,
         height_bias_um: bias,
         black_crest_length_max_error_mm: length_error,
-        seen_crest_deg: seen.map(|threads| threads.iter().flat_map(|t| &t.arcs_deg).map(|a| a[1] - a[0]).sum()),
+        seen_crest_deg: seen.map(|threads| threads.iter().map(|t| crate::rules::arcs_deg(&t.arcs_deg)).sum()),
         verdict_agrees: report.verdict == truth.verdict,
         worst: errors.iter().take(5).map(|e| (e.1, e.2, e.3, e.4)).collect(),
     }

@@ -191,8 +191,13 @@ pub fn intersect_arcs(arcs: &[[f64; 2]], within: &[[f64; 2]]) -> Vec<[f64; 2]> {
     union_arcs(pieces)
 }
 
-pub fn arc_length_mm(arcs_deg: &[[f64; 2]], circumference_mm: f64) -> f64 {
-    arcs_deg.iter().map(|a| a[1] - a[0]).sum::<f64>() / 360.0 * circumference_mm
+/// Degrees the arcs span (arcs as [`union_arcs`] leaves them: not overlapping).
+pub fn arcs_deg(arcs: &[[f64; 2]]) -> f64 {
+    arcs.iter().map(|a| a[1] - a[0]).sum()
+}
+
+pub fn arc_length_mm(arcs: &[[f64; 2]], circumference_mm: f64) -> f64 {
+    arcs_deg(arcs) / 360.0 * circumference_mm
 }
 
 /// The arcs of one thread's bins for which `keep` holds, within Lc: the part of a bin beyond Lc is
@@ -219,10 +224,6 @@ fn arcs_within_lc(bins: &[CrestBin], lc_mm: f64, keep: impl Fn(&CrestBin) -> boo
 /// Black arcs of one thread from its geometry: bins within Lc whose crest is on the mill surface.
 fn geometric_arcs(bins: &[CrestBin], lc_mm: f64) -> Vec<[f64; 2]> {
     arcs_within_lc(bins, lc_mm, |b| !b.chamfer && b.on_mill_surface)
-}
-
-fn arcs_deg(arcs: &[[f64; 2]]) -> f64 {
-    arcs.iter().map(|a| a[1] - a[0]).sum()
 }
 
 fn neighbour_slope(bins: &[CrestBin], k: usize) -> f64 {

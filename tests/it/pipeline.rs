@@ -35,7 +35,7 @@ fn inspection_of_the_ci_bundle_matches_truth() {
     // Three views over 13° near Lc: the report says which crests within Lc they showed, after the
     // verdict's reason, and black crests are measured against truth over those crests.
     let seen_crests = inspection.report.assessment.seen_crest_arcs.clone().expect("crests within Lc not seen");
-    let seen_deg: f64 = seen_crests.iter().flat_map(|t| &t.arcs_deg).map(|a| a[1] - a[0]).sum();
+    let seen_deg: f64 = seen_crests.iter().map(|t| crestscan::rules::arcs_deg(&t.arcs_deg)).sum();
     assert_eq!(accuracy.seen_crest_deg, Some(seen_deg));
     let last = inspection.report.assessment.reasons.last().unwrap();
     assert_eq!(last.code, crestscan::rules::ReasonCode::PartialCoverage);
