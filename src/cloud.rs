@@ -203,7 +203,7 @@ mod tests {
         for projection in [Projection::Perspective, Projection::Telecentric] {
             let optics = Optics {
                 projection,
-                focal_length_mm: 50.0,
+                focal_length_mm: Some(50.0),
                 f_number: 4.0,
                 focus_distance_mm: 220.0,
                 pixel_pitch_um: 5.5,
@@ -239,7 +239,7 @@ mod tests {
     fn a_pixel_on_the_axis_lands_on_the_view_line() {
         let optics = Optics {
             projection: Projection::Perspective,
-            focal_length_mm: 50.0,
+            focal_length_mm: Some(50.0),
             f_number: 1.4,
             focus_distance_mm: 220.0,
             pixel_pitch_um: 12.0,

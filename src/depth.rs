@@ -332,6 +332,9 @@ fn focus_measure_body(gray: &[f32], w: usize, h: usize, r: usize, scratch: &mut 
             // dst[x] += src[x + d − r] wherever both are in the row.
             let (from, to) = if d >= r { (d - r, 0) } else { (0, r - d) };
             let len = w.saturating_sub(from.max(to));
+            if len == 0 {
+                continue; // a row narrower than the box: this shift reaches no pixel
+            }
             for (o, &v) in dst[to..to + len].iter_mut().zip(&src[from..from + len]) {
                 *o += v;
             }
@@ -889,7 +892,7 @@ mod tests {
         };
         let optics = Optics {
             projection: Projection::Perspective,
-            focal_length_mm: 50.0,
+            focal_length_mm: Some(50.0),
             f_number: 2.8,
             focus_distance_mm: 220.0,
             pixel_pitch_um: 12.0,
@@ -1000,7 +1003,7 @@ mod tests {
             .collect();
         let optics = Optics {
             projection: Projection::Telecentric,
-            focal_length_mm: 50.0,
+            focal_length_mm: Some(50.0),
             f_number: 8.0,
             focus_distance_mm: 100.0,
             pixel_pitch_um: 10.0,
@@ -1032,28 +1035,31 @@ mod tests {
 
     #[test]
     fn box_sum_matches_brute_force() {
-        let (w, h, r) = (13, 9, 2);
-        let gray: Vec<f32> = (0..w * h).map(|i| ((i * 37) % 11) as f32 / 11.0).collect();
-        let mut scratch = vec![0f32; w * h];
-        let mut out = vec![0f32; w * h];
-        focus_measure(&gray, w, h, r, &mut scratch, &mut out);
-        let lap = |x: usize, y: usize| {
-            if x == 0 || y == 0 || x + 1 == w || y + 1 == h {
-                return 0.0;
-            }
-            let i = y * w + x;
-            let l = 4.0 * gray[i] - gray[i - 1] - gray[i + 1] - gray[i - w] - gray[i + w];
-            l * l
-        };
-        for y in 0..h {
-            for x in 0..w {
-                let mut s = 0.0;
-                for yy in y.saturating_sub(r)..=(y + r).min(h - 1) {
-                    for xx in x.saturating_sub(r)..=(x + r).min(w - 1) {
-                        s += lap(xx, yy);
-                    }
+        // A field several boxes wide, and frames narrower or shorter than one box (a bundle may
+        // hold frames of a few pixels: they give no depth, and must not fail).
+        for (w, h, r) in [(13, 9, 2), (3, 3, 5), (2, 160, 5), (384, 2, 5), (1, 1, 4), (7, 4, 5)] {
+            let gray: Vec<f32> = (0..w * h).map(|i| ((i * 37) % 11) as f32 / 11.0).collect();
+            let mut scratch = vec![0f32; w * h];
+            let mut out = vec![0f32; w * h];
+            focus_measure(&gray, w, h, r, &mut scratch, &mut out);
+            let lap = |x: usize, y: usize| {
+                if x == 0 || y == 0 || x + 1 == w || y + 1 == h {
+                    return 0.0;
                 }
-                assert!((out[y * w + x] - s).abs() < 1e-4, "({x},{y}) {} vs {s}", out[y * w + x]);
+                let i = y * w + x;
+                let l = 4.0 * gray[i] - gray[i - 1] - gray[i + 1] - gray[i - w] - gray[i + w];
+                l * l
+            };
+            for y in 0..h {
+                for x in 0..w {
+                    let mut s = 0.0;
+                    for yy in y.saturating_sub(r)..=(y + r).min(h - 1) {
+                        for xx in x.saturating_sub(r)..=(x + r).min(w - 1) {
+                            s += lap(xx, yy);
+                        }
+                    }
+                    assert!((out[y * w + x] - s).abs() < 1e-4, "{w}×{h} ({x},{y}) {} vs {s}", out[y * w + x]);
+                }
             }
         }
         // The baseline and the AVX2 copy give the same measure, bit for bit (a frame-sized field,

@@ -14,7 +14,10 @@ pub enum Projection {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Optics {
     pub projection: Projection,
-    pub focal_length_mm: f64,
+    /// Required for a perspective (thin-lens) projection; a telecentric one is described by its
+    /// magnification, and may leave it out or null.
+    #[serde(default)]
+    pub focal_length_mm: Option<f64>,
     pub f_number: f64,
     pub focus_distance_mm: f64,
     pub pixel_pitch_um: f64,
@@ -44,16 +47,24 @@ impl Optics {
         let finite_positive = |name: &'static str, v: f64| {
             if v.is_finite() && v > 0.0 { Ok(()) } else { Err((name, format!("must be a finite number > 0, got {v}"))) }
         };
-        finite_positive("focal_length_mm", self.focal_length_mm)?;
+        match (self.projection, self.focal_length_mm) {
+            (Projection::Perspective, None) => {
+                return Err(("focal_length_mm", "is required for a perspective projection".into()));
+            }
+            (_, Some(f)) => finite_positive("focal_length_mm", f)?,
+            _ => {}
+        }
         finite_positive("f_number", self.f_number)?;
         finite_positive("focus_distance_mm", self.focus_distance_mm)?;
         finite_positive("pixel_pitch_um", self.pixel_pitch_um)?;
-        if self.projection == Projection::Perspective && self.focus_distance_mm <= self.focal_length_mm {
+        if let (Projection::Perspective, Some(f)) = (self.projection, self.focal_length_mm)
+            && self.focus_distance_mm <= f
+        {
             return Err((
                 "focus_distance_mm",
                 format!(
-                    "{} mm must exceed focal_length_mm {} mm: a thin lens cannot focus closer than its focal length",
-                    self.focus_distance_mm, self.focal_length_mm
+                    "{} mm must exceed focal_length_mm {f} mm: a thin lens cannot focus closer than its focal length",
+                    self.focus_distance_mm
                 ),
             ));
         }
@@ -76,9 +87,15 @@ impl Optics {
         self.pixel_pitch_um * 1e-3
     }
 
-    /// Lens-to-sensor distance dᵢ = f·F / (F − f), fixed for the whole stack.
+    /// The thin lens's focal length. Only the perspective projection's formulas use it, and
+    /// [`Optics::validate`] (which every bundle passes) requires it there.
+    fn thin_lens_focal_length_mm(&self) -> f64 {
+        self.focal_length_mm.expect("validated: a perspective projection has a focal length")
+    }
+
+    /// Lens-to-sensor distance dᵢ = f·F / (F − f), fixed for the whole stack (perspective).
     pub fn sensor_distance_mm(&self) -> f64 {
-        let (f, big_f) = (self.focal_length_mm, self.focus_distance_mm);
+        let (f, big_f) = (self.thin_lens_focal_length_mm(), self.focus_distance_mm);
         f * big_f / (big_f - f)
     }
 
@@ -121,9 +138,12 @@ impl Optics {
 
     /// Blur-circle diameter on the sensor, in pixels, of a point at `depth_mm` from the lens.
     pub fn coc_px(&self, depth_mm: f64) -> f64 {
-        let (f, big_f, n) = (self.focal_length_mm, self.focus_distance_mm, self.f_number);
+        let (big_f, n) = (self.focus_distance_mm, self.f_number);
         let coc_mm = match self.projection {
-            Projection::Perspective => (depth_mm - big_f).abs() / depth_mm * f * f / (n * (big_f - f)),
+            Projection::Perspective => {
+                let f = self.thin_lens_focal_length_mm();
+                (depth_mm - big_f).abs() / depth_mm * f * f / (n * (big_f - f))
+            }
             Projection::Telecentric => {
                 let m = self.magnification_at_focus();
                 m * m * (depth_mm - big_f).abs() / n
@@ -174,7 +194,7 @@ mod tests {
     fn spec_example() -> Optics {
         Optics {
             projection: Projection::Perspective,
-            focal_length_mm: 50.0,
+            focal_length_mm: Some(50.0),
             f_number: 2.8,
             focus_distance_mm: 120.0,
             pixel_pitch_um: 3.45,

@@ -46,6 +46,7 @@ pub const CODES: &[(&str, u16, &str)] = &[
     ("inconsistent_frames", 422, "Inconsistent frames"),
     ("unsafe_path", 422, "Unsafe path"),
     ("bundle_too_large", 413, "Bundle too large"),
+    ("inspection_too_large", 422, "Inspection too large"),
     ("invalid_archive", 422, "Invalid archive"),
     // Job failures (in a failed inspection's `error`).
     ("no_depth", 422, "No depth recovered"),
@@ -144,6 +145,7 @@ impl From<BundleError> for ApiError {
             | BundleError::Offsets { field, .. } => Some(format!("manifest.json: {field}")),
             BundleError::Optics { field, .. } => Some(format!("manifest.json: optics.{field}")),
             BundleError::Thread { field, .. } => Some(format!("manifest.json: part.thread.{field}")),
+            BundleError::InspectionTooLarge { field, .. } => Some(format!("manifest.json: {field}")),
             BundleError::UnknownConnection { .. } => Some("manifest.json: part.connection".into()),
             BundleError::MissingFile { path }
             | BundleError::UnreadableFrame { path, .. }
@@ -215,6 +217,7 @@ mod tests {
         for e in [
             BundleError::FormatVersion { found: "x".into() },
             BundleError::Limit { message: "x".into() },
+            BundleError::InspectionTooLarge { field: "views".into(), message: "x".into() },
             BundleError::Archive { message: "x".into() },
             BundleError::MissingFile { path: "views/0/a.png".into() },
         ] {

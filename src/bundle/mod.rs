@@ -44,6 +44,10 @@ pub enum BundleError {
     UnsafePath { path: String, message: String },
     #[error("bundle too large: {message}")]
     Limit { message: String },
+    /// A well-formed bundle whose inspection would need more memory than the caps allow
+    /// ([`Limits::max_stack_samples`] and the two after it); `field` is what makes it large.
+    #[error("manifest.json: {field}: {message}")]
+    InspectionTooLarge { field: String, message: String },
     #[error("{message}")]
     Archive { message: String },
     #[error("{path}: {message}")]
@@ -66,6 +70,7 @@ impl BundleError {
             BundleError::InconsistentFrames { .. } => "inconsistent_frames",
             BundleError::UnsafePath { .. } => "unsafe_path",
             BundleError::Limit { .. } => "bundle_too_large",
+            BundleError::InspectionTooLarge { .. } => "inspection_too_large",
             BundleError::Archive { .. } => "invalid_archive",
             BundleError::Io { .. } => "io_error",
         }
@@ -275,6 +280,7 @@ impl Bundle {
         let part = resolve_part(&manifest.part, table)?;
         manifest.optics.validate().map_err(|(field, message)| BundleError::Optics { field: field.into(), message })?;
         let views = validate_views(&manifest, &source, options.frame_check)?;
+        check_work(&part, &manifest.optics, &views, options.limits)?;
         let optics = manifest.optics.clone();
         Ok(Self { manifest, part, optics, views, source })
     }
@@ -561,6 +567,80 @@ fn validate_views(manifest: &Manifest, source: &Source, check: FrameCheck) -> Re
         views.push(View { id: view.id.clone(), pose: view.pose, frames: view.frames.clone(), format });
     }
     Ok(views)
+}
+
+/// Refuses a bundle whose inspection would need more memory than [`Limits`] allows: the focus
+/// volume of a view, the depth maps of all views, and the grids over the surface the views cover.
+/// (Caught here, a manifest with a mistyped pixel pitch or pose is an error that names the field;
+/// caught by the allocator, it would end the process.)
+fn check_work(part: &Part, optics: &Optics, views: &[View], limits: Limits) -> Result<(), BundleError> {
+    let too_large = |field: String, message: String| BundleError::InspectionTooLarge { field, message };
+    let pixels = |v: &View| v.format.width as u64 * v.format.height as u64;
+    for (i, view) in views.iter().enumerate() {
+        let samples = pixels(view).saturating_mul(view.frames.len() as u64);
+        if samples > limits.max_stack_samples {
+            return Err(too_large(
+                format!("views[{i}].frames"),
+                format!(
+                    "{} frames of {}×{} pixels are {samples} samples, more than the {} one view's focal \
+                     stack may hold",
+                    view.frames.len(),
+                    view.format.width,
+                    view.format.height,
+                    limits.max_stack_samples
+                ),
+            ));
+        }
+    }
+    let view_pixels: u64 = views.iter().map(pixels).fold(0, u64::saturating_add);
+    if view_pixels > limits.max_view_pixels {
+        return Err(too_large(
+            "views".into(),
+            format!(
+                "{} views of {view_pixels} pixels in all (a frame each), more than the {} an inspection keeps \
+                 depth maps for",
+                views.len(),
+                limits.max_view_pixels
+            ),
+        ));
+    }
+    // The band along the axis: the views' axial poses, widened by the widest frame (image columns
+    // run along the axis).
+    let pixel_mm = optics.object_pixel_mm(optics.focus_distance_mm);
+    let axial = |i: usize| views[i].pose.axial_mm;
+    let lo = (0..views.len()).min_by(|&a, &b| axial(a).total_cmp(&axial(b))).unwrap_or(0);
+    let hi = (0..views.len()).max_by(|&a, &b| axial(a).total_cmp(&axial(b))).unwrap_or(0);
+    let frame_mm = views.iter().map(|v| v.format.width).max().unwrap_or(0) as f64 * pixel_mm;
+    let band_mm = axial(hi) - axial(lo) + frame_mm;
+    let surface = (part.circumference_mm() / pixel_mm) * (band_mm / pixel_mm);
+    if surface > limits.max_surface_pixels as f64 {
+        // The culprit: a pose far from the others when the poses spread over more than a frame,
+        // else the optics' scale.
+        let field = if axial(hi) - axial(lo) > frame_mm {
+            let mut by_axial: Vec<f64> = views.iter().map(|v| v.pose.axial_mm).collect();
+            by_axial.sort_by(f64::total_cmp);
+            let median = by_axial[by_axial.len() / 2];
+            let outlier = if axial(hi) - median >= median - axial(lo) { hi } else { lo };
+            format!("views[{outlier}].pose.axial_mm")
+        } else {
+            "optics.pixel_pitch_um".to_string()
+        };
+        return Err(too_large(
+            field,
+            format!(
+                "the views cover {band_mm:.3} mm along the axis (views[{lo}].pose.axial_mm {} to \
+                 views[{hi}].pose.axial_mm {}, plus a frame's width) of the {:.1} mm circumference, in \
+                 object pixels of {:.4} µm (optics.pixel_pitch_um over the magnification): {surface:.3e} \
+                 pixels, more than the {} of the surface grids an inspection builds",
+                axial(lo),
+                axial(hi),
+                part.circumference_mm(),
+                pixel_mm * 1e3,
+                limits.max_surface_pixels
+            ),
+        ));
+    }
+    Ok(())
 }
 
 fn channels_name(channels: u8) -> &'static str {

@@ -17,11 +17,30 @@ pub struct Limits {
     pub max_files: usize,
     /// Bytes of one file.
     pub max_file_bytes: u64,
+    /// Samples of one view's focal stack (frames × pixels per frame): depth from focus holds the
+    /// stack's focus measure, 4 bytes a sample, for each view in flight.
+    pub max_stack_samples: u64,
+    /// Pixels of one frame of each view, summed over the views: the inspection keeps a depth map,
+    /// a confidence and a colour per pixel of every view (20 bytes a pixel) until fusion.
+    pub max_view_pixels: u64,
+    /// Object pixels on the surface the views cover (the pipe's circumference by the z band they
+    /// span, at the optics' object pixel): registration's and fusion's grids scale with it.
+    pub max_surface_pixels: u64,
 }
 
 impl Default for Limits {
     fn default() -> Self {
-        Self { max_total_bytes: 16 << 30, max_files: 200_000, max_file_bytes: 512 << 20 }
+        // The standard preset (45 views of 20 frames of 864×320) uses 5.5 M stack samples,
+        // 12.4 M view pixels and 7.5 M surface pixels, and peaks at about 0.55 GB: these caps are
+        // 20–50 times that, a bound against broken or hostile manifests, not a tuned capacity.
+        Self {
+            max_total_bytes: 16 << 30,
+            max_files: 200_000,
+            max_file_bytes: 512 << 20,
+            max_stack_samples: 1 << 28,
+            max_view_pixels: 1 << 28,
+            max_surface_pixels: 1 << 28,
+        }
     }
 }
 

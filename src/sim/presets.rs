@@ -68,7 +68,7 @@ pub const PRESETS: &[PresetInfo] = &[
 pub(crate) fn standard_optics() -> Optics {
     Optics {
         projection: Projection::Perspective,
-        focal_length_mm: 50.0,
+        focal_length_mm: Some(50.0),
         f_number: 1.4,
         focus_distance_mm: 220.0,
         pixel_pitch_um: 12.0,
@@ -257,7 +257,8 @@ pub fn preset(name: &str) -> Option<SimSpec> {
             // fixture's encoders are taken to be finer (±0.2°, ±0.1 mm).
             let optics = Optics {
                 projection: Projection::Telecentric,
-                focal_length_mm: 120.0,
+                // A telecentric lens is described by its magnification (bundle.md).
+                focal_length_mm: None,
                 f_number: 1.0,
                 focus_distance_mm: 110.0,
                 pixel_pitch_um: 5.86,

@@ -217,6 +217,45 @@ fn bad_optics_name_the_field() {
     let s = Scratch::new();
     s.edit(|m| m["optics"]["projection"] = json!("telecentric"));
     expect_error(open(s.path()), "invalid_optics", &["optics.magnification"]);
+    // ... and no focal length (bundle.md describes it by its magnification): null or absent.
+    s.edit(|m| {
+        m["optics"]["magnification"] = json!(0.3);
+        m["optics"]["focal_length_mm"] = json!(null);
+    });
+    assert!(open(s.path()).is_ok());
+    s.edit(|m| {
+        m["optics"].as_object_mut().unwrap().remove("focal_length_mm");
+    });
+    assert!(open(s.path()).is_ok());
+    // A perspective projection does need one.
+    s.edit(|m| m["optics"]["projection"] = json!("perspective"));
+    expect_error(open(s.path()), "invalid_optics", &["optics.focal_length_mm", "perspective"]);
+}
+
+/// A manifest whose inspection would need more memory than the caps allow is refused before any
+/// work, naming what makes it large: a mistyped pixel pitch or pose, or frames too many or large.
+#[test]
+fn work_beyond_the_caps_is_refused_naming_its_cause() {
+    let s = Scratch::new();
+    // 12 µm typed as 0.012 µm: object pixels a thousand times finer over the whole circumference.
+    s.edit(|m| m["optics"]["pixel_pitch_um"] = json!(0.012));
+    expect_error(open(s.path()), "inspection_too_large", &["optics.pixel_pitch_um:", "0.0408 µm", "surface"]);
+    let s = Scratch::new();
+    // One view's axial pose 100 m down the pipe.
+    s.edit(|m| m["views"][1]["pose"]["axial_mm"] = json!(1e5));
+    expect_error(open(s.path()), "inspection_too_large", &["views[1].pose.axial_mm:", "100000"]);
+    // The ci views are 18 frames of 384×160: 1.1 M stack samples, 0.18 M view pixels.
+    let s = Scratch::new();
+    let caps = Limits { max_stack_samples: 1_000_000, ..Limits::default() };
+    expect_error(
+        open_with(s.path(), caps),
+        "inspection_too_large",
+        &["views[0].frames:", "18 frames of 384×160", "1105920"],
+    );
+    let caps = Limits { max_view_pixels: 100_000, ..Limits::default() };
+    expect_error(open_with(s.path(), caps), "inspection_too_large", &["views:", "3 views of 184320 pixels"]);
+    let caps = Limits { max_stack_samples: 1_105_920, max_view_pixels: 184_320, ..Limits::default() };
+    assert!(open_with(s.path(), caps).is_ok(), "the caps are inclusive");
 }
 
 #[test]

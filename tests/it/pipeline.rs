@@ -1,6 +1,6 @@
 //! The whole pipeline on a rendered ci bundle, against its truth.
 
-use crate::common::{ci_bundle, rendered};
+use crate::common::{Scratch, ci_bundle, rendered};
 use crestscan::bench;
 use crestscan::bundle::{Bundle, OpenOptions};
 use crestscan::pipeline::{self, PipelineOptions, Stage};
@@ -91,6 +91,28 @@ fn cancellation_stops_the_pipeline() {
     )
     .unwrap();
     assert!(result.is_none(), "a cancelled inspection returns no report");
+}
+
+/// Frames smaller than the focus window (a few pixels, or a single row or column) are valid
+/// frames that give no depth: the inspection says so rather than failing.
+#[test]
+fn frames_smaller_than_the_focus_window_give_no_depth() {
+    for (w, h) in [(3u32, 3u32), (2, 160), (384, 2), (1, 1)] {
+        let s = Scratch::new();
+        let manifest = s.manifest();
+        for view in manifest["views"].as_array().unwrap() {
+            for (k, frame) in view["frames"].as_array().unwrap().iter().enumerate() {
+                let pixels = image::RgbImage::from_fn(w, h, |x, y| {
+                    let v = ((x * 31 + y * 17 + k as u32 * 7) % 251) as u8;
+                    image::Rgb([v, v / 2, 255 - v])
+                });
+                pixels.save(s.path().join(frame["file"].as_str().unwrap())).unwrap();
+            }
+        }
+        let bundle = Bundle::open(s.path(), &ConnectionTable::api5b(), OpenOptions::default()).unwrap();
+        let result = pipeline::inspect(&bundle, &PipelineOptions::default(), &|_, _| {}, &AtomicBool::new(false));
+        assert!(matches!(result, Err(pipeline::PipelineError::NoDepth)), "{w}×{h}: {:?}", result.map(|_| ()));
+    }
 }
 
 #[test]

@@ -371,6 +371,18 @@ async fn bad_requests_get_their_problem_codes_and_store_nothing() {
     )
     .await;
     assert!(v["culprit"].as_str().unwrap().contains("optics."), "{v}");
+    // Well formed, but a pixel pitch typed in mm: refused at upload, before a worker could run
+    // out of memory on it.
+    manifest["optics"]["f_number"] = Value::from(1.4);
+    manifest["optics"]["pixel_pitch_um"] = Value::from(0.012);
+    std::fs::write(dir.path().join("manifest.json"), serde_json::to_vec(&manifest).unwrap()).unwrap();
+    let v = problem(
+        post("application/x-tar", bundle_tar(dir.path(), &|_| true)).await.unwrap(),
+        StatusCode::UNPROCESSABLE_ENTITY,
+        "inspection_too_large",
+    )
+    .await;
+    assert_eq!(v["culprit"], "manifest.json: optics.pixel_pitch_um", "{v}");
     // Options: unknown pipeline option, bad arc rule, bad query.
     let form = reqwest::multipart::Form::new()
         .part("bundle", reqwest::multipart::Part::bytes(ci_tar()))
