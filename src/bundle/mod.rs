@@ -614,14 +614,16 @@ fn check_work(part: &Part, optics: &Optics, views: &[View], limits: Limits) -> R
     let band_mm = axial(hi) - axial(lo) + frame_mm;
     let surface = (part.circumference_mm() / pixel_mm) * (band_mm / pixel_mm);
     if surface > limits.max_surface_pixels as f64 {
-        // The culprit: a pose far from the others when the poses spread over more than a frame,
-        // else the optics' scale.
+        // The culprit: a pose far from the others when the poses spread over more than a frame, a
+        // custom pipe over twice the largest API 5B one (20 in, 508 mm), else the optics' scale.
         let field = if axial(hi) - axial(lo) > frame_mm {
             let mut by_axial: Vec<f64> = views.iter().map(|v| v.pose.axial_mm).collect();
             by_axial.sort_by(f64::total_cmp);
             let median = by_axial[by_axial.len() / 2];
             let outlier = if axial(hi) - median >= median - axial(lo) { hi } else { lo };
             format!("views[{outlier}].pose.axial_mm")
+        } else if part.pipe_od_mm > 2.0 * 508.0 {
+            "part.thread.pipe_od_mm".to_string()
         } else {
             "optics.pixel_pitch_um".to_string()
         };

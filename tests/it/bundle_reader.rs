@@ -244,6 +244,10 @@ fn work_beyond_the_caps_is_refused_naming_its_cause() {
     // One view's axial pose 100 m down the pipe.
     s.edit(|m| m["views"][1]["pose"]["axial_mm"] = json!(1e5));
     expect_error(open(s.path()), "inspection_too_large", &["views[1].pose.axial_mm:", "100000"]);
+    // A custom pipe 100 m across.
+    let s = Scratch::new();
+    s.edit(|m| m["part"]["thread"] = json!({ "pipe_od_mm": 1e5 }));
+    expect_error(open(s.path()), "inspection_too_large", &["part.thread.pipe_od_mm:", "314159.3 mm circumference"]);
     // The ci views are 18 frames of 384×160: 1.1 M stack samples, 0.18 M view pixels.
     let s = Scratch::new();
     let caps = Limits { max_stack_samples: 1_000_000, ..Limits::default() };
