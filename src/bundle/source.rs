@@ -31,7 +31,7 @@ pub struct Limits {
 impl Default for Limits {
     fn default() -> Self {
         // The standard preset (45 views of 20 frames of 864×320) uses 5.5 M stack samples,
-        // 12.4 M view pixels and 7.5 M surface pixels, and peaks at about 0.55 GB: these caps are
+        // 12.4 M view pixels and 7.6 M surface pixels, and peaks at about 0.55 GB: these caps are
         // 20–50 times that, a bound against broken or hostile manifests, not a tuned capacity.
         Self {
             max_total_bytes: 16 << 30,
