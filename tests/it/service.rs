@@ -362,26 +362,20 @@ async fn bad_requests_get_their_problem_codes_and_store_nothing() {
     crate::common::copy_tree(ci_bundle(), dir.path(), &|p| !p.starts_with("truth"));
     let mut manifest: Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("manifest.json")).unwrap()).unwrap();
+    // The bundle with `manifest` in place of its own, posted as a tar.
+    let post_with = |manifest: &Value| {
+        std::fs::write(dir.path().join("manifest.json"), serde_json::to_vec(manifest).unwrap()).unwrap();
+        post("application/x-tar", bundle_tar(dir.path(), &|_| true))
+    };
     manifest["optics"]["f_number"] = Value::from(-2.0);
-    std::fs::write(dir.path().join("manifest.json"), serde_json::to_vec(&manifest).unwrap()).unwrap();
-    let v = problem(
-        post("application/x-tar", bundle_tar(dir.path(), &|_| true)).await.unwrap(),
-        StatusCode::UNPROCESSABLE_ENTITY,
-        "invalid_optics",
-    )
-    .await;
+    let v = problem(post_with(&manifest).await.unwrap(), StatusCode::UNPROCESSABLE_ENTITY, "invalid_optics").await;
     assert!(v["culprit"].as_str().unwrap().contains("optics."), "{v}");
     // Well formed, but a pixel pitch typed in mm: refused at upload, before a worker could run
     // out of memory on it.
     manifest["optics"]["f_number"] = Value::from(1.4);
     manifest["optics"]["pixel_pitch_um"] = Value::from(0.012);
-    std::fs::write(dir.path().join("manifest.json"), serde_json::to_vec(&manifest).unwrap()).unwrap();
-    let v = problem(
-        post("application/x-tar", bundle_tar(dir.path(), &|_| true)).await.unwrap(),
-        StatusCode::UNPROCESSABLE_ENTITY,
-        "inspection_too_large",
-    )
-    .await;
+    let v =
+        problem(post_with(&manifest).await.unwrap(), StatusCode::UNPROCESSABLE_ENTITY, "inspection_too_large").await;
     assert_eq!(v["culprit"], "manifest.json: optics.pixel_pitch_um", "{v}");
     // Options: unknown pipeline option, bad arc rule, bad query.
     let form = reqwest::multipart::Form::new()
