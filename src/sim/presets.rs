@@ -26,7 +26,7 @@ pub const PRESETS: &[PresetInfo] = &[
     },
     PresetInfo {
         name: "standard",
-        description: "BC 4-1/2 pin end, whole circumference (45 views × 19 frames, 864×320 RGB), z 0–35 mm; black crests only beyond Lc (accept)",
+        description: "BC 4-1/2 pin end, whole circumference (45 views × 20 frames, 864×320 RGB), z 0–35 mm; black crests only beyond Lc (accept)",
     },
     PresetInfo {
         name: "bc-black-1",
@@ -390,5 +390,32 @@ mod tests {
             assert!(spec.offsets_mm.windows(2).all(|w| w[1] > w[0]));
         }
         assert!(preset("nope").is_none());
+    }
+
+    /// `simulate --list` prints these descriptions: the counts and frame sizes they state are the
+    /// plan's (the standard preset once said 19 frames where its plan had 20).
+    #[test]
+    fn descriptions_state_the_planned_views_frames_and_size() {
+        for info in PRESETS {
+            let spec = preset(info.name).unwrap();
+            let words: Vec<&str> = info.description.split_whitespace().collect();
+            for pair in words.windows(2) {
+                let Ok(n) = pair[0].parse::<usize>() else { continue };
+                let unit = pair[1].trim_end_matches([',', ')', ';']);
+                match unit {
+                    "views" => assert_eq!(n, spec.views.len(), "{}: {}", info.name, info.description),
+                    "frames" => assert_eq!(n, spec.offsets_mm.len(), "{}: {}", info.name, info.description),
+                    _ => {}
+                }
+            }
+            for word in &words {
+                let word = word.trim_start_matches('(').trim_end_matches([',', ')', ';']);
+                if let Some((w, h)) = word.split_once('×')
+                    && let (Ok(w), Ok(h)) = (w.parse::<u32>(), h.parse::<u32>())
+                {
+                    assert_eq!((w, h), (spec.width, spec.height), "{}: {}", info.name, info.description);
+                }
+            }
+        }
     }
 }
