@@ -59,11 +59,15 @@ enum Command {
     },
     /// Run a benchmark suite: render its cases (cached in --work), inspect, compare with truth.
     Bench {
-        #[arg(long, default_value = "accuracy")]
-        suite: String,
-        #[arg(long, default_value = "out/bench")]
-        work: PathBuf,
-        /// Only these presets of the suite (comma-separated).
+        /// accuracy: the suite the targets are read on (its own seeds); holdout: the defect
+        /// presets again with other seeds.
+        #[arg(long, value_enum, default_value_t = SuiteArg::Accuracy)]
+        suite: SuiteArg,
+        /// Where renderings are cached [default: out/bench for accuracy, out/holdout for holdout].
+        #[arg(long)]
+        work: Option<PathBuf>,
+        /// Only these cases of the suite (comma-separated): a preset (all its seeds) or
+        /// preset-seed, e.g. bc-polished-3.
         #[arg(long, value_delimiter = ',')]
         only: Vec<String>,
         /// Also write the results as JSON here.
@@ -212,6 +216,21 @@ fn serve(args: ServeArgs) -> Result<()> {
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
+enum SuiteArg {
+    Accuracy,
+    Holdout,
+}
+
+impl From<SuiteArg> for crestscan::bench::Suite {
+    fn from(s: SuiteArg) -> Self {
+        match s {
+            SuiteArg::Accuracy => Self::Accuracy,
+            SuiteArg::Holdout => Self::Holdout,
+        }
+    }
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
 enum ArcRuleArg {
     PerThread,
     Combined,
@@ -303,18 +322,18 @@ fn main() -> Result<()> {
             }
         }
         Command::Bench { suite, work, only, json, repeat, depth_row_step } => {
-            if suite != "accuracy" {
-                bail!("unknown suite {suite:?}; suites: accuracy");
+            let suite = crestscan::bench::Suite::from(suite);
+            let work = work.unwrap_or_else(|| PathBuf::from(suite.default_work_dir()));
+            if let Some(o) = only.iter().find(|o| !suite.cases().iter().any(|c| c.matches(o))) {
+                let names: Vec<String> = suite.cases().iter().map(|c| c.name()).collect();
+                bail!("--only {o:?} is no case of the {} suite; its cases: {}", suite.name(), names.join(", "));
             }
             let options = PipelineOptions {
                 depth: crestscan::depth::DepthOptions { row_step: depth_row_step.into(), ..Default::default() },
                 ..Default::default()
             };
             let mut results = Vec::new();
-            for case in crestscan::bench::ACCURACY_SUITE
-                .iter()
-                .filter(|c| only.is_empty() || only.iter().any(|o| o == c.preset))
-            {
+            for case in suite.cases().iter().filter(|c| only.is_empty() || only.iter().any(|o| c.matches(o))) {
                 eprintln!("bench: {} (seed {})", case.preset, case.seed);
                 results.push(crestscan::bench::run_case(case, &work, repeat, &options)?);
             }

@@ -43,6 +43,16 @@ fn inspection_of_the_ci_bundle_matches_truth() {
     assert!(seen_deg > 10.0 && seen_deg < 0.1 * last.limit.unwrap(), "{last:?}");
     assert_eq!(inspection.report.reasons.last(), Some(&last.message));
     assert!(accuracy.black_crest_length_max_error_mm <= 2.0, "{}", accuracy.black_crest_length_max_error_mm);
+    // The benchmark's per-thread black-crest rows: the crest across threads 6–7 is found, its true
+    // arcs are those the views showed, and the worst row is the accuracy's black-crest error.
+    let rows = bench::black_crests(&inspection.report, &truth);
+    assert!(rows.iter().any(|b| b.truth_mm > 0.0 && b.reported_mm > 0.0), "{rows:?}");
+    for b in &rows {
+        let thread_seen = seen_crests.iter().find(|t| t.index == b.thread).map_or(&[][..], |t| &t.arcs_deg[..]);
+        assert_eq!(crestscan::rules::intersect_arcs(&b.truth_arcs_deg, thread_seen), b.truth_arcs_deg, "{b:?}");
+    }
+    let worst = rows.iter().map(|b| (b.reported_mm - b.truth_mm).abs()).fold(0.0, f64::max);
+    assert_eq!(worst, accuracy.black_crest_length_max_error_mm);
     // Registration brings the views together: corrections match the encoder errors up to the
     // common offset, which overlaps cannot see.
     let errors: Vec<f64> = bundle
