@@ -424,6 +424,69 @@ pub fn run_case(
     })
 }
 
+/// One of the pipeline issue's targets, read on a set of benchmark results.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct TargetCheck {
+    pub target: &'static str,
+    pub met: bool,
+    /// The worst value and where it was found.
+    pub worst: String,
+}
+
+/// The pipeline issue's targets over these results: per-thread height RMS ≤ 10 µm and max ≤ 25 µm,
+/// every verdict agreeing, black-crest length within 2 mm, registration within 0.02° and 5 µm
+/// (RMS, after refinement), the Table 1 threads within 10 µm and the standard preset's inspection
+/// within 3× its decode. A target with no case to read it on is left out.
+pub fn targets(results: &[CaseResult]) -> Vec<TargetCheck> {
+    let label = |r: &CaseResult| format!("{} seed {}", r.preset, r.seed);
+    let worst = |f: &dyn Fn(&CaseResult) -> f64| -> Option<(f64, &CaseResult)> {
+        results.iter().map(|r| (f(r), r)).max_by(|a, b| a.0.total_cmp(&b.0))
+    };
+    let mut checks = Vec::new();
+    let mut at_most = |target: &'static str, limit: f64, unit: &str, digits: usize, f: &dyn Fn(&CaseResult) -> f64| {
+        if let Some((value, r)) = worst(f) {
+            checks.push(TargetCheck {
+                target,
+                met: value <= limit,
+                worst: format!("{value:.digits$}{unit}, {}", label(r)),
+            });
+        }
+    };
+    at_most("per-thread height RMS ≤ 10 µm", 10.0, " µm", 1, &|r| r.accuracy.height_rms_um);
+    at_most("per-thread height max ≤ 25 µm", 25.0, " µm", 1, &|r| r.accuracy.height_max_um);
+    at_most("black-crest length error ≤ 2 mm per thread", 2.0, " mm", 2, &|r| {
+        r.accuracy.black_crest_length_max_error_mm
+    });
+    at_most("registration ≤ 0.02° (RMS)", 0.02, "°", 4, &|r| r.registration.angle_rms_deg);
+    at_most("registration ≤ 5 µm (RMS)", 5.0, " µm", 1, &|r| r.registration.axial_rms_um);
+    if !results.is_empty() {
+        let agree = results.iter().filter(|r| r.accuracy.verdict_agrees).count();
+        checks.push(TargetCheck {
+            target: "verdicts agree",
+            met: agree == results.len(),
+            worst: format!("{agree} of {}", results.len()),
+        });
+    }
+    let table1: Vec<(u32, f64)> =
+        results.iter().flat_map(|r| r.table1.iter().map(|(i, m, t)| (*i, 1e3 * (m - t).abs()))).collect();
+    if let Some((thread, error_um)) = table1.iter().copied().max_by(|a, b| a.1.total_cmp(&b.1)) {
+        checks.push(TargetCheck {
+            target: "Table 1 threads within 10 µm",
+            met: error_um <= 10.0,
+            worst: format!("{error_um:.1} µm, thread {thread}"),
+        });
+    }
+    for r in results.iter().filter(|r| r.preset == "standard") {
+        let ratio = r.inspect_seconds / r.decode_seconds;
+        checks.push(TargetCheck {
+            target: "standard inspection ≤ 3× its decode",
+            met: ratio <= 3.0,
+            worst: format!("{ratio:.2}×, {}", label(r)),
+        });
+    }
+    checks
+}
+
 /// The benchmark table, markdown.
 pub fn table(results: &[CaseResult]) -> String {
     let mut out = String::from(
@@ -494,6 +557,13 @@ pub fn table(results: &[CaseResult]) -> String {
             r.preset, r.seed, r.helix_z_error_um, r.encoder_mean_axial_offset_um
         ));
     }
+    let checks = targets(results);
+    if !checks.is_empty() {
+        out.push_str("\nTargets of the pipeline issue, read on these cases (worst value, where):\n");
+        for c in &checks {
+            out.push_str(&format!("  {}: {} ({})\n", c.target, if c.met { "met" } else { "NOT MET" }, c.worst));
+        }
+    }
     let stages: Vec<String> = results
         .iter()
         .map(|r| {
@@ -538,6 +608,91 @@ mod tests {
         names.sort();
         names.dedup();
         assert_eq!(names.len(), HOLDOUT_SUITE.len());
+    }
+
+    fn result(preset: &str, height_max_um: f64, inspect_over_decode: f64) -> CaseResult {
+        CaseResult {
+            preset: preset.into(),
+            seed: 1,
+            accuracy: Accuracy {
+                bins_compared: 100,
+                bins_missing: 0,
+                height_rms_um: 2.0,
+                height_max_um,
+                height_bias_um: 0.0,
+                black_crest_length_max_error_mm: 0.5,
+                seen_crest_deg: None,
+                verdict_agrees: true,
+                worst: Vec::new(),
+            },
+            depth_rms_um: 0.0,
+            depth_median_um: 0.0,
+            depth_coverage: 1.0,
+            registration: RegistrationError {
+                angle_rms_deg: 0.01,
+                angle_max_deg: 0.02,
+                axial_rms_um: 3.0,
+                axial_max_um: 6.0,
+                radial_rms_um: 1.0,
+                encoder_angle_rms_deg: 0.6,
+                encoder_axial_rms_um: 180.0,
+            },
+            decode_seconds: 1.0,
+            inspect_seconds: inspect_over_decode,
+            render: crate::sim::SimSummary {
+                files: 1,
+                bytes: 1,
+                frames: 1,
+                seconds: 1.0,
+                verdict: crate::rules::Verdict::Accept,
+            },
+            stage_seconds: Vec::new(),
+            table1: Vec::new(),
+            helix_z_error_um: 0.0,
+            encoder_mean_axial_offset_um: 0.0,
+            black_crests: Vec::new(),
+        }
+    }
+
+    fn check(results: &[CaseResult], target: &str) -> Option<TargetCheck> {
+        targets(results).into_iter().find(|c| c.target.starts_with(target))
+    }
+
+    #[test]
+    fn targets_name_the_worst_case_and_whether_it_is_met() {
+        let standard = result("standard", 7.2, 4.4);
+        let mut round = result("lc-round-black", 20.3, 4.0);
+        let both = [standard.clone(), round.clone()];
+        let max = check(&both, "per-thread height max").unwrap();
+        assert!(max.met);
+        assert_eq!(max.worst, "20.3 µm, lc-round-black seed 1");
+        let speed = check(&both, "standard inspection").unwrap();
+        assert!(!speed.met);
+        assert_eq!(speed.worst, "4.40×, standard seed 1");
+        assert!(check(&both, "verdicts agree").unwrap().met);
+        // No Table 1 case, no Table 1 target; no standard case, no speed target.
+        assert!(check(&both, "Table 1").is_none());
+        assert!(check(&both[1..], "standard inspection").is_none());
+
+        // Limits are inclusive; just past one, the target is not met.
+        round.registration.axial_rms_um = 5.0;
+        assert!(check(std::slice::from_ref(&round), "registration ≤ 5 µm").unwrap().met);
+        round.registration.axial_rms_um = 5.01;
+        round.accuracy.height_max_um = 25.1;
+        round.accuracy.verdict_agrees = false;
+        let both = [standard.clone(), round.clone()];
+        assert!(!check(&both, "registration ≤ 5 µm").unwrap().met);
+        assert!(!check(&both, "per-thread height max").unwrap().met);
+        let verdicts = check(&both, "verdicts agree").unwrap();
+        assert_eq!((verdicts.met, verdicts.worst.as_str()), (false, "1 of 2"));
+
+        let mut table1 = result("seed-table1", 10.8, 5.9);
+        table1.table1 = vec![(2, 0.9884, 0.9823), (10, 0.4263, 0.4207)];
+        let t = check(std::slice::from_ref(&table1), "Table 1").unwrap();
+        assert_eq!((t.met, t.worst.as_str()), (true, "6.1 µm, thread 2"));
+        table1.table1.push((6, 0.9370, 0.9479));
+        let t = check(std::slice::from_ref(&table1), "Table 1").unwrap();
+        assert_eq!((t.met, t.worst.as_str()), (false, "10.9 µm, thread 6"));
     }
 
     #[test]
