@@ -443,7 +443,7 @@ pub struct TargetCheck {
 
 /// The pipeline issue's targets over these results: per-thread height RMS ≤ 10 µm and max ≤ 25 µm,
 /// every verdict agreeing, black-crest length within 2 mm, registration within 0.02° and 5 µm
-/// (RMS, after refinement), the Table 1 threads within 10 µm and the standard preset's inspection
+/// (after refinement; over the views and for every view), the Table 1 threads within 10 µm and the standard preset's inspection
 /// within 3× its decode. A target with no case to read it on is left out.
 pub fn targets(results: &[CaseResult]) -> Vec<TargetCheck> {
     let label = |r: &CaseResult| format!("{} seed {}", r.preset, r.seed);
@@ -465,8 +465,12 @@ pub fn targets(results: &[CaseResult]) -> Vec<TargetCheck> {
     at_most("black-crest length error ≤ 2 mm per thread", 2.0, " mm", 2, &|r| {
         r.accuracy.black_crest_length_max_error_mm
     });
-    at_most("registration ≤ 0.02° (RMS)", 0.02, "°", 4, &|r| r.registration.angle_rms_deg);
-    at_most("registration ≤ 5 µm (RMS)", 5.0, " µm", 1, &|r| r.registration.axial_rms_um);
+    // The issue does not say over what registration's bound holds: over the views (RMS), or for
+    // every view (its worst). Both readings are printed.
+    at_most("registration ≤ 0.02° (RMS over views)", 0.02, "°", 4, &|r| r.registration.angle_rms_deg);
+    at_most("registration ≤ 5 µm (RMS over views)", 5.0, " µm", 1, &|r| r.registration.axial_rms_um);
+    at_most("registration ≤ 0.02° (every view)", 0.02, "°", 4, &|r| r.registration.angle_max_deg);
+    at_most("registration ≤ 5 µm (every view)", 5.0, " µm", 1, &|r| r.registration.axial_max_um);
     if !results.is_empty() {
         let agree = results.iter().filter(|r| r.accuracy.verdict_agrees).count();
         checks.push(TargetCheck {
@@ -684,12 +688,15 @@ mod tests {
 
         // Limits are inclusive; just past one, the target is not met.
         round.registration.axial_rms_um = 5.0;
-        assert!(check(std::slice::from_ref(&round), "registration ≤ 5 µm").unwrap().met);
+        assert!(check(std::slice::from_ref(&round), "registration ≤ 5 µm (RMS").unwrap().met);
+        // Its worst view (6 µm) is over: read per view, the target is not met.
+        let every_view = check(std::slice::from_ref(&round), "registration ≤ 5 µm (every").unwrap();
+        assert_eq!((every_view.met, every_view.worst.as_str()), (false, "6.0 µm, lc-round-black seed 1"));
         round.registration.axial_rms_um = 5.01;
         round.accuracy.height_max_um = 25.1;
         round.accuracy.verdict_agrees = false;
         let both = [standard.clone(), round.clone()];
-        assert!(!check(&both, "registration ≤ 5 µm").unwrap().met);
+        assert!(!check(&both, "registration ≤ 5 µm (RMS").unwrap().met);
         assert!(!check(&both, "per-thread height max").unwrap().met);
         let verdicts = check(&both, "verdicts agree").unwrap();
         assert_eq!((verdicts.met, verdicts.worst.as_str()), (false, "1 of 2"));
