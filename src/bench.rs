@@ -82,16 +82,14 @@ pub fn black_crests(report: &Report, truth: &Truth) -> Vec<BlackCrest> {
         .threads
         .iter()
         .map(|t| {
-            let truth_arcs_deg = match seen {
-                None => t.black_crest_arcs_deg.clone(),
+            let (truth_arcs_deg, truth_mm) = match seen {
+                None => (t.black_crest_arcs_deg.clone(), t.black_crest_length_mm),
                 Some(seen) => {
                     let thread_seen = seen.iter().find(|s| s.index == t.index).map_or(&[][..], |s| &s.arcs_deg[..]);
-                    crate::rules::intersect_arcs(&t.black_crest_arcs_deg, thread_seen)
+                    let arcs = crate::rules::intersect_arcs(&t.black_crest_arcs_deg, thread_seen);
+                    let mm = crate::rules::arc_length_mm(&arcs, truth.circumference_mm);
+                    (arcs, mm)
                 }
-            };
-            let truth_mm = match seen {
-                None => t.black_crest_length_mm,
-                Some(_) => crate::rules::arc_length_mm(&truth_arcs_deg, truth.circumference_mm),
             };
             let reported = report.threads.iter().find(|r| r.index == t.index);
             BlackCrest {
@@ -240,6 +238,13 @@ pub struct CaseResult {
     pub helix_z_error_um: f64,
     pub encoder_mean_axial_offset_um: f64,
     pub black_crests: Vec<BlackCrest>,
+}
+
+impl CaseResult {
+    /// How the benchmark's blocks name the case: "preset seed N".
+    pub fn label(&self) -> String {
+        format!("{} seed {}", self.preset, self.seed)
+    }
 }
 
 fn gauge_free(errors: &[f64]) -> (f64, f64) {
@@ -446,7 +451,6 @@ pub struct TargetCheck {
 /// (after refinement; over the views and for every view), the Table 1 threads within 10 µm and the standard preset's inspection
 /// within 3× its decode. A target with no case to read it on is left out.
 pub fn targets(results: &[CaseResult]) -> Vec<TargetCheck> {
-    let label = |r: &CaseResult| format!("{} seed {}", r.preset, r.seed);
     let worst = |f: &dyn Fn(&CaseResult) -> f64| -> Option<(f64, &CaseResult)> {
         results.iter().map(|r| (f(r), r)).max_by(|a, b| a.0.total_cmp(&b.0))
     };
@@ -456,7 +460,7 @@ pub fn targets(results: &[CaseResult]) -> Vec<TargetCheck> {
             checks.push(TargetCheck {
                 target,
                 met: value <= limit,
-                worst: format!("{value:.digits$}{unit}, {}", label(r)),
+                worst: format!("{value:.digits$}{unit}, {}", r.label()),
             });
         }
     };
@@ -493,7 +497,7 @@ pub fn targets(results: &[CaseResult]) -> Vec<TargetCheck> {
         checks.push(TargetCheck {
             target: "standard inspection ≤ 3× its decode",
             met: ratio <= 3.0,
-            worst: format!("{ratio:.2}×, {}", label(r)),
+            worst: format!("{ratio:.2}×, {}", r.label()),
         });
     }
     checks
@@ -556,7 +560,7 @@ pub fn table(results: &[CaseResult]) -> String {
                     )
                 })
                 .collect();
-            out.push_str(&format!("  {} seed {}: {}\n", r.preset, r.seed, rows.join("; ")));
+            out.push_str(&format!("  {}: {}\n", r.label(), rows.join("; ")));
         }
     }
     out.push_str(
@@ -565,8 +569,10 @@ pub fn table(results: &[CaseResult]) -> String {
     );
     for r in results {
         out.push_str(&format!(
-            "  {} seed {}: {:+.1} ({:+.1})\n",
-            r.preset, r.seed, r.helix_z_error_um, r.encoder_mean_axial_offset_um
+            "  {}: {:+.1} ({:+.1})\n",
+            r.label(),
+            r.helix_z_error_um,
+            r.encoder_mean_axial_offset_um
         ));
     }
     let checks = targets(results);
@@ -580,9 +586,8 @@ pub fn table(results: &[CaseResult]) -> String {
         .iter()
         .map(|r| {
             format!(
-                "{} seed {}: {}",
-                r.preset,
-                r.seed,
+                "{}: {}",
+                r.label(),
                 r.stage_seconds.iter().map(|(s, t)| format!("{s} {t:.2}")).collect::<Vec<_>>().join(", ")
             )
         })
@@ -591,9 +596,8 @@ pub fn table(results: &[CaseResult]) -> String {
     out.push_str("\nRenderings (this machine, when first rendered): preset, frames, MB, seconds\n");
     for r in results {
         out.push_str(&format!(
-            "  {} seed {}: {} frames, {:.0} MB, {:.1} s\n",
-            r.preset,
-            r.seed,
+            "  {}: {} frames, {:.0} MB, {:.1} s\n",
+            r.label(),
             r.render.frames,
             r.render.bytes as f64 / 1e6,
             r.render.seconds
