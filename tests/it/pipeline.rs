@@ -62,7 +62,8 @@ fn inspection_of_the_ci_bundle_matches_truth() {
         .map(|(v, p)| p.angle_deg - truth.true_poses[&v.id].angle_deg)
         .collect();
     let mean = errors.iter().sum::<f64>() / errors.len() as f64;
-    assert!(errors.iter().all(|e| (e - mean).abs() < 0.05), "{errors:?}");
+    // The 0.02° for every view (within 0.004° here).
+    assert!(errors.iter().all(|e| (e - mean).abs() <= 0.02), "{errors:?}");
     // Progress: every stage reported, fractions within [0, 1], ending at 1.
     let seen = seen.into_inner().unwrap();
     for stage in [Stage::Depth, Stage::Register, Stage::Fuse, Stage::Mesh, Stage::Profile, Stage::Rules] {
@@ -188,7 +189,7 @@ fn seed_table1_threads_are_recovered_within_10_um() {
     let work = tempfile::tempdir().unwrap();
     let case = bench::Case { preset: "seed-table1", seed: crate::common::CI_SEED };
     let result = bench::run_case(&case, work.path(), 1, &PipelineOptions::default()).unwrap();
-    eprintln!("seed-table1 seed {}: {:?} {:?}", case.seed, result.accuracy, result.table1);
+    eprintln!("seed-table1 seed {}: {:?} {:?} {:?}", case.seed, result.accuracy, result.table1, result.registration);
     assert!(result.accuracy.verdict_agrees);
     // Thread 1 meets the chamfer and is not measured; 2–10 are.
     let threads: Vec<u32> = result.table1.iter().map(|t| t.0).collect();
@@ -198,6 +199,9 @@ fn seed_table1_threads_are_recovered_within_10_um() {
     }
     assert!(result.accuracy.height_rms_um <= 10.0, "{}", result.accuracy.height_rms_um);
     assert!(result.accuracy.height_max_um <= 25.0, "{}", result.accuracy.height_max_um);
+    // Registration within its targets read either way: over the views, and for every view.
     assert!(result.registration.angle_rms_deg <= 0.02, "{:?}", result.registration);
     assert!(result.registration.axial_rms_um <= 5.0, "{:?}", result.registration);
+    assert!(result.registration.angle_max_deg <= 0.02, "{:?}", result.registration);
+    assert!(result.registration.axial_max_um <= 5.0, "{:?}", result.registration);
 }
