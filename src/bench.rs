@@ -215,6 +215,13 @@ pub struct RegistrationError {
     /// The same before refinement (encoder poses), for scale.
     pub encoder_angle_rms_deg: f64,
     pub encoder_axial_rms_um: f64,
+    /// Each measured pair's shift against the true one (the difference of the two views' true
+    /// corrections), RMS over the pairs: along the arc at the pipe's outside radius, and axially,
+    /// µm. What the pose graph starts from: a view's error after the solve is these errors summed
+    /// around the ring.
+    pub pair_arc_rms_um: f64,
+    pub pair_axial_rms_um: f64,
+    pub pairs_measured: usize,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -258,6 +265,8 @@ fn registration_error(
     encoder: &[crate::optics::ViewPose],
     refined: &[crate::optics::ViewPose],
     truth: &[crate::optics::ViewPose],
+    pairs: &[crate::register::PairMeasure],
+    radius_mm: f64,
 ) -> RegistrationError {
     let diff = |poses: &[crate::optics::ViewPose], f: &dyn Fn(&crate::optics::ViewPose) -> f64| -> Vec<f64> {
         poses.iter().zip(truth).map(|(p, t)| f(p) - f(t)).collect()
@@ -267,7 +276,23 @@ fn registration_error(
     let (radial_rms, _) = gauge_free(&diff(refined, &|p| p.lens_radius_mm));
     let (encoder_angle_rms_deg, _) = gauge_free(&diff(encoder, &|p| p.angle_deg));
     let (encoder_axial_rms, _) = gauge_free(&diff(encoder, &|p| p.axial_mm));
+    // A pair measures how far b's content must move onto a's: c_b − c_a, c = truth − encoder.
+    let correction = |v: usize, f: &dyn Fn(&crate::optics::ViewPose) -> f64| f(&truth[v]) - f(&encoder[v]);
+    let rms = |errors: &mut dyn Iterator<Item = f64>| {
+        let (sum, n) = errors.fold((0.0, 0usize), |(s, n), e| (s + e * e, n + 1));
+        if n == 0 { f64::NAN } else { (sum / n as f64).sqrt() }
+    };
+    let pair_arc_rms_um = rms(&mut pairs.iter().map(|p| {
+        let truth_deg = correction(p.b, &|q| q.angle_deg) - correction(p.a, &|q| q.angle_deg);
+        1e3 * (p.shift_angle_deg - truth_deg).to_radians() * radius_mm
+    }));
+    let pair_axial_rms_um = rms(&mut pairs
+        .iter()
+        .map(|p| 1e3 * (p.shift_axial_mm - (correction(p.b, &|q| q.axial_mm) - correction(p.a, &|q| q.axial_mm)))));
     RegistrationError {
+        pair_arc_rms_um,
+        pair_axial_rms_um,
+        pairs_measured: pairs.len(),
         angle_rms_deg,
         angle_max_deg,
         axial_rms_um: 1e3 * axial_rms,
@@ -421,7 +446,13 @@ pub fn run_case(
         depth_rms_um: (sq / seen.max(1) as f64).sqrt(),
         depth_median_um: errors.get(errors.len() / 2).copied().unwrap_or(f64::NAN),
         depth_coverage: seen as f64 / total.max(1) as f64,
-        registration: registration_error(&encoder, &inspection.poses, &truth_poses),
+        registration: registration_error(
+            &encoder,
+            &inspection.poses,
+            &truth_poses,
+            &inspection.report.registration.pairs,
+            inspection.report.pipe_od_mm / 2.0,
+        ),
         decode_seconds,
         inspect_seconds,
         render: rendered,
@@ -564,6 +595,22 @@ pub fn table(results: &[CaseResult]) -> String {
         }
     }
     out.push_str(
+        "\nRegistration, every view and every pair: the worst view's angle ° and axial µm (after the solve), and \
+         the pairs' measured shifts against the true ones, RMS along the arc / axially µm (pairs measured)\n",
+    );
+    for r in results {
+        let g = &r.registration;
+        out.push_str(&format!(
+            "  {}: worst view {:.4}° / {:.1} µm; pairs {:.1} / {:.1} µm ({})\n",
+            r.label(),
+            g.angle_max_deg,
+            g.axial_max_um,
+            g.pair_arc_rms_um,
+            g.pair_axial_rms_um,
+            g.pairs_measured
+        ));
+    }
+    out.push_str(
         "\nAbsolute z (overlaps cannot observe it; taken from the end face where the views show it): helix z_h \
          measured − truth, and the encoders' mean axial offset, µm\n",
     );
@@ -652,6 +699,9 @@ mod tests {
                 radial_rms_um: 1.0,
                 encoder_angle_rms_deg: 0.6,
                 encoder_axial_rms_um: 180.0,
+                pair_arc_rms_um: 1.5,
+                pair_axial_rms_um: 1.2,
+                pairs_measured: 45,
             },
             decode_seconds: 1.0,
             inspect_seconds: inspect_over_decode,
@@ -712,6 +762,42 @@ mod tests {
         table1.table1.push((6, 0.9370, 0.9479));
         let t = check(std::slice::from_ref(&table1), "Table 1").unwrap();
         assert_eq!((t.met, t.worst.as_str()), (false, "10.9 µm, thread 6"));
+    }
+
+    #[test]
+    fn pair_errors_are_read_against_the_true_corrections_difference() {
+        use crate::optics::ViewPose;
+        let pose = |angle_deg: f64, axial_mm: f64| ViewPose { angle_deg, axial_mm, lens_radius_mm: 270.0 };
+        let encoder = [pose(0.0, 10.0), pose(8.0, 10.0), pose(16.0, 10.0)];
+        // True corrections (truth − encoder): +0.5°, −0.3°, +0.1° and +0.10, −0.05, 0 mm.
+        let truth = [pose(0.5, 10.1), pose(7.7, 9.95), pose(16.1, 10.0)];
+        let pair = |a: usize, b: usize, angle_error_deg: f64, axial_error_mm: f64| crate::register::PairMeasure {
+            a,
+            b,
+            shift_angle_deg: (truth[b].angle_deg - encoder[b].angle_deg) - (truth[a].angle_deg - encoder[a].angle_deg)
+                + angle_error_deg,
+            shift_axial_mm: (truth[b].axial_mm - encoder[b].axial_mm) - (truth[a].axial_mm - encoder[a].axial_mm)
+                + axial_error_mm,
+            shift_radius_mm: 0.0,
+            peak_ncc: 0.5,
+            overlap_cells: 5000,
+            residual_angle_deg: 0.0,
+            residual_axial_um: 0.0,
+            residual_radius_um: 0.0,
+        };
+        let radius_mm = 57.15;
+        // Exact pairs: no error. Errors of 3 µm of arc and 4 µm axially on one pair of two.
+        let exact = [pair(0, 1, 0.0, 0.0), pair(1, 2, 0.0, 0.0)];
+        let e = registration_error(&encoder, &truth, &truth, &exact, radius_mm);
+        assert!(e.pair_arc_rms_um < 1e-9 && e.pair_axial_rms_um < 1e-9, "{e:?}");
+        assert_eq!(e.pairs_measured, 2);
+        let arc_deg = (0.003 / radius_mm).to_degrees();
+        let off = [pair(0, 1, arc_deg, 0.004), pair(1, 2, 0.0, 0.0)];
+        let e = registration_error(&encoder, &truth, &truth, &off, radius_mm);
+        assert!((e.pair_arc_rms_um - 3.0 / 2f64.sqrt()).abs() < 1e-6, "{e:?}");
+        assert!((e.pair_axial_rms_um - 4.0 / 2f64.sqrt()).abs() < 1e-6, "{e:?}");
+        // No pairs: nothing to read.
+        assert!(registration_error(&encoder, &truth, &truth, &[], radius_mm).pair_arc_rms_um.is_nan());
     }
 
     #[test]
