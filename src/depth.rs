@@ -47,7 +47,25 @@ pub struct DepthOptions {
     /// (README, "Depth on every second row"): the default is every row.
     #[serde(default = "row_step")]
     pub row_step: usize,
+    /// Half size of a second, small box that decides which surface a pixel at a steep edge shows
+    /// (0: none). Within a big box's half size of a crest's steep flank the box holds both the
+    /// crest and the root, a thread's height apart, and the focus curve peaks at both; the side
+    /// whose texture is stronger there wins, which moves the edge by up to the half size toward
+    /// the weaker side. Under chaser marks, which shade every crest alike, that moved every edge
+    /// of a part the same way (README, "Absolute z"). Where the small box's sharpest frame is
+    /// [`EDGE_MIN_SEPARATION_FRAMES`] or more from the big box's, and the big curve has a peak of
+    /// its own there, that peak is the pixel's.
+    #[serde(default = "edge_window_radius_px")]
+    pub edge_window_radius_px: usize,
 }
+
+/// Frames between the small box's sharpest frame and the big box's beyond which they see two
+/// surfaces rather than one curve's plateau (about two frames wide at the presets' step).
+pub const EDGE_MIN_SEPARATION_FRAMES: usize = 3;
+
+/// The big curve's peak at the small box's frame must rise this fraction of the main peak's
+/// height above the floor (the shoulders' cut, [`DepthOptions::peak_fraction`]'s default).
+const EDGE_PEAK_FRACTION: f32 = 0.3;
 
 fn yes() -> bool {
     true
@@ -61,6 +79,10 @@ fn row_step() -> usize {
     DepthOptions::default().row_step
 }
 
+fn edge_window_radius_px() -> usize {
+    DepthOptions::default().edge_window_radius_px
+}
+
 impl Default for DepthOptions {
     fn default() -> Self {
         Self {
@@ -70,6 +92,7 @@ impl Default for DepthOptions {
             peak_fraction: 0.3,
             equalize_phase: true,
             row_step: 1,
+            edge_window_radius_px: 1,
         }
     }
 }
@@ -258,21 +281,37 @@ fn resample_row(
     }
 }
 
-/// Squared Laplacian, box-summed over (2r+1)², written into `out`; `scratch` is reused.
+/// [`focus_measures`] with one box.
+#[cfg(test)]
+fn focus_measure(gray: &[f32], w: usize, h: usize, r: usize, scratch: &mut [f32], out: &mut [f32]) {
+    focus_measures(gray, w, h, r, scratch, out, None)
+}
+
+/// Squared Laplacian, box-summed over (2r+1)², written into `out`; with `edge` = (r_edge, plane),
+/// the same Laplacian summed over the box of half size r_edge into that plane as well (one
+/// Laplacian for both). `scratch` is reused.
 ///
 /// Every pass runs along whole rows so that it vectorises: the Laplacian, a running sum of rows
 /// (the vertical box), then the horizontal box as 2r+1 shifted row additions (a running sum along
 /// a row is one long dependency chain).
-fn focus_measure(gray: &[f32], w: usize, h: usize, r: usize, scratch: &mut [f32], out: &mut [f32]) {
+fn focus_measures(
+    gray: &[f32],
+    w: usize,
+    h: usize,
+    r: usize,
+    scratch: &mut [f32],
+    out: &mut [f32],
+    edge: Option<(usize, &mut [f32])>,
+) {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the processor has AVX2 (checked just above).
-        return unsafe { focus_measure_avx2(gray, w, h, r, scratch, out) };
+        return unsafe { focus_measures_avx2(gray, w, h, r, scratch, out, edge) };
     }
-    focus_measure_body(gray, w, h, r, scratch, out)
+    focus_measures_body(gray, w, h, r, scratch, out, edge)
 }
 
-/// [`focus_measure_body`] compiled for AVX2. The build targets baseline x86-64 (SSE2), so the
+/// [`focus_measures_body`] compiled for AVX2. The build targets baseline x86-64 (SSE2), so the
 /// binary runs anywhere; these passes are element-wise, so either copy gives the same numbers
 /// (unit-tested). Single-threaded on the standard preset the depth stage takes 3.65 → 3.49 s with
 /// it. The median network and the argmax over frames were slower with AVX2 on this machine (depth
@@ -280,15 +319,50 @@ fn focus_measure(gray: &[f32], w: usize, h: usize, r: usize, scratch: &mut [f32]
 /// the baseline build.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-fn focus_measure_avx2(gray: &[f32], w: usize, h: usize, r: usize, scratch: &mut [f32], out: &mut [f32]) {
-    focus_measure_body(gray, w, h, r, scratch, out)
+fn focus_measures_avx2(
+    gray: &[f32],
+    w: usize,
+    h: usize,
+    r: usize,
+    scratch: &mut [f32],
+    out: &mut [f32],
+    edge: Option<(usize, &mut [f32])>,
+) {
+    focus_measures_body(gray, w, h, r, scratch, out, edge)
 }
 
 #[inline(always)]
-fn focus_measure_body(gray: &[f32], w: usize, h: usize, r: usize, scratch: &mut [f32], out: &mut [f32]) {
+fn focus_measures_body(
+    gray: &[f32],
+    w: usize,
+    h: usize,
+    r: usize,
+    scratch: &mut [f32],
+    out: &mut [f32],
+    edge: Option<(usize, &mut [f32])>,
+) {
     if w == 0 || h == 0 {
         return;
     }
+    match edge {
+        None => {
+            laplacian_squared(gray, w, h, out);
+            vertical_box(out, w, h, r, scratch);
+            horizontal_box(scratch, w, h, r, out);
+        }
+        Some((r_edge, edge_out)) => {
+            laplacian_squared(gray, w, h, edge_out);
+            vertical_box(edge_out, w, h, r, scratch);
+            horizontal_box(scratch, w, h, r, out);
+            vertical_box(edge_out, w, h, r_edge, scratch);
+            horizontal_box(scratch, w, h, r_edge, edge_out);
+        }
+    }
+}
+
+/// The squared Laplacian (4-neighbour), zero on the frame's border.
+#[inline(always)]
+fn laplacian_squared(gray: &[f32], w: usize, h: usize, out: &mut [f32]) {
     out[..w].fill(0.0);
     out[(h - 1) * w..].fill(0.0);
     for y in 1..h.saturating_sub(1) {
@@ -304,29 +378,38 @@ fn focus_measure_body(gray: &[f32], w: usize, h: usize, r: usize, scratch: &mut 
             *o = lap * lap;
         }
     }
-    // Vertical box: a running sum of rows, out → scratch.
+}
+
+/// The vertical box of half size r: a running sum of rows, `src` → `dst`.
+#[inline(always)]
+fn vertical_box(src: &[f32], w: usize, h: usize, r: usize, dst: &mut [f32]) {
     let mut acc = vec![0f32; w];
     for y in 0..r.min(h) {
-        for (a, &v) in acc.iter_mut().zip(&out[y * w..(y + 1) * w]) {
+        for (a, &v) in acc.iter_mut().zip(&src[y * w..(y + 1) * w]) {
             *a += v;
         }
     }
     for y in 0..h {
         if y + r < h {
-            for (a, &v) in acc.iter_mut().zip(&out[(y + r) * w..(y + r + 1) * w]) {
+            for (a, &v) in acc.iter_mut().zip(&src[(y + r) * w..(y + r + 1) * w]) {
                 *a += v;
             }
         }
         if y > r {
-            for (a, &v) in acc.iter_mut().zip(&out[(y - r - 1) * w..(y - r) * w]) {
+            for (a, &v) in acc.iter_mut().zip(&src[(y - r - 1) * w..(y - r) * w]) {
                 *a -= v;
             }
         }
-        scratch[y * w..(y + 1) * w].copy_from_slice(&acc);
+        dst[y * w..(y + 1) * w].copy_from_slice(&acc);
     }
-    // Horizontal box, scratch → out.
+}
+
+/// The horizontal box of half size r, `src` → `dst`, as 2r+1 shifted row additions; clamped at
+/// zero (the running sums' rounding can leave a hair below it).
+#[inline(always)]
+fn horizontal_box(src: &[f32], w: usize, h: usize, r: usize, dst: &mut [f32]) {
     for y in 0..h {
-        let (src, dst) = (&scratch[y * w..(y + 1) * w], &mut out[y * w..(y + 1) * w]);
+        let (src, dst) = (&src[y * w..(y + 1) * w], &mut dst[y * w..(y + 1) * w]);
         dst.fill(0.0);
         for d in 0..=2 * r {
             // dst[x] += src[x + d − r] wherever both are in the row.
@@ -486,6 +569,11 @@ pub struct DepthScratch {
     gray: Vec<f32>,
     native: Vec<f32>,
     scratch: Vec<f32>,
+    /// The small box's measure, its best so far and where ([`DepthOptions::edge_window_radius_px`]).
+    native_edge: Vec<f32>,
+    best_edge: Vec<f32>,
+    best_edge_frame: Vec<u32>,
+    edge_row: Vec<f32>,
 }
 
 /// `buffer` holding `len` copies of `value` (its allocation kept).
@@ -514,13 +602,35 @@ pub fn depth_from_focus_in(
     // pixel-major layout would scatter every write to its own cache line); the peak search gathers
     // a row's curves from the n planes.
     let plane = w * rows;
-    let DepthScratch { volume, best, best_frame, gray, native, scratch } = buffers;
+    let DepthScratch {
+        volume,
+        best,
+        best_frame,
+        gray,
+        native,
+        scratch,
+        native_edge,
+        best_edge,
+        best_edge_frame,
+        edge_row,
+    } = buffers;
+    let edge_radius = options.edge_window_radius_px;
+    let edge_aware = edge_radius > 0;
+    if edge_aware {
+        native_edge.resize(w * h, 0.0);
+        refill(best_edge, plane, f32::MIN);
+        refill(best_edge_frame, plane, 0u32);
+        edge_row.resize(w, 0.0);
+    }
     // Every cell is written before it is read (each frame fills its whole plane).
     volume.resize(plane * n, 0.0);
     refill(best, plane, f32::MIN);
     // The frame (index) where each pixel's measure is highest so far (the first such).
     refill(best_frame, plane, 0u32);
     let mut all_in_focus = vec![0f32; plane * 3];
+    // Each pixel's colour where the small box is sharpest: a pixel whose own peak is the small
+    // box's (`own_peak`) takes its colour from there, not from the other surface's frame.
+    let mut edge_colour = if edge_aware { vec![0f32; plane * 3] } else { Vec::new() };
     // Every cell of these is written before it is read, frame by frame.
     native.resize(w * h, 0.0);
     scratch.resize(w * h, 0.0);
@@ -547,7 +657,8 @@ pub fn depth_from_focus_in(
             Projection::Telecentric => 1.0,
         };
         frame.gray_into(gray);
-        focus_measure(gray, w, h, options.window_radius_px, scratch, native);
+        let edge = edge_aware.then_some((edge_radius, &mut native_edge[..]));
+        focus_measures(gray, w, h, options.window_radius_px, scratch, native, edge);
         end_edges.extend(crate::endface::frame_edge(gray, w, h, entry.offset_mm));
         let taps = Taps { xs: axis_taps(w, principal[0], scale), ys: axis_taps(h, principal[1], scale) };
         let (spans, fxs) = (tap_spans(&taps.xs), taps.xs.iter().map(|t| t.2).collect::<Vec<f32>>());
@@ -559,16 +670,34 @@ pub fn depth_from_focus_in(
             resample_row(above, below, fy, &taps.xs, &spans, &fxs, measures);
             let (best_row, best_frame_row) = (&mut best[r * w..(r + 1) * w], &mut best_frame[r * w..(r + 1) * w]);
             keep_sharpest(measures, k32, best_row, best_frame_row, Ties::KeepEarlier);
+            if edge_aware {
+                let (above, below) = (&native_edge[y0 * w..(y0 + 1) * w], &native_edge[y1 * w..(y1 + 1) * w]);
+                resample_row(above, below, fy, &taps.xs, &spans, &fxs, edge_row);
+                let rows = r * w..(r + 1) * w;
+                keep_sharpest(
+                    edge_row,
+                    k32,
+                    &mut best_edge[rows.clone()],
+                    &mut best_edge_frame[rows],
+                    Ties::KeepEarlier,
+                );
+            }
         }
         recent.push_back((k32, frame, taps));
         if recent.len() > COLOUR_WINDOW_FRAMES
             && let Some((k_old, frame, taps)) = recent.pop_front()
         {
             sample_where_sharpest(k_old, &frame, &taps, best_frame, &mut all_in_focus);
+            if edge_aware {
+                sample_where_sharpest(k_old, &frame, &taps, best_edge_frame, &mut edge_colour);
+            }
         }
     }
     for (k, frame, taps) in &recent {
         sample_where_sharpest(*k, frame, taps, best_frame, &mut all_in_focus);
+        if edge_aware {
+            sample_where_sharpest(*k, frame, taps, best_edge_frame, &mut edge_colour);
+        }
     }
     drop(recent);
     let offsets: Vec<f64> = view.frames.iter().map(|f| f.offset_mm).collect();
@@ -583,13 +712,18 @@ pub fn depth_from_focus_in(
     let mut peak_ratio = vec![1f32; plane];
     let network = MedianNetwork::new(n);
     let volume: &[f32] = volume;
+    let best_edge_frame: &[u32] = best_edge_frame;
+    let edge_colour: &[f32] = &edge_colour;
     // Per row: the n frames' rows are copied out of the volume (frame-major, so each is one
     // contiguous run), the maximum and the median are found for all of the row's pixels at once,
     // and only trusted pixels' curves are walked one by one.
     let init = || (vec![0f32; n * w], vec![0f32; n * w], vec![0f32; w], vec![0u32; w], vec![0f32; n]);
-    depth_mm.par_chunks_mut(w).zip(peak_ratio.par_chunks_mut(w)).enumerate().for_each_init(
-        init,
-        |(rows, sorted, peak, k_best, column), (r, (depth_row, ratio_row))| {
+    depth_mm
+        .par_chunks_mut(w)
+        .zip(peak_ratio.par_chunks_mut(w))
+        .zip(all_in_focus.par_chunks_mut(3 * w))
+        .enumerate()
+        .for_each_init(init, |(rows, sorted, peak, k_best, column), (r, ((depth_row, ratio_row), colour_row))| {
             let y = r * step;
             for k in 0..n {
                 rows[k * w..(k + 1) * w].copy_from_slice(&volume[k * plane + r * w..k * plane + (r + 1) * w]);
@@ -605,7 +739,7 @@ pub fn depth_from_focus_in(
             let floors = &sorted[network.rank * w..(network.rank + 1) * w];
             for x in 0..w {
                 let floor = floors[x].max(1e-12);
-                let (peak, k_best) = (peak[x], k_best[x] as usize);
+                let (peak, mut k_best) = (peak[x], k_best[x] as usize);
                 let ratio = peak / floor;
                 ratio_row[x] = ratio;
                 if x < border || y < border || x + border >= w || y + border >= h {
@@ -617,13 +751,35 @@ pub fn depth_from_focus_in(
                 for (k, c) in column.iter_mut().enumerate() {
                     *c = rows[k * w + x];
                 }
+                if edge_aware {
+                    let own = own_peak(column, k_best, best_edge_frame[r * w + x] as usize, floor);
+                    if own != k_best {
+                        let i = 3 * (r * w + x);
+                        colour_row[3 * x..3 * x + 3].copy_from_slice(&edge_colour[i..i + 3]);
+                        k_best = own;
+                    }
+                }
                 if let Some(in_focus_offset) = peak_offset(column, &offsets, k_best, floor, options.peak_fraction) {
                     depth_row[x] = (big_f - in_focus_offset) as f32;
                 }
             }
-        },
-    );
+        });
     Ok(Some(DepthMap { width: w, height: h, row_step: step, depth_mm, peak_ratio, all_in_focus, end_edges }))
+}
+
+/// The frame of the peak that is the pixel's own on a focus curve `column` whose maximum is at
+/// `k_best`, given the small box's sharpest frame `k_edge` ([`DepthOptions::edge_window_radius_px`]):
+/// the curve's local maximum within a frame of `k_edge` when that is [`EDGE_MIN_SEPARATION_FRAMES`]
+/// or more from `k_best`, inside the stack with a frame to spare on either side, and rises
+/// [`EDGE_PEAK_FRACTION`] of the maximum's height above `floor`; otherwise `k_best`.
+fn own_peak(column: &[f32], k_best: usize, k_edge: usize, floor: f32) -> usize {
+    let n = column.len();
+    if k_edge.abs_diff(k_best) < EDGE_MIN_SEPARATION_FRAMES || k_edge < 2 || k_edge + 2 >= n {
+        return k_best;
+    }
+    let k = (k_edge - 1..=k_edge + 1).fold(k_edge - 1, |m, k| if column[k] > column[m] { k } else { m });
+    let local_max = column[k] >= column[k - 1] && column[k] >= column[k + 1];
+    if local_max && column[k] - floor >= EDGE_PEAK_FRACTION * (column[k_best] - floor) { k } else { k_best }
 }
 
 /// The frame grid of a stack whose offsets are evenly spaced (within 1% of the step), as
@@ -743,6 +899,33 @@ mod tests {
         assert_eq!((options.window_radius_px, options.flat_window_radius_px), (3, 5));
         assert!(options.equalize_phase);
         assert_eq!(options.row_step, 1);
+        assert_eq!(options.edge_window_radius_px, 1);
+    }
+
+    #[test]
+    fn at_a_steep_edge_the_small_box_picks_which_of_two_peaks_is_the_pixels_own() {
+        // A big box straddling a crest edge: the crest's peak at frame 4 (stronger texture) and
+        // the root's at frame 11, a thread's height further; floor 1.
+        let two_peaks = [1.0, 1.2, 3.0, 8.0, 10.0, 8.0, 3.0, 1.3, 1.5, 2.5, 4.5, 5.0, 4.0, 2.0, 1.1, 1.0];
+        // The pixel's own 3×3 box is sharpest on the root: the root's peak is its own.
+        assert_eq!(own_peak(&two_peaks, 4, 11, 1.0), 11);
+        // Within a frame of it counts too (the small box is noisier than the big one).
+        assert_eq!(own_peak(&two_peaks, 4, 10, 1.0), 11);
+        assert_eq!(own_peak(&two_peaks, 4, 12, 1.0), 11);
+        // The small box agrees with the big one, or sits on the same peak's plateau: unchanged.
+        assert_eq!(own_peak(&two_peaks, 4, 4, 1.0), 4);
+        assert_eq!(own_peak(&two_peaks, 4, 6, 1.0), 4);
+        // One curve with a single peak: a small box sharpest far from it (noise on a dull
+        // surface) finds no peak of the big curve there, so the maximum stands.
+        let one_peak = [1.0, 1.2, 3.0, 8.0, 10.0, 8.0, 3.0, 1.5, 1.2, 1.1, 1.1, 1.0, 1.0, 1.0, 1.0, 1.0];
+        assert_eq!(own_peak(&one_peak, 4, 10, 1.0), 4);
+        // A second peak too faint to be a surface (under 30% of the maximum's height above the
+        // floor): the maximum stands.
+        let faint = [1.0, 1.2, 3.0, 8.0, 10.0, 8.0, 3.0, 1.3, 1.5, 2.5, 3.4, 3.6, 3.0, 2.0, 1.1, 1.0];
+        assert_eq!(own_peak(&faint, 4, 11, 1.0), 4);
+        // The small box at the stack's ends (no frame to spare for the shoulders): unchanged.
+        assert_eq!(own_peak(&two_peaks, 4, 15, 1.0), 4);
+        assert_eq!(own_peak(&two_peaks, 11, 1, 1.0), 11);
     }
 
     #[test]
@@ -1067,7 +1250,7 @@ mod tests {
         let (w, h, r) = (203, 37, 4);
         let gray: Vec<f32> = (0..w * h).map(|i| ((i * 7919) % 257) as f32 / 257.0).collect();
         let (mut scratch, mut baseline) = (vec![0f32; w * h], vec![0f32; w * h]);
-        focus_measure_body(&gray, w, h, r, &mut scratch, &mut baseline);
+        focus_measures_body(&gray, w, h, r, &mut scratch, &mut baseline, None);
         let mut dispatched = vec![0f32; w * h];
         focus_measure(&gray, w, h, r, &mut scratch, &mut dispatched);
         assert_eq!(dispatched, baseline);
@@ -1075,9 +1258,15 @@ mod tests {
         if std::arch::is_x86_feature_detected!("avx2") {
             let mut wide = vec![0f32; w * h];
             // SAFETY: the processor has AVX2 (checked just above).
-            unsafe { focus_measure_avx2(&gray, w, h, r, &mut scratch, &mut wide) };
+            unsafe { focus_measures_avx2(&gray, w, h, r, &mut scratch, &mut wide, None) };
             assert_eq!(wide, baseline);
         }
+        // Both boxes from one Laplacian: each the same as its own measure, bit for bit.
+        let (mut big, mut small, mut small_alone) = (vec![0f32; w * h], vec![0f32; w * h], vec![0f32; w * h]);
+        focus_measures(&gray, w, h, r, &mut scratch, &mut big, Some((1, &mut small)));
+        focus_measure(&gray, w, h, 1, &mut scratch, &mut small_alone);
+        assert_eq!(big, baseline);
+        assert_eq!(small, small_alone);
     }
 
     /// A depth map whose estimates carry an odd sub-frame bias (as the centroid's) over depths
