@@ -574,6 +574,7 @@ pub struct DepthScratch {
     best_edge: Vec<f32>,
     best_edge_frame: Vec<u32>,
     edge_row: Vec<f32>,
+    edge_colour: Vec<f32>,
 }
 
 /// `buffer` holding `len` copies of `value` (its allocation kept).
@@ -613,6 +614,7 @@ pub fn depth_from_focus_in(
         best_edge,
         best_edge_frame,
         edge_row,
+        edge_colour,
     } = buffers;
     let edge_radius = options.edge_window_radius_px;
     let edge_aware = edge_radius > 0;
@@ -621,6 +623,8 @@ pub fn depth_from_focus_in(
         refill(best_edge, plane, f32::MIN);
         refill(best_edge_frame, plane, 0u32);
         edge_row.resize(w, 0.0);
+        // Every pixel's cell is written before it is read (each has a sharpest frame).
+        edge_colour.resize(plane * 3, 0.0);
     }
     // Every cell is written before it is read (each frame fills its whole plane).
     volume.resize(plane * n, 0.0);
@@ -628,9 +632,10 @@ pub fn depth_from_focus_in(
     // The frame (index) where each pixel's measure is highest so far (the first such).
     refill(best_frame, plane, 0u32);
     let mut all_in_focus = vec![0f32; plane * 3];
-    // Each pixel's colour where the small box is sharpest: a pixel whose own peak is the small
-    // box's (`own_peak`) takes its colour from there, not from the other surface's frame.
-    let mut edge_colour = if edge_aware { vec![0f32; plane * 3] } else { Vec::new() };
+    // `edge_colour`: each pixel's colour where the small box is sharpest. A pixel whose own peak
+    // is the small box's (`own_peak`) takes its colour from there, not from the other surface's
+    // frame (with the big box's colour, registration's texture lost precision: standard's axial
+    // error 1.6 → 4.4 µm RMS; with this, 1.5 µm).
     // Every cell of these is written before it is read, frame by frame.
     native.resize(w * h, 0.0);
     scratch.resize(w * h, 0.0);
@@ -689,14 +694,14 @@ pub fn depth_from_focus_in(
         {
             sample_where_sharpest(k_old, &frame, &taps, best_frame, &mut all_in_focus);
             if edge_aware {
-                sample_where_sharpest(k_old, &frame, &taps, best_edge_frame, &mut edge_colour);
+                sample_where_sharpest(k_old, &frame, &taps, best_edge_frame, edge_colour);
             }
         }
     }
     for (k, frame, taps) in &recent {
         sample_where_sharpest(*k, frame, taps, best_frame, &mut all_in_focus);
         if edge_aware {
-            sample_where_sharpest(*k, frame, taps, best_edge_frame, &mut edge_colour);
+            sample_where_sharpest(*k, frame, taps, best_edge_frame, edge_colour);
         }
     }
     drop(recent);
@@ -713,7 +718,7 @@ pub fn depth_from_focus_in(
     let network = MedianNetwork::new(n);
     let volume: &[f32] = volume;
     let best_edge_frame: &[u32] = best_edge_frame;
-    let edge_colour: &[f32] = &edge_colour;
+    let edge_colour: &[f32] = edge_colour;
     // Per row: the n frames' rows are copied out of the volume (frame-major, so each is one
     // contiguous run), the maximum and the median are found for all of the row's pixels at once,
     // and only trusted pixels' curves are walked one by one.
