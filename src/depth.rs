@@ -12,6 +12,8 @@
 //! focus at offset o* means depth F − o* at offset 0. The confidence
 //! says how sharply the measure peaks above its floor, so that texture-less and saturated pixels
 //! are recognised rather than trusted. The all-in-focus image keeps each pixel's sharpest colour.
+//! At a steep edge, where the box holds two surfaces and the curve peaks at both, a small box
+//! says which peak (and colour) is the pixel's own ([`DepthOptions::edge_window_radius_px`]).
 
 use crate::bundle::{BundleError, Frame, SampleValue, Samples, View};
 use crate::optics::{Optics, Projection};
@@ -52,7 +54,8 @@ pub struct DepthOptions {
     /// crest and the root, a thread's height apart, and the focus curve peaks at both; the side
     /// whose texture is stronger there wins, which moves the edge by up to the half size toward
     /// the weaker side. Under chaser marks, which shade every crest alike, that moved every edge
-    /// of a part the same way (README, "Absolute z"). Where the small box's sharpest frame is
+    /// of a part the same way (README: absolute z, under Accuracy and speed). Where the small
+    /// box's sharpest frame is
     /// [`EDGE_MIN_SEPARATION_FRAMES`] or more from the big box's, and the big curve has a peak of
     /// its own there, that peak is the pixel's.
     #[serde(default = "edge_window_radius_px")]

@@ -57,8 +57,8 @@ enum Command {
               value_parser = clap::value_parser!(u16).range(1..))]
         depth_row_step: u16,
         /// Half size of the small focus box that decides, at a steep edge, which surface a pixel
-        /// shows (0: none, about a sixth faster, with crest edges moved by up to the big box's
-        /// half size: README, "Depth at steep edges").
+        /// shows (0: none: an eighth or so faster, with crest edges moved by up to the big box's
+        /// half size; README, Pipeline, step 1).
         #[arg(long, default_value_t = crestscan::depth::DepthOptions::default().edge_window_radius_px as u16)]
         depth_edge_window: u16,
     },
