@@ -274,21 +274,17 @@ fn registration_error(
     let (angle_rms_deg, angle_max_deg) = gauge_free(&diff(refined, &|p| p.angle_deg));
     let (axial_rms, axial_max) = gauge_free(&diff(refined, &|p| p.axial_mm));
     let (radial_rms, _) = gauge_free(&diff(refined, &|p| p.lens_radius_mm));
-    let (encoder_angle_rms_deg, _) = gauge_free(&diff(encoder, &|p| p.angle_deg));
-    let (encoder_axial_rms, _) = gauge_free(&diff(encoder, &|p| p.axial_mm));
+    // Encoder minus truth per view: the negated correction registration should find.
+    let (encoder_angle, encoder_axial) = (diff(encoder, &|p| p.angle_deg), diff(encoder, &|p| p.axial_mm));
+    let (encoder_angle_rms_deg, _) = gauge_free(&encoder_angle);
+    let (encoder_axial_rms, _) = gauge_free(&encoder_axial);
     // A pair measures how far b's content must move onto a's: c_b − c_a, c = truth − encoder.
-    let correction = |v: usize, f: &dyn Fn(&crate::optics::ViewPose) -> f64| f(&truth[v]) - f(&encoder[v]);
-    let rms = |errors: &mut dyn Iterator<Item = f64>| {
-        let (sum, n) = errors.fold((0.0, 0usize), |(s, n), e| (s + e * e, n + 1));
-        if n == 0 { f64::NAN } else { (sum / n as f64).sqrt() }
+    let pair_errors = |shift: &dyn Fn(&crate::register::PairMeasure) -> f64, encoder_error: &[f64]| -> Vec<f64> {
+        pairs.iter().map(|p| shift(p) - (encoder_error[p.a] - encoder_error[p.b])).collect()
     };
-    let pair_arc_rms_um = rms(&mut pairs.iter().map(|p| {
-        let truth_deg = correction(p.b, &|q| q.angle_deg) - correction(p.a, &|q| q.angle_deg);
-        1e3 * (p.shift_angle_deg - truth_deg).to_radians() * radius_mm
-    }));
-    let pair_axial_rms_um = rms(&mut pairs
-        .iter()
-        .map(|p| 1e3 * (p.shift_axial_mm - (correction(p.b, &|q| q.axial_mm) - correction(p.a, &|q| q.axial_mm)))));
+    let rms = |errors: &[f64]| (errors.iter().map(|e| e * e).sum::<f64>() / errors.len() as f64).sqrt();
+    let pair_arc_rms_um = 1e3 * radius_mm * rms(&pair_errors(&|p| p.shift_angle_deg, &encoder_angle)).to_radians();
+    let pair_axial_rms_um = 1e3 * rms(&pair_errors(&|p| p.shift_axial_mm, &encoder_axial));
     RegistrationError {
         pair_arc_rms_um,
         pair_axial_rms_um,
