@@ -20,7 +20,7 @@
 
 use crate::profile::{ThreadMeasure, median};
 use crate::rules::{CrestBin, ThreadObservation};
-use nalgebra::{Matrix4, Vector4};
+use nalgebra::{Matrix3, Matrix4, Vector3, Vector4};
 use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -223,6 +223,182 @@ fn drop_short_geometric_runs(runs: &mut [bool], dark: &[bool], min_bins: usize) 
     }
 }
 
+/// How far inward from each end of a polished run its arch is fitted: a quadratic describes any
+/// smooth mill surface over that much of it, not over a whole turn.
+const ARCH_SPAN_DEG: f64 = 90.0;
+/// Bins outside a run's ends that join its fit: they hold the crest to the cone there.
+const ARCH_MARGIN_DEG: f64 = 12.0;
+/// A fitted end further than this from the threshold's end is not trusted (the threshold's stands).
+const ARCH_MAX_SHIFT_DEG: f64 = 8.0;
+
+/// What a crest radius fitted over a window along z reads, as a deficit below the cone, where the
+/// deficit on the crest's centre line is `q` (mm): the crest rises along z with the cone while the
+/// mill surface stays level, so across the window the deficit is q + k·x, x ∈ [−h, h], and only
+/// its positive part is cut away; the fit's intercept is the mean of max(0, q + k·x). With
+/// `smear` w = k·h: q once q ≥ w, 0 once q ≤ −w, (q + w)²/4w between. Returns the value and its
+/// derivative in q.
+fn window_reading(q: f64, smear: f64) -> (f64, f64) {
+    if q >= smear {
+        (q, 1.0)
+    } else if q <= -smear {
+        (0.0, 0.0)
+    } else {
+        ((q + smear).powi(2) / (4.0 * smear), (q + smear) / (2.0 * smear))
+    }
+}
+
+/// The ends of each polished run (a geometric run with no dark bin), fitted rather than
+/// thresholded. The deficit below the cone rises into a run at only a few µm per degree
+/// (the mill surface meets the cone at a shallow angle) against 6–10 µm of noise per bin on a
+/// polished crest, so where it first crosses a threshold scatters by degrees; and the window a
+/// crest radius is fitted over reads a deficit already before the true end
+/// ([`window_reading`]). Along a run the true deficit is an arch (the mill surface and the cone
+/// are both smooth): a quadratic, fitted through the window's reading to every bin of the run and
+/// a margin either side (up to [`ARCH_SPAN_DEG`] from each end), has its roots at the ends.
+/// Re-marks `runs` from the fitted ends and returns, per bin, the part [from, to] (0–1 of the
+/// bin) on the mill surface where an end falls inside it.
+fn fit_polished_ends(
+    runs: &mut [bool],
+    dark: &[bool],
+    deficits: &[Option<f64>],
+    helix_deg: &[f64],
+    smear_mm: f64,
+) -> Vec<Option<[f64; 2]>> {
+    let mut part = vec![None; runs.len()];
+    for span in run_spans(runs) {
+        if dark[span.clone()].iter().any(|&d| d) {
+            continue;
+        }
+        let (first, last) = (helix_deg[span.start] - 0.5, helix_deg[span.end - 1] + 0.5);
+        let fitted = |side: End| {
+            fit_arch_end(deficits, helix_deg, first, last, side, smear_mm)
+                .filter(|&end| (end - side.pick(first, last)).abs() <= ARCH_MAX_SHIFT_DEG)
+                .unwrap_or(side.pick(first, last))
+        };
+        let (from, to) = (fitted(End::Start), fitted(End::Finish));
+        let reach = ARCH_MAX_SHIFT_DEG.ceil() as usize + 1;
+        for i in span.start.saturating_sub(reach)..(span.end + reach).min(runs.len()) {
+            let (lo, hi) = (helix_deg[i] - 0.5, helix_deg[i] + 0.5);
+            let (a, b) = (lo.max(from), hi.min(to));
+            runs[i] = b > a;
+            part[i] = (b > a && b - a < 1.0 - 1e-9).then_some([a - lo, b - lo]);
+        }
+    }
+    part
+}
+
+#[derive(Clone, Copy, PartialEq)]
+enum End {
+    Start,
+    Finish,
+}
+
+impl End {
+    fn pick(self, start: f64, finish: f64) -> f64 {
+        match self {
+            End::Start => start,
+            End::Finish => finish,
+        }
+    }
+}
+
+/// One end of a run from [first, last]° along the helix (see [`fit_polished_ends`]); None where
+/// the fit has too few bins or no root of the right sense near that end.
+fn fit_arch_end(
+    deficits: &[Option<f64>],
+    helix_deg: &[f64],
+    first: f64,
+    last: f64,
+    side: End,
+    smear_mm: f64,
+) -> Option<f64> {
+    // The fitted stretch: the run and a margin, at most ARCH_SPAN_DEG in from this end.
+    let (lo, hi) = if last - first <= ARCH_SPAN_DEG {
+        (first - ARCH_MARGIN_DEG, last + ARCH_MARGIN_DEG)
+    } else {
+        match side {
+            End::Start => (first - ARCH_MARGIN_DEG, first + ARCH_SPAN_DEG),
+            End::Finish => (last - ARCH_SPAN_DEG, last + ARCH_MARGIN_DEG),
+        }
+    };
+    // u ∈ [−1, 1] over the stretch keeps the normal equations well conditioned.
+    let (centre, half) = (0.5 * (lo + hi), 0.5 * (hi - lo));
+    let samples: Vec<(f64, f64)> = helix_deg
+        .iter()
+        .zip(deficits)
+        .filter(|(deg, _)| (lo..=hi).contains(*deg))
+        .filter_map(|(&deg, d)| Some(((deg - centre) / half, (*d)?)))
+        .collect();
+    let basis = |u: f64| Vector3::new(1.0, u, u * u);
+    // Start from the plain quadratic through the run's inner bins, where the window reads q itself.
+    let (inner_lo, inner_hi) = ((first + 2.0 - centre) / half, (last - 2.0 - centre) / half);
+    let inner: Vec<&(f64, f64)> = samples.iter().filter(|(u, _)| (inner_lo..=inner_hi).contains(u)).collect();
+    if inner.len() < 12 {
+        return None;
+    }
+    let (mut ata, mut atb) = (Matrix3::<f64>::zeros(), Vector3::<f64>::zeros());
+    for &&(u, d) in &inner {
+        ata += basis(u) * basis(u).transpose();
+        atb += basis(u) * d;
+    }
+    let mut p = ata.lu().solve(&atb)?;
+    // Levenberg–Marquardt through the window's reading.
+    let sse = |p: &Vector3<f64>| -> f64 {
+        samples.iter().map(|&(u, d)| (d - window_reading(basis(u).dot(p), smear_mm).0).powi(2)).sum()
+    };
+    let (mut cost, mut lambda) = (sse(&p), 1e-3);
+    for _ in 0..100 {
+        let (mut jtj, mut jtr) = (Matrix3::<f64>::zeros(), Vector3::<f64>::zeros());
+        for &(u, d) in &samples {
+            let (reading, slope) = window_reading(basis(u).dot(&p), smear_mm);
+            let row = basis(u) * slope;
+            jtj += row * row.transpose();
+            jtr += row * (d - reading);
+        }
+        let damped = jtj + Matrix3::from_diagonal(&jtj.diagonal()) * lambda;
+        let Some(step) = damped.lu().solve(&jtr) else { break };
+        let trial = p + step;
+        let trial_cost = sse(&trial);
+        if trial_cost < cost {
+            let converged = cost - trial_cost <= 1e-12 * cost.max(1e-30);
+            (p, cost, lambda) = (trial, trial_cost, (lambda / 3.0).max(1e-9));
+            if converged {
+                break;
+            }
+        } else {
+            lambda *= 4.0;
+            if lambda > 1e6 {
+                break;
+            }
+        }
+    }
+    // The root nearest this end at which the arch rises into the run.
+    let (a, b, c) = (p[0], p[1], p[2]);
+    let roots: Vec<f64> = if c.abs() < 1e-12 {
+        if b.abs() < 1e-12 { vec![] } else { vec![-a / b] }
+    } else {
+        let disc = b * b - 4.0 * a * c;
+        if disc < 0.0 {
+            return None;
+        }
+        let sq = disc.sqrt();
+        vec![(-b - sq) / (2.0 * c), (-b + sq) / (2.0 * c)]
+    };
+    let end = side.pick(first, last);
+    let rising_inward = |u: f64| {
+        let slope = b + 2.0 * c * u;
+        match side {
+            End::Start => slope > 0.0,
+            End::Finish => slope < 0.0,
+        }
+    };
+    roots
+        .into_iter()
+        .filter(|&u| rising_inward(u))
+        .map(|u| centre + half * u)
+        .min_by(|x, y| (x - end).abs().total_cmp(&(y - end).abs()))
+}
+
 /// The maximal runs of set bins, as index ranges.
 pub(crate) fn run_spans(runs: &[bool]) -> Vec<std::ops::Range<usize>> {
     let mut spans = Vec::new();
@@ -240,12 +416,14 @@ pub(crate) fn run_spans(runs: &[bool]) -> Vec<std::ops::Range<usize>> {
 }
 
 /// The rule engine's input for each thread, the reference crest brightness and the crest cone.
-/// `nominal_slope` (half the nominal taper on diameter) seeds the cone fit.
+/// `nominal_slope` (half the nominal taper on diameter) seeds the cone fit; `crest_window_half_mm`
+/// is the half width along z over which the profile stage fitted each crest's radius.
 pub fn observations(
     threads: &[ThreadMeasure],
     lc_mm: f64,
     pitch_mm: f64,
     nominal_slope: f64,
+    crest_window_half_mm: f64,
     options: &CrestOptions,
 ) -> CrestFindings {
     let mut grays: Vec<f32> = threads.iter().flat_map(|t| t.bins.iter().filter_map(|b| b.crest_gray)).collect();
@@ -293,8 +471,8 @@ pub fn observations(
         .filter(|(b, dark)| b.crest_z_mm >= chamfer_zone_mm && !**dark)
         .filter_map(|(b, _)| Some((b.crest_z_mm, b.angle_deg, b.crest_radius_mm?)))
         .collect();
-    let (on_mill, cone) = match fit_cone(&crests, nominal_slope) {
-        None => (vec![false; in_helix_order().count()], None),
+    let (on_mill, mill_part, cone) = match fit_cone(&crests, nominal_slope) {
+        None => (vec![false; in_helix_order().count()], vec![None; in_helix_order().count()], None),
         Some((params, used)) => {
             let deficits: Vec<Option<f64>> = in_helix_order()
                 .map(|b| b.crest_radius_mm.map(|r| cone_basis(b.crest_z_mm, b.angle_deg).dot(&params) - r))
@@ -313,7 +491,13 @@ pub fn observations(
             let mut runs = mill_runs(&smoothed, 1e-3 * onset_um, 1e-3 * extent_um);
             defer_to_darkness(&mut runs, &dark);
             drop_short_geometric_runs(&mut runs, &dark, options.min_geometric_arc_deg.ceil() as usize);
-            (runs, Some(cone))
+            let helix_deg: Vec<f64> = threads
+                .iter()
+                .flat_map(|t| t.bins.iter().map(move |b| 360.0 * (t.index as f64 - 1.0) + b.angle_deg))
+                .collect();
+            let window_smear_mm = params[1].abs() * crest_window_half_mm;
+            let part = fit_polished_ends(&mut runs, &dark, &deficits, &helix_deg, window_smear_mm);
+            (runs, part, Some(cone))
         }
     };
 
@@ -352,6 +536,7 @@ pub fn observations(
                     height_mm: b.height_mm,
                     chamfer,
                     on_mill_surface: on_mill[i] && !chamfer && !partly_dark,
+                    mill_arc_deg: mill_part[i].map(|[from, to]| [start + from, start + to]),
                     seen: b.crest_gray.is_some() || b.crest_radius_mm.is_some(),
                 });
             }
@@ -368,6 +553,8 @@ mod tests {
 
     const PITCH: f64 = 5.08;
     const SLOPE: f64 = 0.0625 / 2.0;
+    /// The profile stage's crest window on a buttress crest (0.6 of the 2.36 mm flat's half).
+    const WINDOW_HALF_MM: f64 = 0.708;
 
     /// Seven threads whose crests lie on a cone whose axis is 0.04 mm off the frame's, with ±4 µm
     /// of deterministic scatter; `crest(index, θ°, cone radius)` may move a crest below the cone.
@@ -399,26 +586,54 @@ mod tests {
     fn mill_arcs(findings: &CrestFindings, index: u32) -> Vec<[f64; 2]> {
         let t = findings.observations.iter().find(|t| t.index == index).unwrap();
         crate::rules::union_arcs(
-            t.bins.iter().filter(|b| b.on_mill_surface).map(|b| [b.angle_deg, b.angle_deg + b.width_deg]).collect(),
+            t.bins.iter().filter(|b| b.on_mill_surface).map(|b| b.mill_arc_deg.unwrap_or(b.span_deg())).collect(),
         )
+    }
+
+    /// The crest radius the profile stage reads where a level mill surface at `mill` cuts a crest
+    /// that rises along z with the cone: the least-squares line through the window's samples, at
+    /// its centre (for `n` samples spread evenly about it, their mean).
+    fn window_fit(cone: f64, mill: f64, n: usize) -> f64 {
+        let sum: f64 = (0..n)
+            .map(|k| {
+                let x = WINDOW_HALF_MM * (2.0 * k as f64 / (n - 1) as f64 - 1.0);
+                (cone + SLOPE * x).min(mill) - SLOPE * x
+            })
+            .sum();
+        sum / n as f64
+    }
+
+    #[test]
+    fn the_window_reading_is_the_mean_of_the_cut_over_the_window() {
+        let smear = SLOPE * WINDOW_HALF_MM;
+        for q_um in [-40.0, -22.0, -15.0, -5.0, 0.0, 5.0, 15.0, 21.0, 30.0, 60.0] {
+            let q = 1e-3 * q_um;
+            let read = 55.0 - window_fit(55.0, 55.0 - q, 200_001);
+            assert!((window_reading(q, smear).0 - read).abs() < 1e-7, "q {q_um} µm: {read}");
+        }
     }
 
     #[test]
     fn a_polished_crest_below_the_cone_is_found_to_its_shallow_ends() {
-        // Thread 5 meets an undersize mill surface from 100° to 160°, 60 µm deep in the middle.
+        // Thread 5 meets a mill surface 0.4 mm off centre toward 310° that crosses its crest
+        // line at 100° and 160°: 54 µm deep in the middle and rising into the run at 3.5 µm/°.
+        // Its crest is read through the window, which sees a deficit from 7° before either end.
         let threads = part(|index, theta, cone| {
-            let depth = if index == 5 { (0.060 - 0.002 * (theta - 130.0).abs()).max(0.0) } else { 0.0 };
-            cone - depth
+            if index != 5 {
+                return cone;
+            }
+            let deficit = 0.4 * ((theta - 130.0).to_radians().cos() - 30f64.to_radians().cos());
+            window_fit(cone, cone - deficit, 201)
         });
-        let findings = observations(&threads, 40.0, PITCH, SLOPE, &CrestOptions::default());
+        let findings = observations(&threads, 40.0, PITCH, SLOPE, WINDOW_HALF_MM, &CrestOptions::default());
         let cone = findings.cone.as_ref().unwrap();
         assert!((cone.axis_offset_mm[0] - 0.04).abs() < 0.002 && cone.axis_offset_mm[1].abs() < 0.002, "{cone:?}");
         assert!((cone.slope - SLOPE).abs() < 1e-3, "{cone:?}");
         assert!(cone.scatter_um < 4.0, "{cone:?}");
         let arcs = mill_arcs(&findings, 5);
         assert_eq!(arcs.len(), 1, "{arcs:?}");
-        // The deficit exceeds the 5 µm extent from 102.5° to 157.5°.
-        assert!((arcs[0][0] - 102.5).abs() <= 2.0 && (arcs[0][1] - 157.5).abs() <= 2.0, "{arcs:?}");
+        // The fitted ends, to a fraction of a bin (the threshold's were whole bins, 2–3° inside).
+        assert!((arcs[0][0] - 100.0).abs() <= 0.4 && (arcs[0][1] - 160.0).abs() <= 0.4, "{arcs:?}");
         for index in [1, 2, 3, 4, 6, 7] {
             assert!(mill_arcs(&findings, index).is_empty(), "thread {index}");
         }
@@ -443,7 +658,7 @@ mod tests {
         for t in threads.iter_mut().filter(|t| t.index >= 5) {
             t.bins.iter_mut().for_each(|b| b.height_mm = Some(0.5));
         }
-        let findings = observations(&threads, 40.0, PITCH, SLOPE, &CrestOptions::default());
+        let findings = observations(&threads, 40.0, PITCH, SLOPE, WINDOW_HALF_MM, &CrestOptions::default());
         assert!(findings.observations.iter().all(|t| t.bins.iter().all(|b| !b.on_mill_surface)));
         let input = crate::rules::RuleInput {
             family: crate::thread::Family::Round,
@@ -505,7 +720,7 @@ mod tests {
         // Reference 0.6, scatter at its 3% floor (0.018): one bin must fall below 0.492, five in a
         // row below 0.528. Bins 100–111 sit at 0.51; bin 300 alone at 0.51.
         let threads = vec![one_thread(4, 20.0, None, |k| if (100..112).contains(&k) || k == 300 { 0.51 } else { 0.6 })];
-        let findings = observations(&threads, 40.0, 5.08, 0.0, &CrestOptions::default());
+        let findings = observations(&threads, 40.0, 5.08, 0.0, WINDOW_HALF_MM, &CrestOptions::default());
         assert_eq!(findings.observations[0].black_crest_arcs_deg, vec![[100.0, 112.0]]);
     }
 
@@ -519,12 +734,12 @@ mod tests {
         // below 0.528. Bins 0–1 read 0.51 (then 0.6); bins 200–201 read 0.51 next to a gap at 202.
         let mut thread = one_thread(1, 1.1, None, |k| if k < 2 || k == 200 || k == 201 { 0.51 } else { 0.6 });
         thread.bins[202].crest_gray = None;
-        let findings = observations(&[thread.clone()], 40.0, 5.08, 0.0, &CrestOptions::default());
+        let findings = observations(&[thread.clone()], 40.0, 5.08, 0.0, WINDOW_HALF_MM, &CrestOptions::default());
         let arcs = &findings.observations[0].black_crest_arcs_deg;
         assert!(arcs.is_empty(), "{arcs:?}");
         // Five faint bins in a row at the start are a dip, as anywhere else.
         thread.bins[..5].iter_mut().for_each(|b| b.crest_gray = Some(0.51));
-        let findings = observations(&[thread], 40.0, 5.08, 0.0, &CrestOptions::default());
+        let findings = observations(&[thread], 40.0, 5.08, 0.0, WINDOW_HALF_MM, &CrestOptions::default());
         assert_eq!(findings.observations[0].black_crest_arcs_deg, vec![[0.0, 5.0]]);
     }
 
@@ -541,7 +756,7 @@ mod tests {
             _ => 0.6,
         };
         let threads = vec![one_thread(4, 20.0, None, gray)];
-        let findings = observations(&threads, 40.0, 5.08, 0.0, &CrestOptions::default());
+        let findings = observations(&threads, 40.0, 5.08, 0.0, WINDOW_HALF_MM, &CrestOptions::default());
         let arcs = &findings.observations[0].black_crest_arcs_deg;
         assert_eq!(arcs.len(), 1, "{arcs:?}");
         // Covers (0.6 − g) / (0.6 − 0.1): half of bin 99 (its end side), 0.14 of bin 110.
@@ -560,7 +775,7 @@ mod tests {
                 k if k == end => 0.53,
                 _ => 0.6,
             })];
-            observations(&threads, 40.0, 5.08, 0.0, &CrestOptions::default()).observations[0]
+            observations(&threads, 40.0, 5.08, 0.0, WINDOW_HALF_MM, &CrestOptions::default()).observations[0]
                 .black_crest_arcs_deg
                 .clone()
         };
@@ -574,11 +789,11 @@ mod tests {
     fn dark_crests_within_lc_become_arcs_clipped_at_lc() {
         let threads = vec![one_thread(6, 30.0, Some(57.0), |k| if (100..200).contains(&k) { 0.05 } else { 0.5 })];
         // Lc at z = 31.0 → θ = (31 − 30) / 5.08 · 360 = 70.9°: no dark crest within Lc.
-        let findings = observations(&threads, 31.0, 5.08, 0.0, &CrestOptions::default());
+        let findings = observations(&threads, 31.0, 5.08, 0.0, WINDOW_HALF_MM, &CrestOptions::default());
         assert_eq!(findings.machined_crest_gray, 0.5);
         assert!(findings.observations[0].black_crest_arcs_deg.is_empty());
         // Lc at z = 32.0 → θ = 141.7°: the dark arc runs 100° to 141.7°.
-        let findings = observations(&threads, 32.0, 5.08, 0.0, &CrestOptions::default());
+        let findings = observations(&threads, 32.0, 5.08, 0.0, WINDOW_HALF_MM, &CrestOptions::default());
         let arc = findings.observations[0].black_crest_arcs_deg[0];
         assert_eq!(arc[0], 100.0);
         assert!((arc[1] - 2.0 / 5.08 * 360.0).abs() < 1e-9, "{arc:?}");

@@ -282,8 +282,14 @@ pub fn inspect(
     }
 
     progress(Stage::Rules, 0.0);
-    let crest::CrestFindings { observations, machined_crest_gray, cone: crest_cone } =
-        crest::observations(&threads, part.lc_mm, helix.pitch_mm, form.radius_slope(), &options.crest);
+    let crest::CrestFindings { observations, machined_crest_gray, cone: crest_cone } = crest::observations(
+        &threads,
+        part.lc_mm,
+        helix.pitch_mm,
+        form.radius_slope(),
+        crate::profile::crest_window_half_mm(&form),
+        &options.crest,
+    );
     let input = RuleInput {
         family: part.family(),
         lc_mm: part.lc_mm,

@@ -309,6 +309,12 @@ fn fundamental_beside_a_line(samples: impl Iterator<Item = (f64, f64)>, p: f64) 
 /// Half width of the strip around the crest centre line whose brightness decides black crests.
 const CREST_LINE_HALF_MM: f64 = 0.15;
 
+/// Half width along z of the window a crest's radius is fitted over (the crest stage models how a
+/// mill surface that cuts part of that window shows in the fitted radius).
+pub fn crest_window_half_mm(form: &ThreadForm) -> f64 {
+    windows(form).0
+}
+
 /// Half widths of the windows fitted around the crest and root centres.
 fn windows(form: &ThreadForm) -> (f64, f64) {
     match form.profile {

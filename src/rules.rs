@@ -44,11 +44,22 @@ pub struct CrestBin {
     /// The crest stage found this crest below the machined crest cone: it is the mill surface.
     #[serde(default)]
     pub on_mill_surface: bool,
+    /// The part of the bin on the mill surface, [from, to] in degrees, where a geometric run's
+    /// fitted end falls inside the bin; None: all of it (when `on_mill_surface`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mill_arc_deg: Option<[f64; 2]>,
     /// The views showed this crest (its brightness or its radius was measured). Crests within Lc
     /// that no view showed make the verdict one over the crests seen: see
     /// [`ReasonCode::PartialCoverage`].
     #[serde(default = "yes")]
     pub seen: bool,
+}
+
+impl CrestBin {
+    /// The bin's whole arc [from, to] in degrees.
+    pub fn span_deg(&self) -> [f64; 2] {
+        [self.angle_deg, self.angle_deg + self.width_deg]
+    }
 }
 
 fn yes() -> bool {
@@ -200,30 +211,28 @@ pub fn arc_length_mm(arcs: &[[f64; 2]], circumference_mm: f64) -> f64 {
     arcs_deg(arcs) / 360.0 * circumference_mm
 }
 
-/// The arcs of one thread's bins for which `keep` holds, within Lc: the part of a bin beyond Lc is
-/// cut off by interpolating the crest z across the bin.
-fn arcs_within_lc(bins: &[CrestBin], lc_mm: f64, keep: impl Fn(&CrestBin) -> bool) -> Vec<[f64; 2]> {
+/// The arcs [from, to] that `arc` picks out of one thread's bins (None: none of the bin), within
+/// Lc: the part beyond Lc is cut off by interpolating the crest z across the bin.
+fn arcs_within_lc(bins: &[CrestBin], lc_mm: f64, arc: impl Fn(&CrestBin) -> Option<[f64; 2]>) -> Vec<[f64; 2]> {
     let mut arcs = Vec::new();
     for (k, bin) in bins.iter().enumerate() {
-        if !keep(bin) {
-            continue;
-        }
+        let Some([from, to]) = arc(bin) else { continue };
         // z grows linearly along the helix: estimate dz/dθ from the neighbours.
         let dz_per_deg = neighbour_slope(bins, k);
-        let (start, end) = (bin.angle_deg, bin.angle_deg + bin.width_deg);
-        let z_start = bin.z_mm - dz_per_deg * bin.width_deg / 2.0;
-        if z_start > lc_mm {
+        let z_from = bin.z_mm + dz_per_deg * (from - (bin.angle_deg + bin.width_deg / 2.0));
+        if z_from > lc_mm {
             continue;
         }
-        let end = if dz_per_deg > 0.0 { end.min(start + (lc_mm - z_start) / dz_per_deg) } else { end };
-        arcs.push([start, end]);
+        let to = if dz_per_deg > 0.0 { to.min(from + (lc_mm - z_from) / dz_per_deg) } else { to };
+        arcs.push([from, to]);
     }
     arcs
 }
 
-/// Black arcs of one thread from its geometry: bins within Lc whose crest is on the mill surface.
+/// Black arcs of one thread from its geometry: the parts of bins within Lc whose crest is on the
+/// mill surface.
 fn geometric_arcs(bins: &[CrestBin], lc_mm: f64) -> Vec<[f64; 2]> {
-    arcs_within_lc(bins, lc_mm, |b| !b.chamfer && b.on_mill_surface)
+    arcs_within_lc(bins, lc_mm, |b| (!b.chamfer && b.on_mill_surface).then(|| b.mill_arc_deg.unwrap_or(b.span_deg())))
 }
 
 fn neighbour_slope(bins: &[CrestBin], k: usize) -> f64 {
@@ -404,8 +413,11 @@ pub fn assess(input: &RuleInput, arc_rule: ArcRule) -> Assessment {
         .threads
         .iter()
         .map(|t| {
-            let seen = union_arcs(arcs_within_lc(&t.bins, lc, |b| b.seen));
-            (ThreadArcs { index: t.index, arcs_deg: seen }, arcs_deg(&arcs_within_lc(&t.bins, lc, |_| true)))
+            let seen = union_arcs(arcs_within_lc(&t.bins, lc, |b| b.seen.then(|| b.span_deg())));
+            (
+                ThreadArcs { index: t.index, arcs_deg: seen },
+                arcs_deg(&arcs_within_lc(&t.bins, lc, |b| Some(b.span_deg()))),
+            )
         })
         .filter(|(_, within_deg)| *within_deg > 0.0)
         .collect();
@@ -489,6 +501,7 @@ mod tests {
                     height_mm: Some(if is_low { height } else { 1.0 }),
                     chamfer: chamfer && is_low,
                     on_mill_surface: is_low,
+                    mill_arc_deg: None,
                     seen: true,
                 }
             })

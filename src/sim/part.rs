@@ -309,6 +309,7 @@ impl PartModel {
                     chamfer: crest.chamfered,
                     // Every black crest point is already in the traced arcs.
                     on_mill_surface: false,
+                    mill_arc_deg: None,
                     // Truth sees every crest.
                     seen: true,
                 });
