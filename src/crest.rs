@@ -652,6 +652,24 @@ mod tests {
     }
 
     #[test]
+    fn a_long_polished_run_is_fitted_over_the_stretch_next_to_each_end() {
+        // A 200° run (a mill surface 0.2 mm off centre toward 310°, crossing thread 5's crest line
+        // at 30° and 230°): a quadratic cannot follow the whole arch, so each end is fitted over
+        // the 90° next to it, where it leaves a bias of 1.6–1.8° inward here (README).
+        let threads = part(|index, theta, cone| {
+            if index != 5 {
+                return cone;
+            }
+            let deficit = 0.2 * ((theta - 130.0).to_radians().cos() - 100f64.to_radians().cos());
+            window_fit(cone, cone - deficit, 201)
+        });
+        let findings = observations(&threads, 40.0, PITCH, SLOPE, WINDOW_HALF_MM, &CrestOptions::default());
+        let arcs = mill_arcs(&findings, 5);
+        assert_eq!(arcs.len(), 1, "{arcs:?}");
+        assert!((arcs[0][0] - 30.0).abs() <= 2.5 && (arcs[0][1] - 230.0).abs() <= 2.5, "{arcs:?}");
+    }
+
+    #[test]
     fn a_vanishing_thread_with_machined_crests_is_not_black() {
         // Heights fall to a third toward the vanish end because the roots rise; crests stay on the cone.
         let mut threads = part(|_, _, cone| cone);
