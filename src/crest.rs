@@ -276,12 +276,18 @@ fn fit_polished_ends(
                 .unwrap_or(side.pick(first, last))
         };
         let (from, to) = (fitted(End::Start), fitted(End::Finish));
+        // The run's own bins are re-marked; beyond them, bins only join it (another run there
+        // keeps its marks).
         let reach = ARCH_MAX_SHIFT_DEG.ceil() as usize + 1;
         for i in span.start.saturating_sub(reach)..(span.end + reach).min(runs.len()) {
             let (lo, hi) = (helix_deg[i] - 0.5, helix_deg[i] + 0.5);
             let (a, b) = (lo.max(from), hi.min(to));
-            runs[i] = b > a;
-            part[i] = (b > a && b - a < 1.0 - 1e-9).then_some([a - lo, b - lo]);
+            if b > a {
+                runs[i] = true;
+                part[i] = (b - a < 1.0 - 1e-9).then_some([a - lo, b - lo]);
+            } else if span.contains(&i) {
+                runs[i] = false;
+            }
         }
     }
     part
@@ -617,7 +623,7 @@ mod tests {
     fn a_polished_crest_below_the_cone_is_found_to_its_shallow_ends() {
         // Thread 5 meets a mill surface 0.4 mm off centre toward 310° that crosses its crest
         // line at 100° and 160°: 54 µm deep in the middle and rising into the run at 3.5 µm/°.
-        // Its crest is read through the window, which sees a deficit from 7° before either end.
+        // Its crest is read through the window, which sees a deficit from 6° before either end.
         let threads = part(|index, theta, cone| {
             if index != 5 {
                 return cone;
