@@ -609,6 +609,18 @@ mod tests {
         sum / n as f64
     }
 
+    /// [`part`] with thread 5's crest line meeting a mill surface `eccentricity_mm` off centre
+    /// toward 310°, which crosses it at 130° ± `half_span_deg`; the crest is read through the window.
+    fn polished_thread_5(eccentricity_mm: f64, half_span_deg: f64) -> Vec<ThreadMeasure> {
+        part(|index, theta, cone| {
+            if index != 5 {
+                return cone;
+            }
+            let deficit = eccentricity_mm * ((theta - 130.0).to_radians().cos() - half_span_deg.to_radians().cos());
+            window_fit(cone, cone - deficit, 201)
+        })
+    }
+
     #[test]
     fn the_window_reading_is_the_mean_of_the_cut_over_the_window() {
         let smear = SLOPE * WINDOW_HALF_MM;
@@ -624,13 +636,7 @@ mod tests {
         // Thread 5 meets a mill surface 0.4 mm off centre toward 310° that crosses its crest
         // line at 100° and 160°: 54 µm deep in the middle and rising into the run at 3.5 µm/°.
         // Its crest is read through the window, which sees a deficit from 6° before either end.
-        let threads = part(|index, theta, cone| {
-            if index != 5 {
-                return cone;
-            }
-            let deficit = 0.4 * ((theta - 130.0).to_radians().cos() - 30f64.to_radians().cos());
-            window_fit(cone, cone - deficit, 201)
-        });
+        let threads = polished_thread_5(0.4, 30.0);
         let findings = observations(&threads, 40.0, PITCH, SLOPE, WINDOW_HALF_MM, &CrestOptions::default());
         let cone = findings.cone.as_ref().unwrap();
         assert!((cone.axis_offset_mm[0] - 0.04).abs() < 0.002 && cone.axis_offset_mm[1].abs() < 0.002, "{cone:?}");
@@ -662,13 +668,7 @@ mod tests {
         // A 200° run (a mill surface 0.2 mm off centre toward 310°, crossing thread 5's crest line
         // at 30° and 230°): a quadratic cannot follow the whole arch, so each end is fitted over
         // the 90° next to it, where it leaves a bias of 1.6–1.8° inward here (README).
-        let threads = part(|index, theta, cone| {
-            if index != 5 {
-                return cone;
-            }
-            let deficit = 0.2 * ((theta - 130.0).to_radians().cos() - 100f64.to_radians().cos());
-            window_fit(cone, cone - deficit, 201)
-        });
+        let threads = polished_thread_5(0.2, 100.0);
         let findings = observations(&threads, 40.0, PITCH, SLOPE, WINDOW_HALF_MM, &CrestOptions::default());
         let arcs = mill_arcs(&findings, 5);
         assert_eq!(arcs.len(), 1, "{arcs:?}");
