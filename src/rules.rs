@@ -668,6 +668,23 @@ mod tests {
     }
 
     #[test]
+    fn a_partly_covered_mill_bin_counts_by_its_mill_arc_cut_at_lc() {
+        // Bins 100–129 on the mill surface, the fitted ends inside the first and last: 100.6° and
+        // 129.3°. The crest line reaches Lc at 120° (z = 18 + 5.08·120/360).
+        let mut b = bins(18.0, 5.08, (100, 130), 0.95, false);
+        b[100].mill_arc_deg = Some([100.6, 101.0]);
+        b[129].mill_arc_deg = Some([129.0, 129.3]);
+        let mut input = buttress(vec![ThreadObservation { index: 4, black_crest_arcs_deg: vec![], bins: b }]);
+        let black = |input: &RuleInput| assess(input, ArcRule::PerThread).black_threads[0].arcs_deg.clone();
+        let arcs = black(&input);
+        assert_eq!(arcs.len(), 1);
+        assert!((arcs[0][0] - 100.6).abs() < 1e-9 && (arcs[0][1] - 129.3).abs() < 1e-9, "{arcs:?}");
+        input.lc_mm = 18.0 + 5.08 * 120.0 / 360.0;
+        let arcs = black(&input);
+        assert!((arcs[0][0] - 100.6).abs() < 1e-9 && (arcs[0][1] - 120.0).abs() < 1e-9, "{arcs:?}");
+    }
+
+    #[test]
     fn chamfered_crest_is_not_black() {
         let t = ThreadObservation { index: 1, black_crest_arcs_deg: vec![], bins: bins(0.5, 5.08, (0, 90), 0.3, true) };
         let mut input = buttress(vec![t]);
