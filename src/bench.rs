@@ -141,7 +141,9 @@ pub const ACCURACY_SUITE: &[Case] = &[
 /// rendered only after that change, to check it. bc-arc-over-25 seed 3 and polished seeds 9–12 were
 /// first rendered after the steep-edge depth change, to check it (polished seed 9 got a wrong
 /// verdict there), and joined the suite in the round that fitted the polished crest's ends;
-/// polished seeds 13–16 were rendered after that fit was written, to check it.
+/// polished seeds 13–16 were rendered after that fit was written, to check it. bc-black-1,
+/// bc-black-3 and lc-accept (seed 1), the presets no suite had, joined in the same round, seen by
+/// nothing before.
 pub const HOLDOUT_SUITE: &[Case] = &[
     Case { preset: "lc-round-black", seed: 1 },
     Case { preset: "lc-round-black", seed: 2 },
@@ -149,8 +151,11 @@ pub const HOLDOUT_SUITE: &[Case] = &[
     Case { preset: "lc-round-black", seed: 4 },
     Case { preset: "lc-round-black", seed: 5 },
     Case { preset: "lc-round-black", seed: 6 },
+    Case { preset: "lc-accept", seed: 1 },
+    Case { preset: "bc-black-1", seed: 1 },
     Case { preset: "bc-black-2", seed: 1 },
     Case { preset: "bc-black-2", seed: 2 },
+    Case { preset: "bc-black-3", seed: 1 },
     Case { preset: "bc-arc-over-25", seed: 1 },
     Case { preset: "bc-arc-over-25", seed: 2 },
     Case { preset: "bc-arc-over-25", seed: 3 },
