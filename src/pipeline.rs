@@ -287,7 +287,7 @@ pub fn inspect(
         part.lc_mm,
         helix.pitch_mm,
         form.radius_slope(),
-        crate::profile::crest_window_half_mm(&form),
+        crate::profile::crest_window_half_mm(form),
         &options.crest,
     );
     let input = RuleInput {
