@@ -535,14 +535,16 @@ pub fn observations(
                 // A dark run's partly covered end bin is measured by its darkness: its geometry
                 // (which took its extent from the darkness) would count the whole bin.
                 let partly_dark = dark && (first || last) && cover < 1.0;
+                let on_mill_surface = on_mill[i] && !chamfer && !partly_dark;
                 bins.push(CrestBin {
                     angle_deg: start,
                     width_deg: 1.0,
                     z_mm: b.crest_z_mm,
                     height_mm: b.height_mm,
                     chamfer,
-                    on_mill_surface: on_mill[i] && !chamfer && !partly_dark,
-                    mill_arc_deg: mill_part[i].map(|[from, to]| [start + from, start + to]),
+                    on_mill_surface,
+                    // Only a bin on the mill surface has a part on it.
+                    mill_arc_deg: mill_part[i].filter(|_| on_mill_surface).map(|[from, to]| [start + from, start + to]),
                     seen: b.crest_gray.is_some() || b.crest_radius_mm.is_some(),
                 });
             }

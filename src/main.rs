@@ -1,5 +1,5 @@
 use anyhow::{Context, Result, bail};
-use clap::{Parser, Subcommand};
+use clap::{Args, Parser, Subcommand};
 use crestscan::bundle::{Bundle, FrameCheck, OpenOptions};
 use crestscan::pipeline::{self, PipelineOptions};
 use crestscan::rules::ArcRule;
@@ -13,6 +13,31 @@ use std::sync::atomic::AtomicBool;
 struct Cli {
     #[command(subcommand)]
     command: Command,
+}
+
+/// The depth stage's options `inspect` and `bench` take.
+#[derive(Args, Debug)]
+struct DepthArgs {
+    /// Estimate depth on every Nth pixel row across the arc (1: every row; the focus measure
+    /// sees every row either way).
+    #[arg(long, default_value_t = crestscan::depth::DepthOptions::default().row_step as u16,
+          value_parser = clap::value_parser!(u16).range(1..))]
+    depth_row_step: u16,
+    /// Half size of the small focus box that decides, at a steep edge, which surface a pixel
+    /// shows (0: none: an eighth or so faster, with crest edges moved by up to the big box's
+    /// half size; README, Pipeline, step 1).
+    #[arg(long, default_value_t = crestscan::depth::DepthOptions::default().edge_window_radius_px as u16)]
+    depth_edge_window: u16,
+}
+
+impl From<DepthArgs> for crestscan::depth::DepthOptions {
+    fn from(args: DepthArgs) -> Self {
+        Self {
+            row_step: args.depth_row_step.into(),
+            edge_window_radius_px: args.depth_edge_window.into(),
+            ..Default::default()
+        }
+    }
 }
 
 #[derive(Subcommand)]
@@ -51,16 +76,8 @@ enum Command {
         /// or two is trimmed away, one of a few degrees flattened).
         #[arg(long, default_value_t = crestscan::profile::ProfileOptions::default().height_window_half_bins)]
         height_window_half_bins: usize,
-        /// Estimate depth on every Nth pixel row across the arc (1: every row; the focus measure
-        /// sees every row either way).
-        #[arg(long, default_value_t = crestscan::depth::DepthOptions::default().row_step as u16,
-              value_parser = clap::value_parser!(u16).range(1..))]
-        depth_row_step: u16,
-        /// Half size of the small focus box that decides, at a steep edge, which surface a pixel
-        /// shows (0: none: an eighth or so faster, with crest edges moved by up to the big box's
-        /// half size; README, Pipeline, step 1).
-        #[arg(long, default_value_t = crestscan::depth::DepthOptions::default().edge_window_radius_px as u16)]
-        depth_edge_window: u16,
+        #[command(flatten)]
+        depth: DepthArgs,
     },
     /// Run a benchmark suite: render its cases (cached in --work), inspect, compare with truth.
     Bench {
@@ -82,13 +99,8 @@ enum Command {
         /// medians: single timings on a shared machine scatter by tens of percent.
         #[arg(long, default_value_t = 1)]
         repeat: usize,
-        /// As inspect's --depth-row-step.
-        #[arg(long, default_value_t = crestscan::depth::DepthOptions::default().row_step as u16,
-              value_parser = clap::value_parser!(u16).range(1..))]
-        depth_row_step: u16,
-        /// As inspect's --depth-edge-window.
-        #[arg(long, default_value_t = crestscan::depth::DepthOptions::default().edge_window_radius_px as u16)]
-        depth_edge_window: u16,
+        #[command(flatten)]
+        depth: DepthArgs,
     },
     /// Compare an inspection report with a simulated bundle's truth/truth.json.
     Compare { report: PathBuf, truth: PathBuf },
@@ -278,15 +290,7 @@ fn main() -> Result<()> {
                 summary.verdict.as_str()
             );
         }
-        Command::Inspect {
-            bundle,
-            out,
-            json,
-            arc_rule,
-            height_window_half_bins,
-            depth_row_step,
-            depth_edge_window,
-        } => {
+        Command::Inspect { bundle, out, json, arc_rule, height_window_half_bins, depth } => {
             let table = ConnectionTable::api5b();
             let b = Bundle::open(&bundle, &table, OpenOptions::default())
                 .map_err(|e| anyhow::anyhow!("[{}] {e}", e.code()))?;
@@ -296,11 +300,7 @@ fn main() -> Result<()> {
                     ArcRuleArg::Combined => ArcRule::Combined,
                 },
                 profile: crestscan::profile::ProfileOptions { height_window_half_bins },
-                depth: crestscan::depth::DepthOptions {
-                    row_step: depth_row_step.into(),
-                    edge_window_radius_px: depth_edge_window.into(),
-                    ..Default::default()
-                },
+                depth: depth.into(),
                 ..Default::default()
             };
             let cancel = AtomicBool::new(false);
@@ -341,21 +341,14 @@ fn main() -> Result<()> {
                 }
             }
         }
-        Command::Bench { suite, work, only, json, repeat, depth_row_step, depth_edge_window } => {
+        Command::Bench { suite, work, only, json, repeat, depth } => {
             let suite = crestscan::bench::Suite::from(suite);
             let work = work.unwrap_or_else(|| PathBuf::from(suite.default_work_dir()));
             if let Some(o) = only.iter().find(|o| !suite.cases().iter().any(|c| c.matches(o))) {
                 let names: Vec<String> = suite.cases().iter().map(|c| c.name()).collect();
                 bail!("--only {o:?} is no case of the {} suite; its cases: {}", suite.name(), names.join(", "));
             }
-            let options = PipelineOptions {
-                depth: crestscan::depth::DepthOptions {
-                    row_step: depth_row_step.into(),
-                    edge_window_radius_px: depth_edge_window.into(),
-                    ..Default::default()
-                },
-                ..Default::default()
-            };
+            let options = PipelineOptions { depth: depth.into(), ..Default::default() };
             let mut results = Vec::new();
             for case in suite.cases().iter().filter(|c| only.is_empty() || only.iter().any(|o| c.matches(o))) {
                 eprintln!("bench: {} (seed {})", case.preset, case.seed);
