@@ -176,6 +176,9 @@ pub const HOLDOUT_SUITE: &[Case] = &[
     Case { preset: "bc-polished", seed: 14 },
     Case { preset: "bc-polished", seed: 15 },
     Case { preset: "bc-polished", seed: 16 },
+    Case { preset: "bc-polished-long", seed: 1 },
+    Case { preset: "bc-polished-long", seed: 2 },
+    Case { preset: "bc-polished-long", seed: 3 },
 ];
 
 /// A named benchmark suite.

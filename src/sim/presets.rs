@@ -53,6 +53,10 @@ pub const PRESETS: &[PresetInfo] = &[
         description: "standard optics; a black crest within Lc polished to look machined (found only by its geometry)",
     },
     PresetInfo {
+        name: "bc-polished-long",
+        description: "standard optics; a black crest within Lc polished to look machined over more than a quarter of the turn (reject, found only by its geometry)",
+    },
+    PresetInfo {
         name: "lc-accept",
         description: "LC 4-1/2 round thread, nominal pipe: black crests only beyond Lc (accept)",
     },
@@ -308,6 +312,13 @@ pub fn preset(name: &str) -> Option<SimSpec> {
         "bc-polished" => {
             // Deep enough that the crest is cut short by more than the height tolerance.
             let (pm, mut part) = connection_part("BC 4-1/2", eccentric(-0.15, 0.4, 265.0), 1.7);
+            part.polished = vec![PolishedPatch { from_deg: 0.0, to_deg: 360.0, z_from_mm: 0.0, z_to_mm: 200.0 }];
+            spec(name, pm, part, standard_optics(), ring_layout(), 34.5, sensor)
+        }
+        "bc-polished-long" => {
+            // A pipe 0.8 mm off the thread axis: polished black crests on threads 1–6 whose runs
+            // grow from about 50° to about 190° along the helix, which the short preset's do not.
+            let (pm, mut part) = connection_part("BC 4-1/2", eccentric(0.27, 0.5, 95.0), 1.7);
             part.polished = vec![PolishedPatch { from_deg: 0.0, to_deg: 360.0, z_from_mm: 0.0, z_to_mm: 200.0 }];
             spec(name, pm, part, standard_optics(), ring_layout(), 34.5, sensor)
         }
