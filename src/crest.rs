@@ -223,10 +223,14 @@ fn drop_short_geometric_runs(runs: &mut [bool], dark: &[bool], min_bins: usize) 
     }
 }
 
-/// The longest polished run whose arch is fitted as a quadratic: a quadratic describes any smooth
-/// mill surface over that much of a turn, not over a whole turn; longer runs are fitted with the
-/// oval's harmonics ([`fit_long_arch_end`]).
+/// How far inward from each end of a polished run its arch is fitted as a quadratic: a quadratic
+/// describes any smooth mill surface over that much of a turn, not over a whole turn.
 const ARCH_SPAN_DEG: f64 = 90.0;
+/// Runs longer than this are fitted with the oval's harmonics ([`fit_long_arch_end`]), whose six
+/// terms a shorter run does not hold well: on the rendered runs of 116° the quadratics next to each
+/// end were within 0.2–0.8 mm and the harmonics 0.7–1.3 mm; on those of 155° and 192°, 2.2–3.8 mm
+/// against 0.2–1.2 mm (bc-polished-long seeds 1–3, which chose this).
+const HARMONIC_ARCH_DEG: f64 = 135.0;
 /// Bins outside a run's ends that join its fit: they hold the crest to the cone there.
 const ARCH_MARGIN_DEG: f64 = 12.0;
 /// A fitted end further than this from the threshold's end is not trusted (the threshold's stands).
@@ -254,9 +258,9 @@ fn window_reading(q: f64, smear: f64) -> (f64, f64) {
 /// polished crest, so where it first crosses a threshold scatters by degrees; and the window a
 /// crest radius is fitted over reads a deficit already before the true end
 /// ([`window_reading`]). Along a run the true deficit is an arch (the mill surface and the cone
-/// are both smooth): a quadratic (on runs up to [`ARCH_SPAN_DEG`]) or sinusoids of one and two
-/// per turn on a slope (longer runs), fitted through the window's reading to every bin of the run and a margin
-/// either side, has its roots at the ends.
+/// are both smooth): a quadratic (over at most [`ARCH_SPAN_DEG`] in from each end) or, on runs
+/// longer than [`HARMONIC_ARCH_DEG`], sinusoids of one and two per turn on a slope, fitted through
+/// the window's reading to the run's bins and a margin either side, has its roots at the ends.
 /// Re-marks `runs` from the fitted ends and returns, per bin, the part [from, to] (0–1 of the
 /// bin) on the mill surface where an end falls inside it.
 fn fit_polished_ends(
@@ -320,11 +324,18 @@ fn fit_arch_end(
     side: End,
     smear_mm: f64,
 ) -> Option<f64> {
-    if last - first > ARCH_SPAN_DEG {
+    if last - first > HARMONIC_ARCH_DEG {
         return fit_long_arch_end(deficits, helix_deg, first, last, side, smear_mm);
     }
-    // The fitted stretch: the run and a margin either side.
-    let (lo, hi) = (first - ARCH_MARGIN_DEG, last + ARCH_MARGIN_DEG);
+    // The fitted stretch: the run and a margin, at most ARCH_SPAN_DEG in from this end.
+    let (lo, hi) = if last - first <= ARCH_SPAN_DEG {
+        (first - ARCH_MARGIN_DEG, last + ARCH_MARGIN_DEG)
+    } else {
+        match side {
+            End::Start => (first - ARCH_MARGIN_DEG, first + ARCH_SPAN_DEG),
+            End::Finish => (last - ARCH_SPAN_DEG, last + ARCH_MARGIN_DEG),
+        }
+    };
     // u ∈ [−1, 1] over the stretch keeps the normal equations well conditioned.
     let (centre, half) = (0.5 * (lo + hi), 0.5 * (hi - lo));
     let samples = stretch_samples(deficits, helix_deg, lo, hi, |deg| (deg - centre) / half);
@@ -358,13 +369,14 @@ fn fit_arch_end(
         .min_by(|x, y| (x - end).abs().total_cmp(&(y - end).abs()))
 }
 
-/// One end of a run longer than [`ARCH_SPAN_DEG`]. Over that much of a turn a quadratic no longer
-/// follows the deficit: fitted over the 90° next to each end, it left the ends 0.7–2.1° inward
-/// noise-free, 5.6° on a mill surface whose diameters differ by 0.2 mm, and 3.8 mm short on rendered runs of
-/// 150–190°. The pipe's outside is an oval whose centre is off the thread axis, and the cone rises
-/// along the helix, so the deficit is exactly a constant, a slope and sinusoids of one and two
-/// per turn: that is fitted through the window's reading over the whole run and its margins.
-/// Its root nearest this end, rising inward, within [`ARCH_MAX_SHIFT_DEG`] of it.
+/// One end of a run longer than [`HARMONIC_ARCH_DEG`]. Over that much of a turn a quadratic no
+/// longer follows the deficit: fitted over the 90° next to each end, it left the ends of runs of
+/// 120–240° 0.7–2.1° inward noise-free, up to 5.6° on a mill surface whose diameters differ by
+/// 0.2 mm, and rendered runs of 155–192° up to 3.8 mm short. The pipe's outside is an oval whose
+/// centre is off the thread axis, and the cone rises along the helix, so the deficit is exactly a
+/// constant, a slope and sinusoids of one and two per turn: that is fitted through the window's
+/// reading over the whole run and its margins. Its root nearest this end, rising inward, within
+/// [`ARCH_MAX_SHIFT_DEG`] of it.
 fn fit_long_arch_end(
     deficits: &[Option<f64>],
     helix_deg: &[f64],
