@@ -179,6 +179,7 @@ pub const HOLDOUT_SUITE: &[Case] = &[
     Case { preset: "bc-polished-long", seed: 1 },
     Case { preset: "bc-polished-long", seed: 2 },
     Case { preset: "bc-polished-long", seed: 3 },
+    Case { preset: "bc-polished-long", seed: 4 },
 ];
 
 /// A named benchmark suite.
