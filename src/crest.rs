@@ -375,8 +375,9 @@ fn fit_arch_end(
 /// 0.2 mm, and rendered runs of 155–192° up to 3.8 mm short. The pipe's outside is an oval whose
 /// centre is off the thread axis, and the cone rises along the helix, so the deficit is exactly a
 /// constant, a slope and sinusoids of one and two per turn: that is fitted through the window's
-/// reading over the whole run and its margins. Its root nearest this end, rising inward, within
-/// [`ARCH_MAX_SHIFT_DEG`] of it.
+/// reading over the whole run and its margins. The end is where it crosses zero rising inward,
+/// searched from [`ARCH_MAX_SHIFT_DEG`] inside this end outward to as far outside (the innermost
+/// crossing if there were two).
 fn fit_long_arch_end(
     deficits: &[Option<f64>],
     helix_deg: &[f64],

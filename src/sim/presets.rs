@@ -316,8 +316,9 @@ pub fn preset(name: &str) -> Option<SimSpec> {
             spec(name, pm, part, standard_optics(), ring_layout(), 34.5, sensor)
         }
         "bc-polished-long" => {
-            // A pipe 0.8 mm off the thread axis: polished black crests on threads 1–6 whose runs
-            // grow from about 50° to about 190° along the helix, which the short preset's do not.
+            // A pipe 0.5 mm off the thread axis: polished black crests on threads 3–6 whose runs
+            // grow from 63° to 192° along the helix (the short preset's is 85°), all clear of the
+            // chamfer band at the end face.
             let (pm, mut part) = connection_part("BC 4-1/2", eccentric(0.27, 0.5, 95.0), 1.7);
             part.polished = vec![PolishedPatch { from_deg: 0.0, to_deg: 360.0, z_from_mm: 0.0, z_to_mm: 200.0 }];
             spec(name, pm, part, standard_optics(), ring_layout(), 34.5, sensor)
