@@ -226,7 +226,7 @@ fn drop_short_geometric_runs(runs: &mut [bool], dark: &[bool], min_bins: usize) 
 /// How far inward from each end of a polished run its arch is fitted as a quadratic: a quadratic
 /// describes any smooth mill surface over that much of a turn, not over a whole turn.
 const ARCH_SPAN_DEG: f64 = 90.0;
-/// Runs longer than this are fitted with the oval's harmonics ([`fit_long_arch_end`]), whose six
+/// Runs longer than this are fitted with the oval's harmonics ([`fit_long_arch`]), whose six
 /// terms a shorter run does not hold well: on the rendered runs of 116° the quadratics next to each
 /// end were within 0.2–0.8 mm and the harmonics 0.7–1.3 mm; on those of 155° and 192°, 2.2–3.8 mm
 /// against 0.2–1.2 mm (bc-polished-long seeds 1–3, which chose this).
@@ -276,9 +276,15 @@ fn fit_polished_ends(
             continue;
         }
         let (first, last) = (helix_deg[span.start] - 0.5, helix_deg[span.end - 1] + 0.5);
+        // A long run's one fit gives both ends; a shorter one's quadratic is fitted per end.
+        let long =
+            (last - first > HARMONIC_ARCH_DEG).then(|| fit_long_arch(deficits, helix_deg, first, last, smear_mm));
         let fitted = |side: End| {
-            fit_arch_end(deficits, helix_deg, first, last, side, smear_mm)
-                .filter(|&end| (end - side.pick(first, last)).abs() <= ARCH_MAX_SHIFT_DEG)
+            let end = match &long {
+                Some(arch) => arch.as_ref().and_then(|arch| arch.end(first, last, side)),
+                None => fit_arch_end(deficits, helix_deg, first, last, side, smear_mm),
+            };
+            end.filter(|&end| (end - side.pick(first, last)).abs() <= ARCH_MAX_SHIFT_DEG)
                 .unwrap_or(side.pick(first, last))
         };
         let (from, to) = (fitted(End::Start), fitted(End::Finish));
@@ -324,9 +330,6 @@ fn fit_arch_end(
     side: End,
     smear_mm: f64,
 ) -> Option<f64> {
-    if last - first > HARMONIC_ARCH_DEG {
-        return fit_long_arch_end(deficits, helix_deg, first, last, side, smear_mm);
-    }
     // The fitted stretch: the run and a margin, at most ARCH_SPAN_DEG in from this end.
     let (lo, hi) = if last - first <= ARCH_SPAN_DEG {
         (first - ARCH_MARGIN_DEG, last + ARCH_MARGIN_DEG)
@@ -369,55 +372,72 @@ fn fit_arch_end(
         .min_by(|x, y| (x - end).abs().total_cmp(&(y - end).abs()))
 }
 
-/// One end of a run longer than [`HARMONIC_ARCH_DEG`]. Over that much of a turn a quadratic no
+/// The arch of a run longer than [`HARMONIC_ARCH_DEG`]. Over that much of a turn a quadratic no
 /// longer follows the deficit: fitted over the 90° next to each end, it left the ends of runs of
 /// 120–240° 0.7–2.1° inward noise-free, up to 5.6° on a mill surface whose diameters differ by
 /// 0.2 mm, and rendered runs of 155–192° up to 3.8 mm short. The pipe's outside is an oval whose
 /// centre is off the thread axis, and the cone rises along the helix, so the deficit is exactly a
 /// constant, a slope and sinusoids of one and two per turn: that is fitted through the window's
-/// reading over the whole run and its margins. The end is where it crosses zero rising inward,
-/// searched from [`ARCH_MAX_SHIFT_DEG`] inside this end outward to as far outside (the innermost
-/// crossing if there were two).
-fn fit_long_arch_end(
+/// reading over the whole run and its margins. None where the run's inner bins are too few.
+fn fit_long_arch(
     deficits: &[Option<f64>],
     helix_deg: &[f64],
     first: f64,
     last: f64,
-    side: End,
     smear_mm: f64,
-) -> Option<f64> {
+) -> Option<LongArch> {
     let (lo, hi) = (first - ARCH_MARGIN_DEG, last + ARCH_MARGIN_DEG);
-    let centre = 0.5 * (lo + hi);
-    let x_of = |deg: f64| (deg - centre).to_radians();
+    let centre_deg = 0.5 * (lo + hi);
+    let x_of = |deg: f64| (deg - centre_deg).to_radians();
     let samples = stretch_samples(deficits, helix_deg, lo, hi, x_of);
-    let basis = |x: f64| SVector::<f64, 6>::from([1.0, x, x.cos(), x.sin(), (2.0 * x).cos(), (2.0 * x).sin()]);
-    let p = fit_through_window(&samples, (x_of(first + 2.0), x_of(last - 2.0)), basis, smear_mm)?;
-    let arch = |deg: f64| basis(x_of(deg)).dot(&p);
-    // Scan outward from the run's interior side in 0.05° steps for the crossing, then bisect.
-    let end = side.pick(first, last);
-    let inward = match side {
-        End::Start => 1.0,
-        End::Finish => -1.0,
-    };
-    let step_deg = 0.05;
-    let steps = (2.0 * ARCH_MAX_SHIFT_DEG / step_deg).round() as i64;
-    let mut inside = end + inward * ARCH_MAX_SHIFT_DEG;
-    if arch(inside) <= 0.0 {
-        return None;
+    let params = fit_through_window(&samples, (x_of(first + 2.0), x_of(last - 2.0)), LongArch::basis, smear_mm)?;
+    Some(LongArch { centre_deg, params })
+}
+
+/// A fitted [`fit_long_arch`]: the deficit at x rad from `centre_deg` is `basis(x) · params`.
+struct LongArch {
+    centre_deg: f64,
+    params: SVector<f64, 6>,
+}
+
+impl LongArch {
+    fn basis(x: f64) -> SVector<f64, 6> {
+        SVector::<f64, 6>::from([1.0, x, x.cos(), x.sin(), (2.0 * x).cos(), (2.0 * x).sin()])
     }
-    for _ in 0..steps {
-        let outside = inside - inward * step_deg;
-        if arch(outside) <= 0.0 {
-            let (mut a, mut b) = (inside, outside);
-            for _ in 0..40 {
-                let mid = 0.5 * (a + b);
-                if arch(mid) > 0.0 { a = mid } else { b = mid }
-            }
-            return Some(0.5 * (a + b));
+
+    fn at(&self, deg: f64) -> f64 {
+        Self::basis((deg - self.centre_deg).to_radians()).dot(&self.params)
+    }
+
+    /// The run's end on `side` of [first, last]: where the arch crosses zero rising inward,
+    /// searched in 0.05° steps from [`ARCH_MAX_SHIFT_DEG`] inside that end outward to as far
+    /// outside (the innermost crossing if there were two), then bisected. None without one.
+    fn end(&self, first: f64, last: f64, side: End) -> Option<f64> {
+        let end = side.pick(first, last);
+        let inward = match side {
+            End::Start => 1.0,
+            End::Finish => -1.0,
+        };
+        let step_deg = 0.05;
+        let steps = (2.0 * ARCH_MAX_SHIFT_DEG / step_deg).round() as i64;
+        let mut inside = end + inward * ARCH_MAX_SHIFT_DEG;
+        if self.at(inside) <= 0.0 {
+            return None;
         }
-        inside = outside;
+        for _ in 0..steps {
+            let outside = inside - inward * step_deg;
+            if self.at(outside) <= 0.0 {
+                let (mut a, mut b) = (inside, outside);
+                for _ in 0..40 {
+                    let mid = 0.5 * (a + b);
+                    if self.at(mid) > 0.0 { a = mid } else { b = mid }
+                }
+                return Some(0.5 * (a + b));
+            }
+            inside = outside;
+        }
+        None
     }
-    None
 }
 
 /// The (coordinate, deficit) samples of the bins within [lo, hi]° along the helix.
