@@ -276,18 +276,29 @@ fn fit_polished_ends(
             continue;
         }
         let (first, last) = (helix_deg[span.start] - 0.5, helix_deg[span.end - 1] + 0.5);
-        // A long run's one fit gives both ends; a shorter one's quadratic is fitted per end.
-        let long =
-            (last - first > HARMONIC_ARCH_DEG).then(|| fit_long_arch(deficits, helix_deg, first, last, smear_mm));
-        let fitted = |side: End| {
-            let end = match &long {
-                Some(arch) => arch.as_ref().and_then(|arch| arch.end(first, last, side)),
-                None => fit_arch_end(deficits, helix_deg, first, last, side, smear_mm),
-            };
+        let sides = [End::Start, End::Finish];
+        let whole_run = (first - ARCH_MARGIN_DEG, last + ARCH_MARGIN_DEG);
+        // One fit gives both ends, except on a run whose quadratics are fitted next to each end.
+        let ends: [Option<f64>; 2] = if last - first > HARMONIC_ARCH_DEG {
+            let arch = fit_long_arch(deficits, helix_deg, first, last, smear_mm);
+            sides.map(|side| arch.as_ref()?.end(first, last, side))
+        } else if last - first <= ARCH_SPAN_DEG {
+            let arch = fit_quadratic_arch(deficits, helix_deg, first, last, whole_run, smear_mm);
+            sides.map(|side| arch.as_ref()?.end(first, last, side))
+        } else {
+            sides.map(|side| {
+                let next_to_end = match side {
+                    End::Start => (whole_run.0, first + ARCH_SPAN_DEG),
+                    End::Finish => (last - ARCH_SPAN_DEG, whole_run.1),
+                };
+                fit_quadratic_arch(deficits, helix_deg, first, last, next_to_end, smear_mm)?.end(first, last, side)
+            })
+        };
+        let fitted = |side: End, end: Option<f64>| {
             end.filter(|&end| (end - side.pick(first, last)).abs() <= ARCH_MAX_SHIFT_DEG)
                 .unwrap_or(side.pick(first, last))
         };
-        let (from, to) = (fitted(End::Start), fitted(End::Finish));
+        let (from, to) = (fitted(End::Start, ends[0]), fitted(End::Finish, ends[1]));
         // The run's own bins are re-marked; beyond them, bins only join it (another run there
         // keeps its marks).
         let reach = ARCH_MAX_SHIFT_DEG.ceil() as usize + 1;
@@ -318,58 +329,61 @@ impl End {
             End::Finish => finish,
         }
     }
+
+    /// The sign of the direction along the helix into a run from this end.
+    fn inward(self) -> f64 {
+        self.pick(1.0, -1.0)
+    }
 }
 
-/// One end of a run from [first, last]° along the helix (see [`fit_polished_ends`]); None where
-/// the fit has too few bins or no root of the right sense near that end.
-fn fit_arch_end(
+/// The quadratic arch of a run from [first, last]° along the helix (see [`fit_polished_ends`]),
+/// fitted over the `stretch` [lo, hi]°; None where the run's inner bins there are too few.
+fn fit_quadratic_arch(
     deficits: &[Option<f64>],
     helix_deg: &[f64],
     first: f64,
     last: f64,
-    side: End,
+    (lo, hi): (f64, f64),
     smear_mm: f64,
-) -> Option<f64> {
-    // The fitted stretch: the run and a margin, at most ARCH_SPAN_DEG in from this end.
-    let (lo, hi) = if last - first <= ARCH_SPAN_DEG {
-        (first - ARCH_MARGIN_DEG, last + ARCH_MARGIN_DEG)
-    } else {
-        match side {
-            End::Start => (first - ARCH_MARGIN_DEG, first + ARCH_SPAN_DEG),
-            End::Finish => (last - ARCH_SPAN_DEG, last + ARCH_MARGIN_DEG),
-        }
-    };
+) -> Option<QuadraticArch> {
     // u ∈ [−1, 1] over the stretch keeps the normal equations well conditioned.
-    let (centre, half) = (0.5 * (lo + hi), 0.5 * (hi - lo));
-    let samples = stretch_samples(deficits, helix_deg, lo, hi, |deg| (deg - centre) / half);
-    let basis = |u: f64| Vector3::new(1.0, u, u * u);
-    let inner = ((first + 2.0 - centre) / half, (last - 2.0 - centre) / half);
-    let p = fit_through_window(&samples, inner, basis, smear_mm)?;
-    // The root nearest this end at which the arch rises into the run.
-    let (a, b, c) = (p[0], p[1], p[2]);
-    let roots: Vec<f64> = if c.abs() < 1e-12 {
-        if b.abs() < 1e-12 { vec![] } else { vec![-a / b] }
-    } else {
-        let disc = b * b - 4.0 * a * c;
-        if disc < 0.0 {
-            return None;
-        }
-        let sq = disc.sqrt();
-        vec![(-b - sq) / (2.0 * c), (-b + sq) / (2.0 * c)]
-    };
-    let end = side.pick(first, last);
-    let rising_inward = |u: f64| {
-        let slope = b + 2.0 * c * u;
-        match side {
-            End::Start => slope > 0.0,
-            End::Finish => slope < 0.0,
-        }
-    };
-    roots
-        .into_iter()
-        .filter(|&u| rising_inward(u))
-        .map(|u| centre + half * u)
-        .min_by(|x, y| (x - end).abs().total_cmp(&(y - end).abs()))
+    let (centre_deg, half_deg) = (0.5 * (lo + hi), 0.5 * (hi - lo));
+    let samples = stretch_samples(deficits, helix_deg, lo, hi, |deg| (deg - centre_deg) / half_deg);
+    let inner = ((first + 2.0 - centre_deg) / half_deg, (last - 2.0 - centre_deg) / half_deg);
+    let params = fit_through_window(&samples, inner, |u| Vector3::new(1.0, u, u * u), smear_mm)?;
+    Some(QuadraticArch { centre_deg, half_deg, params })
+}
+
+/// A fitted [`fit_quadratic_arch`]: the deficit at u = (θ − `centre_deg`) / `half_deg` is
+/// `params · (1, u, u²)`.
+struct QuadraticArch {
+    centre_deg: f64,
+    half_deg: f64,
+    params: Vector3<f64>,
+}
+
+impl QuadraticArch {
+    /// The run's end on `side` of [first, last]: the root nearest that end at which the arch
+    /// rises into the run. None without one.
+    fn end(&self, first: f64, last: f64, side: End) -> Option<f64> {
+        let (a, b, c) = (self.params[0], self.params[1], self.params[2]);
+        let roots: Vec<f64> = if c.abs() < 1e-12 {
+            if b.abs() < 1e-12 { vec![] } else { vec![-a / b] }
+        } else {
+            let disc = b * b - 4.0 * a * c;
+            if disc < 0.0 {
+                return None;
+            }
+            let sq = disc.sqrt();
+            vec![(-b - sq) / (2.0 * c), (-b + sq) / (2.0 * c)]
+        };
+        let end = side.pick(first, last);
+        roots
+            .into_iter()
+            .filter(|&u| side.inward() * (b + 2.0 * c * u) > 0.0)
+            .map(|u| self.centre_deg + self.half_deg * u)
+            .min_by(|x, y| (x - end).abs().total_cmp(&(y - end).abs()))
+    }
 }
 
 /// The arch of a run longer than [`HARMONIC_ARCH_DEG`]. Over that much of a turn a quadratic no
@@ -413,11 +427,7 @@ impl LongArch {
     /// searched in 0.05° steps from [`ARCH_MAX_SHIFT_DEG`] inside that end outward to as far
     /// outside (the innermost crossing if there were two), then bisected. None without one.
     fn end(&self, first: f64, last: f64, side: End) -> Option<f64> {
-        let end = side.pick(first, last);
-        let inward = match side {
-            End::Start => 1.0,
-            End::Finish => -1.0,
-        };
+        let (end, inward) = (side.pick(first, last), side.inward());
         let step_deg = 0.05;
         let steps = (2.0 * ARCH_MAX_SHIFT_DEG / step_deg).round() as i64;
         let mut inside = end + inward * ARCH_MAX_SHIFT_DEG;
