@@ -256,8 +256,23 @@ enum ArcRuleArg {
     Combined,
 }
 
+/// A command whose output is piped into a reader that stops early (`crestscan inspect B | head`)
+/// ends as other command-line tools do, by SIGPIPE, rather than panicking in `println!`. Rust
+/// ignores the signal so that a write to a closed socket returns an error instead: the commands
+/// that talk over sockets (`serve`, `healthcheck`) keep that.
+fn stop_quietly_on_closed_stdout() {
+    #[cfg(unix)]
+    // SAFETY: restores the default disposition of one signal before any thread is started.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+}
+
 fn main() -> Result<()> {
     let cli = Cli::parse();
+    if !matches!(cli.command, Command::Serve(_) | Command::Healthcheck { .. }) {
+        stop_quietly_on_closed_stdout();
+    }
     match cli.command {
         Command::Serve(args) => serve(args)?,
         Command::Healthcheck { addr } => healthcheck(addr)?,

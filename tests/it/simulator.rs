@@ -313,3 +313,23 @@ fn cli_lists_presets_one_per_line() {
     }
     assert!(lines.iter().any(|l| l.starts_with("ci")));
 }
+
+/// A reader that stops early (`crestscan simulate --list | head -1`) ends the command by SIGPIPE,
+/// as it ends other tools, not by a panic in `println!`.
+#[cfg(unix)]
+#[test]
+fn cli_output_into_a_closed_pipe_ends_the_command_without_a_panic() {
+    use std::os::unix::process::ExitStatusExt;
+    use std::process::Stdio;
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_crestscan"))
+        .args(["simulate", "--list"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take()); // the reader is gone before the command has started writing
+    let out = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert!(out.status.success() || out.status.signal() == Some(libc::SIGPIPE), "{:?}: {stderr}", out.status);
+}
