@@ -180,6 +180,10 @@ pub const HOLDOUT_SUITE: &[Case] = &[
     Case { preset: "bc-polished-long", seed: 2 },
     Case { preset: "bc-polished-long", seed: 3 },
     Case { preset: "bc-polished-long", seed: 4 },
+    Case { preset: "bc-polished-end", seed: 1 },
+    Case { preset: "bc-polished-end", seed: 2 },
+    Case { preset: "bc-polished-end", seed: 3 },
+    Case { preset: "lc-round-black", seed: 7 },
 ];
 
 /// A named benchmark suite.

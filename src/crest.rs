@@ -16,7 +16,9 @@
 //! polished to look machined, and unlike a height threshold it does not mistake a vanishing thread
 //! (shallow because its root rises, its crest still machined) for a black one. The end chamfer is
 //! machined: crests within 1.5 pitches of the end face that look machined are flagged as chamfer,
-//! never as black.
+//! never as black, unless the crest at the same angle beyond that zone is black too (the cone
+//! rises away from the end face, so the mill surface that stands below it there stands below it
+//! on every later turn; the chamfer cuts the first crests alone).
 
 use crate::profile::{ThreadMeasure, median};
 use crate::rules::{CrestBin, ThreadObservation};
@@ -143,6 +145,25 @@ fn thresholds(smoothed: &[Option<f64>], options: &CrestOptions) -> (f64, f64, f6
     // Most crests are machined: their deficits scatter about zero, the black ones sit far out.
     let scatter_um = 1e3 * robust_scale(smoothed.iter().flatten().copied()).unwrap_or(0.0);
     (options.mill_onset_um.max(4.0 * scatter_um), options.mill_extent_um.max(1.5 * scatter_um), scatter_um)
+}
+
+/// Which crests of the chamfer zone (the first `zone_end` bins in helix order, `per_turn` bins a
+/// turn) stand on the mill surface: those on a geometric run where the crest at the same angle
+/// on the first turn beyond the zone is on the mill surface too (on a run, or dark). The cone
+/// rises away from the end face while the mill surface keeps its radius along a few pitches, so a
+/// crest at an angle where the mill surface stands below the cone has one below it at that angle
+/// on every later turn, and a crest with a full one beyond it at its angle is not on the mill
+/// surface. The chamfer (or a turned blank) cuts the first crests without any such crest beyond:
+/// on the round presets it dips thread 1's crest by 10–26 µm a few degrees after the helix starts;
+/// on the Table 1 case thread 1's crests sit 310–360 µm under the cone. Where the later crest is
+/// not measured, the zone's crest is taken for the chamfer.
+fn mill_surface_in_chamfer_zone(runs: &[bool], dark: &[bool], zone_end: usize, per_turn: usize) -> Vec<bool> {
+    (0..zone_end)
+        .map(|i| {
+            let beyond = (i..runs.len()).step_by(per_turn.max(1)).find(|&j| j >= zone_end);
+            runs[i] && beyond.is_some_and(|j| runs[j] || dark[j])
+        })
+        .collect()
 }
 
 /// Marks runs along the helix: a bin whose deficit reaches `onset` starts a run, which extends in
@@ -592,6 +613,8 @@ pub fn observations(
         .filter(|(b, dark)| b.crest_z_mm >= chamfer_zone_mm && !**dark)
         .filter_map(|(b, _)| Some((b.crest_z_mm, b.angle_deg, b.crest_radius_mm?)))
         .collect();
+    // The chamfer zone's bins come first along the helix (z rises along it).
+    let zone_end = in_helix_order().position(|b| b.crest_z_mm >= chamfer_zone_mm).unwrap_or(dark.len());
     let (on_mill, mill_part, cone) = match fit_cone(&crests, nominal_slope) {
         None => (vec![false; in_helix_order().count()], vec![None; in_helix_order().count()], None),
         Some((params, used)) => {
@@ -622,6 +645,14 @@ pub fn observations(
         }
     };
 
+    // Bins at one angle are a turn apart in helix order where every thread has a bin per degree
+    // (as the profile stage measures them); otherwise the whole zone is the chamfer.
+    let per_turn = threads.first().map_or(0, |t| t.bins.len());
+    let mill_in_zone = if per_turn > 0 && threads.iter().all(|t| t.bins.len() == per_turn) {
+        mill_surface_in_chamfer_zone(&on_mill, &dark, zone_end, per_turn)
+    } else {
+        vec![false; zone_end]
+    };
     let mut helix_index = 0..;
     let observations = threads
         .iter()
@@ -646,7 +677,7 @@ pub fn observations(
                         arcs.push([from, to]);
                     }
                 }
-                let chamfer = !dark && b.crest_z_mm < chamfer_zone_mm;
+                let chamfer = !dark && i < zone_end && !mill_in_zone[i];
                 // A dark run's partly covered end bin is measured by its darkness: its geometry
                 // (which took its extent from the darkness) would count the whole bin.
                 let partly_dark = dark && (first || last) && cover < 1.0;
@@ -739,10 +770,16 @@ mod tests {
             if index != 5 {
                 return cone;
             }
-            let (x, h) = ((theta - 130.0).to_radians(), half_span_deg.to_radians());
-            let deficit = eccentricity_mm * (x.cos() - h.cos()) + ovality_mm * ((2.0 * x).cos() - (2.0 * h).cos());
-            window_fit(cone, cone - deficit, 201)
+            polished_crest(theta, cone, eccentricity_mm, ovality_mm, half_span_deg)
         })
+    }
+
+    /// A crest at `cone` read through the window where the mill surface of
+    /// [`polished_thread_5_oval`] cuts it.
+    fn polished_crest(theta: f64, cone: f64, eccentricity_mm: f64, ovality_mm: f64, half_span_deg: f64) -> f64 {
+        let (x, h) = ((theta - 130.0).to_radians(), half_span_deg.to_radians());
+        let deficit = eccentricity_mm * (x.cos() - h.cos()) + ovality_mm * ((2.0 * x).cos() - (2.0 * h).cos());
+        window_fit(cone, cone - deficit, 201)
     }
 
     #[test]
@@ -800,6 +837,44 @@ mod tests {
             let arcs = mill_arcs(&findings, 5);
             assert_eq!(arcs.len(), 1, "{ovality_mm}: {arcs:?}");
             assert!((arcs[0][0] - 30.0).abs() <= 0.6 && (arcs[0][1] - 230.0).abs() <= 0.6, "{ovality_mm}: {arcs:?}");
+        }
+    }
+
+    /// Thread 1 and thread 2 up to 110° lie within 1.5 pitches of the end face (the chamfer zone),
+    /// where every crest that looked machined was once taken for the chamfer. A crest there is
+    /// the mill surface where the crest at its angle beyond the zone is (the cone rises away from
+    /// the end face): a polished crest across threads 1–3 at 100°–160° is black on all three; the
+    /// same crest on thread 1 alone, and a lead-in 330 µm under the cone over thread 1's first 30°
+    /// (as the Table 1 case's turned blank leaves it), are the chamfer.
+    #[test]
+    fn a_polished_crest_in_the_chamfer_zone_is_black_where_the_crest_beyond_it_is() {
+        for (lead_in_deg, polished_threads) in [(0.0, 3), (30.0, 3), (30.0, 1)] {
+            let threads = part(|index, theta, cone| match index {
+                1 if theta < lead_in_deg => cone - 0.33,
+                i if i <= polished_threads => polished_crest(theta, cone, 0.4, 0.0, 30.0),
+                _ => cone,
+            });
+            let findings = observations(&threads, 40.0, PITCH, SLOPE, WINDOW_HALF_MM, &CrestOptions::default());
+            let case = format!("lead-in {lead_in_deg}°, polished threads 1–{polished_threads}");
+            for index in 1..=7 {
+                let arcs = mill_arcs(&findings, index);
+                if polished_threads == 3 && index <= 3 {
+                    assert_eq!(arcs.len(), 1, "{case}, thread {index}: {arcs:?}");
+                    let [from, to] = arcs[0];
+                    assert!(
+                        (from - 100.0).abs() <= 0.4 && (to - 160.0).abs() <= 0.4,
+                        "{case}, thread {index}: {arcs:?}"
+                    );
+                } else {
+                    assert!(arcs.is_empty(), "{case}, thread {index}: {arcs:?}");
+                }
+            }
+            // Thread 1's crests are the chamfer but where they are black.
+            for b in &findings.observations[0].bins {
+                let black = polished_threads == 3 && (101.0..159.0).contains(&b.angle_deg);
+                let chamfer = polished_threads == 1 || !(98.0..162.0).contains(&b.angle_deg);
+                assert!(!(black && b.chamfer) && (!chamfer || b.chamfer), "{case}: {b:?}");
+            }
         }
     }
 

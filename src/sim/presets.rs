@@ -57,6 +57,10 @@ pub const PRESETS: &[PresetInfo] = &[
         description: "standard optics; a black crest within Lc polished to look machined over more than a quarter of the turn (reject, found only by its geometry)",
     },
     PresetInfo {
+        name: "bc-polished-end",
+        description: "standard optics; black crests polished to look machined on every thread from the first, next to the end face (reject, found only by their geometry)",
+    },
+    PresetInfo {
         name: "lc-accept",
         description: "LC 4-1/2 round thread, nominal pipe: black crests only beyond Lc (accept)",
     },
@@ -320,6 +324,13 @@ pub fn preset(name: &str) -> Option<SimSpec> {
             // grow from 63° to 192° along the helix (the short preset's is 85°), all clear of the
             // chamfer band at the end face.
             let (pm, mut part) = connection_part("BC 4-1/2", eccentric(0.27, 0.5, 95.0), 1.7);
+            part.polished = vec![PolishedPatch { from_deg: 0.0, to_deg: 360.0, z_from_mm: 0.0, z_to_mm: 200.0 }];
+            spec(name, pm, part, standard_optics(), ring_layout(), 34.5, sensor)
+        }
+        "bc-polished-end" => {
+            // A pipe 0.8 mm off the thread axis: polished black crests on every thread from the
+            // first, whose run lies within the chamfer's band (1.5 pitches of the end face).
+            let (pm, mut part) = connection_part("BC 4-1/2", eccentric(0.27, 0.8, 95.0), 1.7);
             part.polished = vec![PolishedPatch { from_deg: 0.0, to_deg: 360.0, z_from_mm: 0.0, z_to_mm: 200.0 }];
             spec(name, pm, part, standard_optics(), ring_layout(), 34.5, sensor)
         }
