@@ -18,7 +18,8 @@ pub struct Limits {
     /// Bytes of one file.
     pub max_file_bytes: u64,
     /// Samples of one view's focal stack (frames × pixels per frame): depth from focus holds the
-    /// stack's focus measure, 4 bytes a sample, for each view in flight.
+    /// stack's focus measure, 4 bytes a sample, and its decoded frames, 1 to 12 bytes a sample by
+    /// channels and bit depth (3 for 8-bit RGB), for each view in flight.
     pub max_stack_samples: u64,
     /// Pixels of one frame of each view, summed over the views: the inspection keeps a depth map,
     /// a confidence and a colour per pixel of every view (20 bytes a pixel) until fusion.
