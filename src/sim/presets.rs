@@ -58,7 +58,7 @@ pub const PRESETS: &[PresetInfo] = &[
     },
     PresetInfo {
         name: "bc-polished-end",
-        description: "standard optics; black crests polished to look machined on every thread from the first, next to the end face (reject, found only by their geometry)",
+        description: "standard optics; black crests polished to look machined on threads 1–6, the first next to the end face (reject, found only by their geometry)",
     },
     PresetInfo {
         name: "lc-accept",
@@ -328,8 +328,8 @@ pub fn preset(name: &str) -> Option<SimSpec> {
             spec(name, pm, part, standard_optics(), ring_layout(), 34.5, sensor)
         }
         "bc-polished-end" => {
-            // A pipe 0.8 mm off the thread axis: polished black crests on every thread from the
-            // first, whose run lies within the chamfer's band (1.5 pitches of the end face).
+            // A pipe 0.8 mm off the thread axis: polished black crests on threads 1–6, thread 1's
+            // and the start of thread 2's within the chamfer zone (1.5 pitches of the end face).
             let (pm, mut part) = connection_part("BC 4-1/2", eccentric(0.27, 0.8, 95.0), 1.7);
             part.polished = vec![PolishedPatch { from_deg: 0.0, to_deg: 360.0, z_from_mm: 0.0, z_to_mm: 200.0 }];
             spec(name, pm, part, standard_optics(), ring_layout(), 34.5, sensor)
