@@ -607,14 +607,16 @@ pub fn observations(
         .map(|i| (dark[i] && (i == 0 || !dark[i - 1]), dark[i] && (i + 1 == dark.len() || !dark[i + 1])))
         .collect();
 
-    // Geometric: the crests' deficits below the fitted cone, in helix order.
-    let crests: Vec<(f64, f64, f64)> = in_helix_order()
-        .zip(&dark)
-        .filter(|(b, dark)| b.crest_z_mm >= chamfer_zone_mm && !**dark)
-        .filter_map(|(b, _)| Some((b.crest_z_mm, b.angle_deg, b.crest_radius_mm?)))
-        .collect();
     // The chamfer zone's bins come first along the helix (z rises along it).
     let zone_end = in_helix_order().position(|b| b.crest_z_mm >= chamfer_zone_mm).unwrap_or(dark.len());
+    // Geometric: the crests' deficits below the cone fitted to the crests beyond the zone, in
+    // helix order.
+    let crests: Vec<(f64, f64, f64)> = in_helix_order()
+        .zip(&dark)
+        .skip(zone_end)
+        .filter(|(_, dark)| !**dark)
+        .filter_map(|(b, _)| Some((b.crest_z_mm, b.angle_deg, b.crest_radius_mm?)))
+        .collect();
     let (on_mill, mill_part, cone) = match fit_cone(&crests, nominal_slope) {
         None => (vec![false; in_helix_order().count()], vec![None; in_helix_order().count()], None),
         Some((params, used)) => {
