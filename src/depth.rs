@@ -46,7 +46,7 @@ pub struct DepthOptions {
     /// its rows, and along the arc the thread changes slowly (a pitch per turn); every row of
     /// every frame still feeds the focus measure. 2 inspects the rings about a fifth faster
     /// with heights as accurate, but registration loses precision and black-crest ends move
-    /// (README, "Depth on every second row"): the default is every row.
+    /// (docs/accuracy.md, "Depth on every second row"): the default is every row.
     #[serde(default = "row_step")]
     pub row_step: usize,
     /// Half size of a second, small box that decides which surface a pixel at a steep edge shows
@@ -54,7 +54,7 @@ pub struct DepthOptions {
     /// crest and the root, a thread's height apart, and the focus curve peaks at both; the side
     /// whose texture is stronger there wins, which moves the edge by up to the half size toward
     /// the weaker side. Under chaser marks, which shade every crest alike, that moved every edge
-    /// of a part the same way (README: absolute z, under Accuracy and speed). Where the small
+    /// of a part the same way (docs/accuracy.md, "Absolute z"). Where the small
     /// box's sharpest frame is
     /// [`EDGE_MIN_SEPARATION_FRAMES`] or more from the big box's, and the big curve has a peak of
     /// its own there, that peak is the pixel's.
