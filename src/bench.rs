@@ -184,6 +184,10 @@ pub const HOLDOUT_SUITE: &[Case] = &[
     Case { preset: "bc-polished-end", seed: 2 },
     Case { preset: "bc-polished-end", seed: 3 },
     Case { preset: "lc-round-black", seed: 7 },
+    Case { preset: "bc-polished-long", seed: 5 },
+    Case { preset: "bc-polished-long", seed: 6 },
+    Case { preset: "bc-polished-end", seed: 4 },
+    Case { preset: "bc-polished-end", seed: 5 },
 ];
 
 /// A named benchmark suite.
