@@ -285,7 +285,7 @@ fn window_reading(q: f64, smear: f64) -> (f64, f64) {
 /// the window's reading to the run's bins and a margin either side, has its roots at the ends.
 /// Where two or more polished runs beyond the chamfer zone (the first `zone_end` bins) span more
 /// than [`HARMONIC_ARCH_DEG`] together, they are crests of one mill surface and are fitted as one
-/// ([`fit_joint_arch`]), which then gives every polished run's ends. Re-marks `runs` from the
+/// ([`fit_long_arch`]), which then gives every polished run's ends. Re-marks `runs` from the
 /// fitted ends and returns, per bin, the part [from, to] (0–1 of the bin) on the mill surface
 /// where an end falls inside it.
 fn fit_polished_ends(
@@ -305,7 +305,7 @@ fn fit_polished_ends(
     let fitted_together: Vec<(f64, f64)> = polished.iter().filter(|span| span.start >= zone_end).map(degrees).collect();
     let together_deg: f64 = fitted_together.iter().map(|(first, last)| last - first).sum();
     let joint = (fitted_together.len() >= 2 && together_deg > HARMONIC_ARCH_DEG)
-        .then(|| fit_joint_arch(deficits, helix_deg, &fitted_together, smear_mm))
+        .then(|| fit_long_arch(deficits, helix_deg, &fitted_together, smear_mm))
         .flatten();
     for span in polished {
         let (first, last) = degrees(&span);
@@ -315,7 +315,7 @@ fn fit_polished_ends(
         let ends: [Option<f64>; 2] = if let Some(arch) = &joint {
             sides.map(|side| arch.end(first, last, side))
         } else if last - first > HARMONIC_ARCH_DEG {
-            let arch = fit_long_arch(deficits, helix_deg, first, last, smear_mm);
+            let arch = fit_long_arch(deficits, helix_deg, &[(first, last)], smear_mm);
             sides.map(|side| arch.as_ref()?.end(first, last, side))
         } else if last - first <= ARCH_SPAN_DEG {
             let arch = fit_quadratic_arch(deficits, helix_deg, first, last, whole_run, smear_mm);
@@ -422,37 +422,19 @@ impl QuadraticArch {
     }
 }
 
-/// The arch of a run longer than [`HARMONIC_ARCH_DEG`]. Over that much of a turn a quadratic no
-/// longer follows the deficit: fitted over the 90° next to each end, it left the ends of runs of
-/// 120–240° 0.7–2.1° inward noise-free, up to 5.6° on a mill surface whose diameters differ by
-/// 0.2 mm, and rendered runs of 155–192° up to 3.8 mm short. The pipe's outside is an oval whose
-/// centre is off the thread axis, and the cone rises along the helix, so the deficit is exactly a
-/// constant, a slope and sinusoids of one and two per turn: that is fitted through the window's
-/// reading over the whole run and its margins. None where the run's inner bins are too few.
+/// The arch of polished runs ([first, last]° along the helix, in helix order) by the oval's
+/// harmonics: a single run longer than [`HARMONIC_ARCH_DEG`], or several runs of one mill surface.
+/// Over that much of a turn a quadratic no longer follows the deficit: fitted over the 90° next to
+/// each end, it left the ends of runs of 120–240° 0.7–2.1° inward noise-free, up to 5.6° on a mill
+/// surface whose diameters differ by 0.2 mm, and rendered runs of 155–192° up to 3.8 mm short. The
+/// pipe's outside is an oval whose centre is off the thread axis, and the cone rises along the
+/// helix, so the deficit is exactly a constant, a slope and sinusoids of one and two per turn.
+/// The oval does not change along the few pitches between runs on different turns, so one arch
+/// holds all their deficits: a short run alone is the weakest fit (its arch is an end or two of
+/// the surface's); beside the longer runs on the other turns its ends are where the same surface
+/// meets its crest line. Fitted through the window's reading over each run's bins and margins,
+/// not the machined crests between runs a turn apart. None where the runs' inner bins are too few.
 fn fit_long_arch(
-    deficits: &[Option<f64>],
-    helix_deg: &[f64],
-    first: f64,
-    last: f64,
-    smear_mm: f64,
-) -> Option<LongArch> {
-    let (lo, hi) = (first - ARCH_MARGIN_DEG, last + ARCH_MARGIN_DEG);
-    let centre_deg = 0.5 * (lo + hi);
-    let x_of = |deg: f64| (deg - centre_deg).to_radians();
-    let samples = stretch_samples(deficits, helix_deg, lo, hi, x_of);
-    let inner = (x_of(first + 2.0), x_of(last - 2.0));
-    let params = fit_through_window(&samples, |x| (inner.0..=inner.1).contains(&x), LongArch::basis, smear_mm)?;
-    Some(LongArch { centre_deg, params })
-}
-
-/// The arch of several polished runs ([first, last]° along the helix, in helix order) fitted as
-/// one: they are crests of one mill surface, whose radius varies around the turn (the oval and its
-/// centre off the thread axis) but not along the few pitches between them, under a cone that rises
-/// along the helix, so one [`LongArch`] holds their deficits on every turn. A short run alone is
-/// the weakest fit (its arch is an end or two of the surface's); beside the longer runs on the
-/// other turns its ends are where the same surface meets its crest line. The fit takes each run's
-/// bins and margins, not the machined crests between runs a turn apart.
-fn fit_joint_arch(
     deficits: &[Option<f64>],
     helix_deg: &[f64],
     runs_deg: &[(f64, f64)],

@@ -313,24 +313,20 @@ pub fn preset(name: &str) -> Option<SimSpec> {
             let (pm, part) = connection_part("BC 4-1/2", eccentric(0.166, 0.1, 300.0), 1.7);
             spec(name, pm, part, standard_optics(), ring_layout(), 34.5, sensor)
         }
-        "bc-polished" => {
-            // Deep enough that the crest is cut short by more than the height tolerance.
-            let (pm, mut part) = connection_part("BC 4-1/2", eccentric(-0.15, 0.4, 265.0), 1.7);
-            part.polished = vec![PolishedPatch { from_deg: 0.0, to_deg: 360.0, z_from_mm: 0.0, z_to_mm: 200.0 }];
-            spec(name, pm, part, standard_optics(), ring_layout(), 34.5, sensor)
-        }
-        "bc-polished-long" => {
-            // A pipe 0.5 mm off the thread axis: polished black crests on threads 3–6 whose runs
-            // grow from 63° to 192° along the helix (the short preset's is 85°), all clear of the
-            // chamfer band at the end face.
-            let (pm, mut part) = connection_part("BC 4-1/2", eccentric(0.27, 0.5, 95.0), 1.7);
-            part.polished = vec![PolishedPatch { from_deg: 0.0, to_deg: 360.0, z_from_mm: 0.0, z_to_mm: 200.0 }];
-            spec(name, pm, part, standard_optics(), ring_layout(), 34.5, sensor)
-        }
-        "bc-polished-end" => {
-            // A pipe 0.8 mm off the thread axis: polished black crests on threads 1–6, thread 1's
-            // and the start of thread 2's within the chamfer zone (1.5 pitches of the end face).
-            let (pm, mut part) = connection_part("BC 4-1/2", eccentric(0.27, 0.8, 95.0), 1.7);
+        "bc-polished" | "bc-polished-long" | "bc-polished-end" => {
+            let mill = match name {
+                // Deep enough that the crest is cut short by more than the height tolerance.
+                "bc-polished" => eccentric(-0.15, 0.4, 265.0),
+                // A pipe 0.5 mm off the thread axis: polished black crests on threads 3–6 whose
+                // runs grow from 63° to 192° along the helix (the short preset's is 85°), all clear
+                // of the chamfer band at the end face.
+                "bc-polished-long" => eccentric(0.27, 0.5, 95.0),
+                // A pipe 0.8 mm off the thread axis: polished black crests on threads 1–6, thread
+                // 1's and the start of thread 2's within the chamfer zone (1.5 pitches of the end
+                // face).
+                _ => eccentric(0.27, 0.8, 95.0),
+            };
+            let (pm, mut part) = connection_part("BC 4-1/2", mill, 1.7);
             part.polished = vec![PolishedPatch { from_deg: 0.0, to_deg: 360.0, z_from_mm: 0.0, z_to_mm: 200.0 }];
             spec(name, pm, part, standard_optics(), ring_layout(), 34.5, sensor)
         }
