@@ -1,30 +1,28 @@
 //! crestscan: thread geometry of oil-country tubing and casing from focal stacks, and API 5B
 //! black-crest acceptance.
 //!
-//! Data flows bundle → depth → cloud → register → fuse/mesh → profile → crest → rules. This crate
-//! holds the pure stages; files, HTTP and the database stay at the edges.
+//! Data flows bundle → depth → cloud → register → fuse (the unrolled surface) → mesh and profile →
+//! crest → rules → report. The modules below are listed in layer order: each imports only the ones
+//! above it, and nothing above [`service`] imports axum, sqlx or tokio (docs/architecture.md).
 
-pub mod api;
-pub mod bench;
+/// The error vocabulary: one typed [`problem::Code`] per failure, its status and title, no HTTP. A
+/// leaf: every layer below may name its failures with it.
+pub mod problem;
+/// Numeric primitives: medians and robust scales, filters along a gappy sequence, run spans,
+/// angles. No domain knowledge.
+pub mod numeric;
+/// The domain: thread forms and the API 5B table, optics, parts, views and frames, arcs, the 5B
+/// rules.
+pub mod domain;
+/// The input edge: the bundle v1 reader (directory, zip, tar) and its validation.
 pub mod bundle;
-pub mod cloud;
-pub mod cmm;
-pub mod config;
-pub mod crest;
-pub mod depth;
-pub mod endface;
-pub mod fuse;
-pub mod images;
-pub mod jobs;
-pub mod mesh;
-pub mod optics;
+/// The pure stages, in data-flow order, and [`pipeline::inspect`] that runs them.
 pub mod pipeline;
-pub mod profile;
-pub mod register;
-pub mod report;
-pub mod rules;
+/// The physically based focal-stack simulator and its ground truth.
 pub mod sim;
-pub mod startup;
-pub mod store;
-pub mod telemetry;
-pub mod thread;
+/// The output edge: PLY, STL, GLB and PNG writers.
+pub mod export;
+/// Evaluation: a report against the simulator's truth (the benchmark suites) or a CMM.
+pub mod eval;
+/// The HTTP service: settings, telemetry, start-up, the job queue and workers, the store, the API.
+pub mod service;

@@ -1,8 +1,9 @@
 //! manifest.json of bundle v1, as written in ../shared/spec/bundle.md. Unknown fields are accepted
 //! (the contract lets new optional fields appear); known fields are typed.
 
-use crate::optics::{Optics, ViewPose};
-use crate::thread::Family;
+use crate::domain::frame::FrameEntry;
+use crate::domain::optics::{Optics, ViewPose};
+use crate::domain::thread::Family;
 use serde::{Deserialize, Serialize};
 
 pub const FORMAT_V1: &str = "crestscan.focal-stack/1";
@@ -63,10 +64,4 @@ pub struct ViewManifest {
     pub id: String,
     pub pose: ViewPose,
     pub frames: Vec<FrameEntry>,
-}
-
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct FrameEntry {
-    pub file: String,
-    pub offset_mm: f64,
 }

@@ -6,11 +6,15 @@
 mod manifest;
 mod source;
 
-pub use manifest::{CustomThread, FORMAT_V1, FrameEntry, Manifest, PartManifest, ViewManifest};
+pub use crate::domain::frame::FrameEntry;
+pub use manifest::{CustomThread, FORMAT_V1, Manifest, PartManifest, ViewManifest};
 pub use source::{Limits, Source, check_relative_path};
 
-use crate::optics::{Optics, ViewPose};
-use crate::thread::{ConnectionTable, Family, FormError, GaugePlane, ProfileShape, ThreadForm};
+use crate::domain::frame::{Frame, FrameError, FrameFormat, FrameSource, Recording, Samples, View};
+use crate::domain::optics::Optics;
+use crate::domain::part::Part;
+use crate::problem::{Code, ErrorCode};
+use crate::domain::thread::{ConnectionTable, Family, FormError, ProfileShape, ThreadForm};
 use image::ImageDecoder;
 use std::collections::HashSet;
 use std::io::Cursor;
@@ -54,191 +58,49 @@ pub enum BundleError {
     Io { path: String, message: String },
 }
 
-impl BundleError {
-    /// Stable machine code (HTTP problem `code`, CLI exit messages).
-    pub fn code(&self) -> &'static str {
+impl ErrorCode for BundleError {
+    fn code(&self) -> Code {
         match self {
-            BundleError::FormatVersion { .. } => "unsupported_format_version",
-            BundleError::Manifest { .. } => "invalid_manifest",
-            BundleError::Optics { .. } => "invalid_optics",
-            BundleError::UnknownConnection { .. } => "unknown_connection",
-            BundleError::Thread { .. } => "invalid_thread",
-            BundleError::TooFewFrames { .. } => "too_few_frames",
-            BundleError::Offsets { .. } => "invalid_offsets",
-            BundleError::MissingFile { .. } => "missing_file",
-            BundleError::UnreadableFrame { .. } => "unreadable_frame",
-            BundleError::InconsistentFrames { .. } => "inconsistent_frames",
-            BundleError::UnsafePath { .. } => "unsafe_path",
-            BundleError::Limit { .. } => "bundle_too_large",
-            BundleError::InspectionTooLarge { .. } => "inspection_too_large",
-            BundleError::Archive { .. } => "invalid_archive",
-            BundleError::Io { .. } => "io_error",
+            BundleError::FormatVersion { .. } => Code::UnsupportedFormatVersion,
+            BundleError::Manifest { .. } => Code::InvalidManifest,
+            BundleError::Optics { .. } => Code::InvalidOptics,
+            BundleError::UnknownConnection { .. } => Code::UnknownConnection,
+            BundleError::Thread { .. } => Code::InvalidThread,
+            BundleError::TooFewFrames { .. } => Code::TooFewFrames,
+            BundleError::Offsets { .. } => Code::InvalidOffsets,
+            BundleError::MissingFile { .. } => Code::MissingFile,
+            BundleError::UnreadableFrame { .. } => Code::UnreadableFrame,
+            BundleError::InconsistentFrames { .. } => Code::InconsistentFrames,
+            BundleError::UnsafePath { .. } => Code::UnsafePath,
+            BundleError::Limit { .. } => Code::BundleTooLarge,
+            BundleError::InspectionTooLarge { .. } => Code::InspectionTooLarge,
+            BundleError::Archive { .. } => Code::InvalidArchive,
+            BundleError::Io { .. } => Code::IoError,
+        }
+    }
+
+    /// The manifest field or the bundle file at fault.
+    fn culprit(&self) -> Option<String> {
+        match self {
+            BundleError::FormatVersion { .. } => Some("manifest.json: format".to_string()),
+            BundleError::Manifest { field, .. }
+            | BundleError::TooFewFrames { field, .. }
+            | BundleError::Offsets { field, .. }
+            | BundleError::InspectionTooLarge { field, .. } => Some(format!("manifest.json: {field}")),
+            BundleError::Optics { field, .. } => Some(format!("manifest.json: optics.{field}")),
+            BundleError::Thread { field, .. } => Some(format!("manifest.json: part.thread.{field}")),
+            BundleError::UnknownConnection { .. } => Some("manifest.json: part.connection".into()),
+            BundleError::MissingFile { path }
+            | BundleError::UnreadableFrame { path, .. }
+            | BundleError::InconsistentFrames { path, .. }
+            | BundleError::UnsafePath { path, .. } => Some(path.clone()),
+            // The server's own file; not the client's business.
+            BundleError::Limit { .. } | BundleError::Archive { .. } | BundleError::Io { .. } => None,
         }
     }
 }
 
 pub const MIN_FRAMES: usize = 3;
-
-/// The inspected part, resolved from the connection table and/or the custom thread form.
-#[derive(Clone, Debug, PartialEq, serde::Serialize)]
-pub struct Part {
-    pub serial: Option<String>,
-    /// The designation as given (a table row's canonical name when it was found there).
-    pub connection: Option<String>,
-    pub form: ThreadForm,
-    pub pipe_od_mm: f64,
-    pub lc_mm: f64,
-    /// Where the thread cone sits, when the table knows it.
-    pub gauge: Option<GaugePlane>,
-}
-
-impl Part {
-    pub fn family(&self) -> Family {
-        self.form.family
-    }
-    pub fn circumference_mm(&self) -> f64 {
-        std::f64::consts::PI * self.pipe_od_mm
-    }
-}
-
-/// Pixel layout shared by every frame of a view.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
-pub struct FrameFormat {
-    pub width: u32,
-    pub height: u32,
-    /// 1 (gray) or 3 (RGB).
-    pub channels: u8,
-    /// 8 or 16.
-    pub bit_depth: u8,
-}
-
-#[derive(Clone, Debug, PartialEq)]
-pub struct View {
-    pub id: String,
-    pub pose: ViewPose,
-    pub frames: Vec<FrameEntry>,
-    pub format: FrameFormat,
-}
-
-/// A decoded frame: its interleaved samples as the file holds them (8 or 16 bits), read as
-/// values in [0, 1]. Kept at the file's depth rather than widened to f32: a colour frame is a
-/// quarter the size, which is what the depth stage's window of recent frames holds per view in
-/// flight, and decoding needs no second pass.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Frame {
-    pub width: u32,
-    pub height: u32,
-    pub channels: u8,
-    pub samples: Samples,
-}
-
-/// A frame's samples at their stored depth.
-#[derive(Clone, Debug, PartialEq)]
-pub enum Samples {
-    Eight(Vec<u8>),
-    Sixteen(Vec<u16>),
-    /// Values already in [0, 1] (frames made in memory).
-    Float(Vec<f32>),
-}
-
-/// Each 8-bit sample's value, v / 255 exactly as a division gives it (a multiply by 1/255 would
-/// differ in the last bit for some v), looked up rather than divided per read.
-const EIGHT_BIT_VALUES: [f32; 256] = {
-    let mut table = [0f32; 256];
-    let mut v = 0;
-    while v < 256 {
-        table[v] = v as f32 / 255.0;
-        v += 1;
-    }
-    table
-};
-
-/// A stored sample type and what it reads as, in [0, 1]: the one place the scales live.
-pub trait SampleValue: Copy {
-    fn value(self) -> f32;
-}
-
-impl SampleValue for u8 {
-    #[inline]
-    fn value(self) -> f32 {
-        EIGHT_BIT_VALUES[self as usize]
-    }
-}
-
-impl SampleValue for u16 {
-    #[inline]
-    fn value(self) -> f32 {
-        self as f32 / 65535.0
-    }
-}
-
-impl SampleValue for f32 {
-    #[inline]
-    fn value(self) -> f32 {
-        self
-    }
-}
-
-impl Samples {
-    /// Sample i as a value in [0, 1].
-    #[inline]
-    pub fn value(&self, i: usize) -> f32 {
-        match self {
-            Samples::Eight(s) => s[i].value(),
-            Samples::Sixteen(s) => s[i].value(),
-            Samples::Float(s) => s[i].value(),
-        }
-    }
-
-    pub fn len(&self) -> usize {
-        match self {
-            Samples::Eight(s) => s.len(),
-            Samples::Sixteen(s) => s.len(),
-            Samples::Float(s) => s.len(),
-        }
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
-    }
-
-    /// Every sample as a value in [0, 1].
-    pub fn values(&self) -> Vec<f32> {
-        (0..self.len()).map(|i| self.value(i)).collect()
-    }
-}
-
-/// Luminance of a linear RGB sample (Rec. 709 weights): what a monochrome sensor integrates and what
-/// every gray view of a colour frame in this crate uses.
-#[inline]
-pub fn luminance(rgb: [f32; 3]) -> f32 {
-    0.2126 * rgb[0] + 0.7152 * rgb[1] + 0.0722 * rgb[2]
-}
-
-impl Frame {
-    /// Luminance per pixel (the samples themselves for gray frames).
-    pub fn gray(&self) -> Vec<f32> {
-        let mut out = Vec::new();
-        self.gray_into(&mut out);
-        out
-    }
-
-    /// [`Frame::gray`] into a buffer that is reused from frame to frame.
-    pub fn gray_into(&self, out: &mut Vec<f32>) {
-        out.clear();
-        fn fill<T: SampleValue>(out: &mut Vec<f32>, samples: &[T], channels: u8) {
-            match channels {
-                1 => out.extend(samples.iter().map(|v| v.value())),
-                _ => out.extend(samples.chunks_exact(3).map(|p| luminance([p[0].value(), p[1].value(), p[2].value()]))),
-            }
-        }
-        match &self.samples {
-            Samples::Eight(s) => fill(out, s, self.channels),
-            Samples::Sixteen(s) => fill(out, s, self.channels),
-            Samples::Float(s) => fill(out, s, self.channels),
-        }
-    }
-}
 
 /// How thoroughly [`Bundle::open`] checks the frames.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
@@ -308,6 +170,24 @@ impl Bundle {
     pub fn read_file(&self, path: &str) -> Result<Vec<u8>, BundleError> {
         check_relative_path(path).map_err(|message| BundleError::UnsafePath { path: path.into(), message })?;
         self.source.read(path)
+    }
+}
+
+impl Recording for Bundle {
+    fn part(&self) -> &Part {
+        &self.part
+    }
+    fn optics(&self) -> &Optics {
+        &self.optics
+    }
+    fn views(&self) -> &[View] {
+        &self.views
+    }
+}
+
+impl FrameSource for Bundle {
+    fn read_frame(&self, view: usize, frame: usize) -> Result<Frame, FrameError> {
+        Bundle::read_frame(self, view, frame).map_err(|e| FrameError::of(&e))
     }
 }
 

@@ -13,8 +13,8 @@ pub mod render;
 pub use presets::{PRESETS, PresetInfo, SEED_TABLE1_HEIGHTS_MM, preset};
 
 use crate::bundle::{FORMAT_V1, FrameEntry, Manifest, PartManifest, ViewManifest};
-use crate::optics::{Optics, ViewPose};
-use crate::rules::{self, ArcRule, Assessment};
+use crate::domain::optics::{Optics, ViewPose};
+use crate::domain::rules::{self, ArcRule, Assessment};
 use appearance::Appearance;
 use part::{PartModel, ThreadTruth};
 use rand::{Rng, SeedableRng};
@@ -65,7 +65,7 @@ pub struct SimSpec {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Truth {
     pub connection: Option<String>,
-    pub family: crate::thread::Family,
+    pub family: crate::domain::thread::Family,
     pub pipe_od_mm: f64,
     pub lc_mm: f64,
     pub circumference_mm: f64,

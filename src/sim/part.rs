@@ -3,8 +3,8 @@
 //! crest that would rise above the mill surface keeps it (a black crest), and past the vanish point
 //! the unthreaded body remains.
 
-use crate::rules::{self, CrestBin, RuleInput, ThreadObservation};
-use crate::thread::{ProfileKernel, ThreadForm};
+use crate::domain::rules::{self, CrestBin, RuleInput, ThreadObservation};
+use crate::domain::thread::{ProfileKernel, ThreadForm};
 use serde::{Deserialize, Serialize};
 use std::f64::consts::{PI, TAU};
 

@@ -7,8 +7,8 @@ use super::part::{MillSurface, PartModel, PolishedPatch};
 use super::render::Sensor;
 use super::{PoseJitter, SimSpec, ViewPlan};
 use crate::bundle::PartManifest;
-use crate::optics::{Optics, Projection, ViewPose};
-use crate::thread::ConnectionTable;
+use crate::domain::optics::{Optics, Projection, ViewPose};
+use crate::domain::thread::ConnectionTable;
 
 pub struct PresetInfo {
     pub name: &'static str,
@@ -352,7 +352,7 @@ pub const SEED_TABLE1_HEIGHTS_MM: [f64; 10] =
 /// heights of the seed's Table 1.
 fn seed_table1(sensor: Sensor) -> SimSpec {
     use crate::bundle::CustomThread;
-    use crate::thread::{Family, ThreadForm};
+    use crate::domain::thread::{Family, ThreadForm};
     let form = ThreadForm::api_buttress(5.08, 1.0, 0.03, 0.0625).expect("valid form");
     let od = 114.3;
     let helix_z_h_mm = 1.0;

@@ -5,7 +5,7 @@
 
 use super::appearance::{self, Appearance, TexCoords};
 use super::part::{Material, PartModel, SurfaceKernel};
-use crate::optics::{Optics, Projection};
+use crate::domain::optics::{Optics, Projection};
 use nalgebra::{Isometry3, Point3, Vector3};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -440,7 +440,7 @@ fn expose(radiance: &[f32], camera: &Camera, sensor: &Sensor, noise_seed: u64) -
                 let j = 3 * (y * w + x);
                 // A monochrome sensor integrates the luminance.
                 let value = if channels == 1 {
-                    crate::bundle::luminance([radiance[j], radiance[j + 1], radiance[j + 2]])
+                    crate::domain::frame::luminance([radiance[j], radiance[j + 1], radiance[j + 2]])
                 } else {
                     radiance[j + c]
                 };

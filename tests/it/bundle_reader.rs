@@ -3,8 +3,9 @@
 //! in 8 and 16 bits, gray and RGB.
 
 use crate::common::{Scratch, ci_bundle, walk};
+use crestscan::problem::ErrorCode;
 use crestscan::bundle::{Bundle, BundleError, FrameCheck, Limits, OpenOptions};
-use crestscan::thread::ConnectionTable;
+use crestscan::domain::thread::ConnectionTable;
 use serde_json::json;
 use std::io::Write;
 use std::path::Path;
@@ -21,7 +22,7 @@ fn open_with(path: &Path, limits: Limits) -> Result<Bundle, BundleError> {
 fn expect_error(result: Result<Bundle, BundleError>, code: &str, culprits: &[&str]) -> String {
     let err = result.expect_err("bundle should be refused");
     let message = err.to_string();
-    assert_eq!(err.code(), code, "{message}");
+    assert_eq!(err.code().name(), code, "{message}");
     for culprit in culprits {
         assert!(message.contains(culprit), "message {message:?} does not name {culprit:?}");
     }
@@ -85,7 +86,7 @@ fn unreadable_frame() {
     std::fs::write(s.path().join(&file), &bytes[..bytes.len() / 2]).unwrap();
     let bundle = open(s.path()).expect("header still reads");
     let err = bundle.read_frame(0, 0).unwrap_err();
-    assert_eq!(err.code(), "unreadable_frame");
+    assert_eq!(err.code().name(), "unreadable_frame");
     assert!(err.to_string().contains(&file));
     let full = Bundle::open(
         s.path(),

@@ -1,11 +1,11 @@
 //! The whole pipeline on a rendered ci bundle, against its truth.
 
 use crate::common::{Scratch, ci_bundle, rendered};
-use crestscan::bench;
+use crestscan::eval::bench;
 use crestscan::bundle::{Bundle, OpenOptions};
 use crestscan::pipeline::{self, PipelineOptions, Stage};
 use crestscan::sim::Truth;
-use crestscan::thread::ConnectionTable;
+use crestscan::domain::thread::ConnectionTable;
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicBool, Ordering};
 
@@ -35,10 +35,10 @@ fn inspection_of_the_ci_bundle_matches_truth() {
     // Three views over 13° near Lc: the report says which crests within Lc they showed, after the
     // verdict's reason, and black crests are measured against truth over those crests.
     let seen_crests = inspection.report.assessment.seen_crest_arcs.clone().expect("crests within Lc not seen");
-    let seen_deg: f64 = seen_crests.iter().map(|t| crestscan::rules::arcs_deg(&t.arcs_deg)).sum();
+    let seen_deg: f64 = seen_crests.iter().map(|t| crestscan::domain::rules::arcs_deg(&t.arcs_deg)).sum();
     assert_eq!(accuracy.seen_crest_deg, Some(seen_deg));
     let last = inspection.report.assessment.reasons.last().unwrap();
-    assert_eq!(last.code, crestscan::rules::ReasonCode::PartialCoverage);
+    assert_eq!(last.code, crestscan::domain::rules::ReasonCode::PartialCoverage);
     assert_eq!(last.value, Some(seen_deg));
     assert!(seen_deg > 10.0 && seen_deg < 0.1 * last.limit.unwrap(), "{last:?}");
     assert_eq!(inspection.report.reasons.last(), Some(&last.message));
@@ -49,7 +49,7 @@ fn inspection_of_the_ci_bundle_matches_truth() {
     assert!(rows.iter().any(|b| b.truth_mm > 0.0 && b.reported_mm > 0.0), "{rows:?}");
     for b in &rows {
         let thread_seen = seen_crests.iter().find(|t| t.index == b.thread).map_or(&[][..], |t| &t.arcs_deg[..]);
-        assert_eq!(crestscan::rules::intersect_arcs(&b.truth_arcs_deg, thread_seen), b.truth_arcs_deg, "{b:?}");
+        assert_eq!(crestscan::domain::rules::intersect_arcs(&b.truth_arcs_deg, thread_seen), b.truth_arcs_deg, "{b:?}");
     }
     let worst = rows.iter().map(|b| (b.reported_mm - b.truth_mm).abs()).fold(0.0, f64::max);
     assert_eq!(worst, accuracy.black_crest_length_max_error_mm);

@@ -3,7 +3,7 @@
 
 use crate::common::{Scratch, walk};
 use crestscan::bundle::{Bundle, OpenOptions, check_relative_path, parse_manifest};
-use crestscan::thread::ConnectionTable;
+use crestscan::domain::thread::ConnectionTable;
 use proptest::prelude::*;
 use std::io::Write;
 use std::sync::OnceLock;

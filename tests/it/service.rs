@@ -2,9 +2,9 @@
 //! reqwest; and the real binary, killed with SIGKILL and restarted.
 
 use crate::common::{ci_bundle, walk};
-use crestscan::config::Settings;
+use crestscan::service::config::Settings;
 use crestscan::sim::Truth;
-use crestscan::startup::Application;
+use crestscan::service::startup::Application;
 use reqwest::StatusCode;
 use serde_json::Value;
 use std::path::Path;
@@ -62,7 +62,7 @@ impl TestApp {
         self.dir.take()
     }
 
-    pub async fn store(&self) -> crestscan::store::Store {
+    pub async fn store(&self) -> crestscan::service::store::Store {
         open_store(&self.data).await
     }
 
@@ -85,8 +85,8 @@ pub fn test_settings(data: &Path) -> Settings {
     }
 }
 
-pub async fn open_store(data: &Path) -> crestscan::store::Store {
-    crestscan::store::Store::open(&data.join("crestscan.db"), &data.join("uploads"), &data.join("tmp")).await.unwrap()
+pub async fn open_store(data: &Path) -> crestscan::service::store::Store {
+    crestscan::service::store::Store::open(&data.join("crestscan.db"), &data.join("uploads"), &data.join("tmp")).await.unwrap()
 }
 
 /// Starts the real application on port 0 with a fresh data directory.
@@ -99,7 +99,7 @@ pub async fn spawn_app_with(edit: impl FnOnce(&mut Settings)) -> TestApp {
 
 /// Starts the real application on port 0 on an existing data directory.
 pub async fn spawn_app_in(data: &Path, edit: impl FnOnce(&mut Settings)) -> TestApp {
-    crestscan::telemetry::init_logging("warn");
+    crestscan::service::telemetry::init_logging("warn");
     let mut settings = test_settings(data);
     edit(&mut settings);
     let app = Application::build(settings).await.unwrap();
@@ -186,7 +186,7 @@ async fn round_trip_on_the_ci_preset() {
     assert_eq!(response.status(), StatusCode::OK);
     let etag = response.headers()["etag"].to_str().unwrap().to_string();
     assert!(etag.starts_with('"') && !etag.starts_with("W/"));
-    let report: crestscan::report::Report = response.json().await.unwrap();
+    let report: crestscan::pipeline::report::Report = response.json().await.unwrap();
     assert_eq!(report.verdict, truth.verdict);
     let again =
         app.client.get(app.url(&format!("{location}/report"))).header("if-none-match", &etag).send().await.unwrap();
@@ -240,7 +240,7 @@ async fn round_trip_on_the_ci_preset() {
     let blob = glb.blob.clone().unwrap();
     let primitive = glb.meshes().next().unwrap().primitives().next().unwrap();
     let reader = primitive.reader(|_| Some(&blob));
-    let stored = crestscan::mesh::read_ply(&ply).unwrap();
+    let stored = crestscan::export::ply::read(&ply).unwrap();
     assert_eq!(reader.read_positions().unwrap().collect::<Vec<_>>(), stored.vertices);
     assert_eq!(reader.read_indices().unwrap().into_u32().count(), 3 * triangles);
     let revalidated = app
@@ -492,14 +492,14 @@ async fn idempotent_retry_and_cancel() {
     let v: Value = response.json().await.unwrap();
     assert_eq!((v["status"].as_str(), v["cancel_requested"].as_bool()), (Some("running"), Some(true)));
     let beat = store.heartbeat(&claimed.id, "test-worker", Duration::from_secs(30), None).await.unwrap();
-    assert_eq!(beat, crestscan::store::Heartbeat::Held { cancel_requested: true });
+    assert_eq!(beat, crestscan::service::store::Heartbeat::Held { cancel_requested: true });
     assert_eq!(
         store.heartbeat(&claimed.id, "someone-else", Duration::from_secs(30), None).await.unwrap(),
-        crestscan::store::Heartbeat::Lost
+        crestscan::service::store::Heartbeat::Lost
     );
     assert!(
         store
-            .complete_without_results(&claimed.id, "test-worker", crestscan::store::Status::Canceled, None)
+            .complete_without_results(&claimed.id, "test-worker", crestscan::service::store::Status::Canceled, None)
             .await
             .unwrap()
     );
@@ -594,7 +594,7 @@ async fn cursor_pagination_walks_every_inspection_once() {
 async fn openapi_is_served_and_matches_the_committed_file() {
     let app = spawn_app_with(|s| s.workers = 0).await;
     let served: Value = app.get("/openapi.json").await.json().await.unwrap();
-    let generated: Value = serde_json::from_str(&crestscan::api::openapi().to_pretty_json().unwrap()).unwrap();
+    let generated: Value = serde_json::from_str(&crestscan::service::api::openapi().to_pretty_json().unwrap()).unwrap();
     assert_eq!(served, generated);
     let committed: Value = serde_json::from_slice(
         &std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("openapi/openapi.json"))

@@ -1,9 +1,9 @@
 use crate::common::{CI_SEED, ci_bundle, rendered, walk};
 use crestscan::bundle::{Bundle, OpenOptions};
-use crestscan::optics::ViewPose;
-use crestscan::rules::{ReasonCode, Verdict};
+use crestscan::domain::optics::ViewPose;
+use crestscan::domain::rules::{ReasonCode, Verdict};
 use crestscan::sim::{self, part::Material, pfm};
-use crestscan::thread::{ConnectionTable, ProfileShape};
+use crestscan::domain::thread::{ConnectionTable, ProfileShape};
 use nalgebra::{Point3, Vector3};
 
 #[test]

@@ -1,0 +1,249 @@
+//! CMM measurements (../shared/spec/bundle.md, "CMM measurements") and their comparison with an
+//! inspection's thread heights: per point deviation, bias, RMS, max |deviation|, Bland–Altman
+//! limits of agreement, and a tolerance verdict. Pure: parsing and statistics, no I/O.
+
+use crate::pipeline::report::Report;
+use serde::{Deserialize, Serialize};
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct CmmPoint {
+    /// Thread number as the contract counts them (1 = nearest the pipe end).
+    pub thread: u32,
+    /// Angle around the pipe; absent means the thread's mean height.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub angle_deg: Option<f64>,
+    pub height_mm: f64,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct CmmMeasurements {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub instrument: Option<String>,
+    /// RFC 3339.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub measured_at: Option<String>,
+    pub points: Vec<CmmPoint>,
+}
+
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{field}: {message}")]
+pub struct CmmError {
+    /// JSON path (`points[3].height_mm`) or CSV position (`line 4, height_mm`).
+    pub field: String,
+    pub message: String,
+}
+
+fn err(field: impl Into<String>, message: impl Into<String>) -> CmmError {
+    CmmError { field: field.into(), message: message.into() }
+}
+
+pub const MAX_POINTS: usize = 100_000;
+
+impl CmmMeasurements {
+    pub fn from_json(bytes: &[u8]) -> Result<Self, CmmError> {
+        let de = &mut serde_json::Deserializer::from_slice(bytes);
+        let parsed: Self = serde_path_to_error::deserialize(de).map_err(|e| {
+            let path = e.path().to_string();
+            err(if path == "." { "body".into() } else { path }, e.inner().to_string())
+        })?;
+        parsed.validate()?;
+        Ok(parsed)
+    }
+
+    /// CSV with the header `thread,angle_deg,height_mm`; an empty angle means the thread's mean.
+    pub fn from_csv(bytes: &[u8]) -> Result<Self, CmmError> {
+        let mut reader = csv::ReaderBuilder::new().trim(csv::Trim::All).from_reader(bytes);
+        let headers = reader.headers().map_err(|e| err("header", e.to_string()))?.clone();
+        let column = |name: &str| {
+            headers
+                .iter()
+                .position(|h| h == name)
+                .ok_or_else(|| err("header", format!("missing column {name:?} (expected thread,angle_deg,height_mm)")))
+        };
+        let (thread_col, angle_col, height_col) = (column("thread")?, column("angle_deg")?, column("height_mm")?);
+        let mut points = Vec::new();
+        for (i, record) in reader.records().enumerate() {
+            let line = i + 2;
+            let record = record.map_err(|e| err(format!("line {line}"), e.to_string()))?;
+            let get = |c: usize| record.get(c).unwrap_or("");
+            let thread = get(thread_col).parse::<u32>().map_err(|_| {
+                err(format!("line {line}, thread"), format!("{:?} is not a thread number", get(thread_col)))
+            })?;
+            let angle_deg = match get(angle_col) {
+                "" => None,
+                a => Some(
+                    a.parse::<f64>()
+                        .map_err(|_| err(format!("line {line}, angle_deg"), format!("{a:?} is not a number")))?,
+                ),
+            };
+            let h = get(height_col);
+            let height_mm = h
+                .parse::<f64>()
+                .map_err(|_| err(format!("line {line}, height_mm"), format!("{h:?} is not a number")))?;
+            points.push(CmmPoint { thread, angle_deg, height_mm });
+        }
+        let parsed = Self { instrument: None, measured_at: None, points };
+        parsed.validate()?;
+        Ok(parsed)
+    }
+
+    fn validate(&self) -> Result<(), CmmError> {
+        if self.points.is_empty() {
+            return Err(err("points", "no measurements"));
+        }
+        if self.points.len() > MAX_POINTS {
+            return Err(err("points", format!("{} points; at most {MAX_POINTS}", self.points.len())));
+        }
+        if let Some(t) = &self.measured_at {
+            time::OffsetDateTime::parse(t, &time::format_description::well_known::Rfc3339)
+                .map_err(|e| err("measured_at", format!("{t:?} is not an RFC 3339 time: {e}")))?;
+        }
+        for (i, p) in self.points.iter().enumerate() {
+            if p.thread == 0 {
+                return Err(err(format!("points[{i}].thread"), "threads are numbered from 1"));
+            }
+            if let Some(a) = p.angle_deg
+                && !(a.is_finite() && (0.0..360.0).contains(&a))
+            {
+                return Err(err(format!("points[{i}].angle_deg"), format!("{a} is outside [0, 360)")));
+            }
+            if !(p.height_mm.is_finite() && p.height_mm >= 0.0 && p.height_mm < 25.0) {
+                return Err(err(
+                    format!("points[{i}].height_mm"),
+                    format!("{} is not a thread height in mm", p.height_mm),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct PointComparison {
+    pub thread: u32,
+    /// None: the CMM gave the thread's mean, compared with crestscan's mean over measured bins.
+    pub angle_deg: Option<f64>,
+    pub cmm_height_mm: f64,
+    /// None where crestscan has no height there (thread or bin not measured).
+    pub crestscan_height_mm: Option<f64>,
+    /// crestscan − CMM.
+    pub deviation_mm: Option<f64>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct Agreement {
+    /// Points with both heights.
+    pub compared: usize,
+    /// CMM points crestscan did not measure.
+    pub unmatched: usize,
+    /// Mean deviation (crestscan − CMM).
+    pub bias_mm: Option<f64>,
+    pub rms_mm: Option<f64>,
+    pub max_abs_deviation_mm: Option<f64>,
+    /// Sample standard deviation of the deviations.
+    pub sd_mm: Option<f64>,
+    /// Bland–Altman 95% limits of agreement: bias ± 1.96 sd.
+    pub limits_of_agreement_mm: Option<[f64; 2]>,
+    pub tolerance_mm: f64,
+    /// Every compared deviation within ± tolerance (and at least one compared).
+    pub within_tolerance: bool,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct Comparison {
+    pub points: Vec<PointComparison>,
+    pub agreement: Agreement,
+}
+
+/// The default tolerance: one tenth of the thread-height tolerance band (± tol → 2·tol / 10).
+pub fn default_tolerance_mm(report: &Report) -> f64 {
+    2.0 * report.height_tolerance_mm / 10.0
+}
+
+/// crestscan's height of `thread` at `angle_deg` (the bin whose centre is nearest, within half a
+/// bin), or its mean over measured bins when no angle is given.
+fn crestscan_height(report: &Report, thread: u32, angle_deg: Option<f64>) -> Option<f64> {
+    let t = report.threads.iter().find(|t| t.index == thread)?;
+    let Some(angle) = angle_deg else { return t.mean_height_mm };
+    let series = &t.height_mm;
+    let spacing = if series.angles_deg.len() > 1 { 360.0 / series.angles_deg.len() as f64 } else { 360.0 };
+    let circular = |a: f64, b: f64| {
+        let d = (a - b).rem_euclid(360.0);
+        d.min(360.0 - d)
+    };
+    let (i, d) = series
+        .angles_deg
+        .iter()
+        .enumerate()
+        .map(|(i, &a)| (i, circular(a, angle)))
+        .min_by(|a, b| a.1.total_cmp(&b.1))?;
+    if d > spacing / 2.0 + 1e-9 {
+        return None;
+    }
+    series.values.get(i).copied().flatten()
+}
+
+pub fn compare(report: &Report, cmm: &CmmMeasurements, tolerance_mm: f64) -> Comparison {
+    let points: Vec<PointComparison> = cmm
+        .points
+        .iter()
+        .map(|p| {
+            let ours = crestscan_height(report, p.thread, p.angle_deg);
+            PointComparison {
+                thread: p.thread,
+                angle_deg: p.angle_deg,
+                cmm_height_mm: p.height_mm,
+                crestscan_height_mm: ours,
+                deviation_mm: ours.map(|h| h - p.height_mm),
+            }
+        })
+        .collect();
+    let deviations: Vec<f64> = points.iter().filter_map(|p| p.deviation_mm).collect();
+    let n = deviations.len();
+    let mean = (n > 0).then(|| deviations.iter().sum::<f64>() / n as f64);
+    let rms = (n > 0).then(|| (deviations.iter().map(|d| d * d).sum::<f64>() / n as f64).sqrt());
+    let max_abs = deviations.iter().map(|d| d.abs()).fold(None, |m: Option<f64>, d| Some(m.map_or(d, |m| m.max(d))));
+    let sd = mean
+        .filter(|_| n > 1)
+        .map(|m| (deviations.iter().map(|d| (d - m).powi(2)).sum::<f64>() / (n - 1) as f64).sqrt());
+    let limits = mean.zip(sd).map(|(m, s)| [m - 1.96 * s, m + 1.96 * s]);
+    Comparison {
+        agreement: Agreement {
+            compared: n,
+            unmatched: points.len() - n,
+            bias_mm: mean,
+            rms_mm: rms,
+            max_abs_deviation_mm: max_abs,
+            sd_mm: sd,
+            limits_of_agreement_mm: limits,
+            tolerance_mm,
+            within_tolerance: n > 0 && max_abs.is_some_and(|m| m <= tolerance_mm),
+        },
+        points,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn csv_and_json_agree_and_errors_name_the_place() {
+        let csv = b"thread,angle_deg,height_mm\n3,90.0,0.9826\n4,,0.98\n";
+        let a = CmmMeasurements::from_csv(csv).unwrap();
+        let b = CmmMeasurements::from_json(
+            br#"{"points":[{"thread":3,"angle_deg":90.0,"height_mm":0.9826},{"thread":4,"height_mm":0.98}]}"#,
+        )
+        .unwrap();
+        assert_eq!(a.points, b.points);
+        let e = CmmMeasurements::from_csv(b"thread,angle_deg,height_mm\n3,90,abc\n").unwrap_err();
+        assert_eq!(e.field, "line 2, height_mm");
+        let e =
+            CmmMeasurements::from_json(br#"{"points":[{"thread":3,"angle_deg":400,"height_mm":1.0}]}"#).unwrap_err();
+        assert_eq!(e.field, "points[0].angle_deg");
+        let e = CmmMeasurements::from_json(br#"{"points":[{"thread":"x","height_mm":1.0}]}"#).unwrap_err();
+        assert_eq!(e.field, "points[0].thread");
+        let e = CmmMeasurements::from_csv(b"thread,height\n1,2\n").unwrap_err();
+        assert!(e.message.contains("angle_deg"), "{e}");
+    }
+}

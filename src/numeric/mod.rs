@@ -1,0 +1,6 @@
+//! Numeric primitives shared by the stages, each written once.
+
+pub mod angle;
+pub mod runs;
+pub mod sequence;
+pub mod stats;

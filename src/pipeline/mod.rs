@@ -1,0 +1,361 @@
+//! The pure stages, in data-flow order, and [`inspect`], the one library call behind the CLI, the
+//! benchmark and the service's workers:
+//!
+//! | stage | in | out |
+//! |---|---|---|
+//! | [`depth`] | each view's focal stack | a depth map per view (and the end face's edge per frame) |
+//! | [`cloud`] | a depth map and its pose | surface points, streamed |
+//! | [`register`] | every view's points on one lattice | pose corrections, per-pair residuals; [`endface`] the ring's absolute z |
+//! | [`fuse`] | every view's points at the refined poses | the unrolled surface ([`surface`]) |
+//! | [`mesh`] | the unrolled surface | a triangle mesh (an export; runs beside the profile) |
+//! | [`profile`] | the unrolled surface and the thread form | the helix, per-thread heights per 1° bin |
+//! | [`crest`] | the per-thread measures | black-crest observations, the crest cone |
+//! | rules ([`crate::domain::rules`]) | the observations | the API 5B verdict and reasons |
+//! | [`report`] | all of the above | the report |
+//!
+//! Stages never open a file: frames come through [`Recording`]. Progress, cancellation (checked
+//! between frames and stages) and timings belong to a small run context ([`run`]).
+
+pub mod cloud;
+pub mod crest;
+pub mod depth;
+pub mod endface;
+pub mod fuse;
+pub mod mesh;
+pub mod options;
+pub mod profile;
+pub mod register;
+pub mod report;
+pub mod run;
+pub mod surface;
+
+pub use crate::domain::frame::Recording;
+pub use options::PipelineOptions;
+pub use run::Stage;
+
+use crate::domain::frame::FrameError;
+use crate::domain::optics::ViewPose;
+use crate::domain::rules::{self, RuleInput};
+use crate::problem::{Code, ErrorCode};
+use depth::{DepthMap, DepthScratch, depth_from_focus_in};
+use endface::EndFace;
+use fuse::Fusion;
+use profile::{Helix, ThreadMeasure};
+use rayon::prelude::*;
+use register::{Registration, RegisterOptions};
+use report::Report;
+use run::{Halt, Run};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::time::Instant;
+use surface::{GridSpec, UnrolledMap};
+
+#[derive(Debug, thiserror::Error)]
+pub enum PipelineError {
+    #[error(transparent)]
+    Frame(#[from] FrameError),
+    #[error("no view gave a usable depth map (is the part in focus anywhere in the stacks?)")]
+    NoDepth,
+    #[error("no thread found: the profile shows no spectrum at the {pitch_mm} mm pitch")]
+    NoThread { pitch_mm: f64 },
+    #[error(transparent)]
+    Mesh(#[from] mesh::MeshError),
+}
+
+impl ErrorCode for PipelineError {
+    fn code(&self) -> Code {
+        match self {
+            PipelineError::Frame(e) => e.code(),
+            PipelineError::NoDepth => Code::NoDepth,
+            PipelineError::NoThread { .. } => Code::NoThread,
+            PipelineError::Mesh(_) => Code::MeshFailed,
+        }
+    }
+
+    fn culprit(&self) -> Option<String> {
+        match self {
+            PipelineError::Frame(e) => e.culprit(),
+            _ => None,
+        }
+    }
+}
+
+pub struct Inspection {
+    pub report: Report,
+    pub map: UnrolledMap,
+    pub depth_maps: Vec<DepthMap>,
+    /// The refined view poses.
+    pub poses: Vec<ViewPose>,
+    pub mesh: mesh::Mesh,
+}
+
+/// Runs the pipeline. Ok(None) means it was cancelled.
+pub fn inspect(
+    recording: &dyn Recording,
+    options: &PipelineOptions,
+    progress: &(dyn Fn(Stage, f64) + Sync),
+    cancel: &AtomicBool,
+) -> Result<Option<Inspection>, PipelineError> {
+    match run_stages(recording, options, Run::new(progress, cancel)) {
+        Ok(inspection) => Ok(Some(inspection)),
+        Err(Halt::Cancelled) => Ok(None),
+        Err(Halt::Failed(e)) => Err(e),
+    }
+}
+
+type Step<T> = Result<T, Halt<PipelineError>>;
+
+fn run_stages(recording: &dyn Recording, options: &PipelineOptions, mut run: Run) -> Step<Inspection> {
+    let depth_maps = measure_depth(recording, options, &mut run)?;
+    let registered = register_views(recording, options, &depth_maps, &mut run)?;
+    let map = fuse_views(recording, options, &depth_maps, &registered.poses, &registered.encoder_z_ranges_mm, &mut run)?;
+    let (mesh, helix, threads) = mesh_and_profile(recording, options, &map, &mut run)?;
+    let (assessment, crest) = crest_and_rules(recording, options, &helix, &threads, &mut run);
+    let report = Report::assemble(report::Findings {
+        part: recording.part(),
+        helix,
+        threads: &threads,
+        assessment,
+        machined_crest_gray: crest.machined_crest_gray,
+        crest_cone: crest.cone,
+        registration: registered.registration,
+        end_face: registered.end_face,
+        depth_coverage: depth_maps.iter().map(|d| d.coverage()).sum::<f64>() / depth_maps.len().max(1) as f64,
+        map_coverage: map.coverage(),
+        timings: run.into_timings(),
+    });
+    Ok(Inspection { report, map, depth_maps, poses: registered.poses, mesh })
+}
+
+/// Depth from focus per view, in parallel, then the views' sub-frame phases equalised.
+fn measure_depth(recording: &dyn Recording, options: &PipelineOptions, run: &mut Run) -> Step<Vec<DepthMap>> {
+    let views = recording.views();
+    run.progress(Stage::Depth, 0.0);
+    let done = AtomicUsize::new(0);
+    let total = views.len();
+    // Depth buffers are handed from view to view (one set per view in flight, not one per view).
+    let scratches = std::sync::Mutex::new(Vec::<DepthScratch>::new());
+    let depth_options = options.depth.for_form(&recording.part().form);
+    let run_ref = &*run;
+    let cancelled = || run_ref.cancelled();
+    let depth_maps: Vec<Option<DepthMap>> = views
+        .par_iter()
+        .enumerate()
+        .map(|(v, view)| {
+            let mut scratch = scratches.lock().expect("no panics while held").pop().unwrap_or_default();
+            let map = depth_from_focus_in(
+                &mut scratch,
+                recording.optics(),
+                view,
+                &depth_options,
+                |k| recording.read_frame(v, k),
+                &cancelled,
+            );
+            scratches.lock().expect("no panics while held").push(scratch);
+            let map = map?;
+            run_ref.progress(Stage::Depth, (done.fetch_add(1, Ordering::Relaxed) + 1) as f64 / total as f64);
+            Ok(map)
+        })
+        .collect::<Result<_, FrameError>>()
+        .map_err(PipelineError::from)?;
+    if run.cancelled() || depth_maps.iter().any(Option::is_none) {
+        return Err(Halt::Cancelled);
+    }
+    drop(scratches);
+    let mut depth_maps: Vec<DepthMap> = depth_maps.into_iter().flatten().collect();
+    if options.depth.equalize_phase {
+        let grids: Vec<Option<(f64, f64)>> = views
+            .iter()
+            .map(|v| depth::even_frame_grid(&v.frames.iter().map(|f| f.offset_mm).collect::<Vec<_>>()))
+            .collect();
+        depth::equalize_sub_frame_phase(&mut depth_maps, &grids, recording.optics().focus_distance_mm);
+    }
+    let depth_coverage = depth_maps.iter().map(|d| d.coverage()).sum::<f64>() / depth_maps.len().max(1) as f64;
+    if depth_coverage == 0.0 {
+        return Err(PipelineError::NoDepth.into());
+    }
+    run.lap(Stage::Depth);
+    Ok(depth_maps)
+}
+
+/// What registration hands on: the refined poses, what it measured, and the views' z ranges at
+/// the encoder poses (fusion's grid is sized from them).
+struct Registered {
+    poses: Vec<ViewPose>,
+    registration: Registration,
+    end_face: Option<EndFace>,
+    encoder_z_ranges_mm: Vec<(f64, f64)>,
+}
+
+/// Registration of the overlapping views on one lattice, then absolute z from the end face where
+/// the views show it.
+fn register_views(
+    recording: &dyn Recording,
+    options: &PipelineOptions,
+    depth_maps: &[DepthMap],
+    run: &mut Run,
+) -> Step<Registered> {
+    run.progress(Stage::Register, 0.0);
+    let (part, optics, views) = (recording.part(), recording.optics(), recording.views());
+    let encoder_poses: Vec<ViewPose> = views.iter().map(|v| v.pose).collect();
+    // Each view's points are reduced as they are projected (to registration's grids here, to
+    // fusion's bins below): no stage holds every view's cloud.
+    let pixel_mm = optics.object_pixel_mm(optics.focus_distance_mm);
+    let format = views[0].format;
+    let radius_ref = part.pipe_od_mm / 2.0;
+    let register_options = RegisterOptions { cell_mm: pixel_mm, ..options.register.clone() };
+    let lattice = register::Lattice::new(radius_ref, register_options.cell_mm);
+    let grids: Vec<register::ViewGrid> = encoder_poses
+        .par_iter()
+        .zip(depth_maps)
+        .map_init(register::GridScratch::default, |scratch, (pose, depth)| {
+            let fill_arc_gaps = depth.row_step > 1;
+            register::view_grid(
+                cloud::points_of(optics, pose, depth),
+                pose.angle_deg.to_radians(),
+                &lattice,
+                fill_arc_gaps,
+                scratch,
+            )
+        })
+        .collect();
+    let registration = register::register(
+        &grids,
+        &encoder_poses,
+        &lattice,
+        (format.height as f64 * pixel_mm / 2.0 / radius_ref).to_degrees(),
+        format.width as f64 * pixel_mm / 2.0,
+        &register_options,
+    );
+    let encoder_z_ranges_mm: Vec<(f64, f64)> = grids.iter().map(|g| g.z_range_mm()).collect();
+    drop(grids);
+    let mut poses: Vec<ViewPose> =
+        encoder_poses.iter().zip(&registration.corrections).map(|(p, c)| c.apply(p)).collect();
+    let end_face = options
+        .anchor_end_face
+        .then(|| {
+            let edges: Vec<&[endface::FrameEdge]> = depth_maps.iter().map(|d| d.end_edges.as_slice()).collect();
+            endface::anchor(optics, &poses, &edges, format.width, format.height, 3, 20.0)
+        })
+        .flatten();
+    if let Some(end) = &end_face {
+        poses.iter_mut().for_each(|p| p.axial_mm -= end.z_offset_mm);
+    }
+    run.lap(Stage::Register);
+    run.check()?;
+    Ok(Registered { poses, registration, end_face, encoder_z_ranges_mm })
+}
+
+/// Every view's points binned at its refined pose and summed into the unrolled surface.
+fn fuse_views(
+    recording: &dyn Recording,
+    options: &PipelineOptions,
+    depth_maps: &[DepthMap],
+    poses: &[ViewPose],
+    encoder_z_ranges_mm: &[(f64, f64)],
+    run: &mut Run,
+) -> Step<UnrolledMap> {
+    run.progress(Stage::Fuse, 0.0);
+    let (part, optics, views) = (recording.part(), recording.optics(), recording.views());
+    let total = views.len();
+    let pixel_mm = optics.object_pixel_mm(optics.focus_distance_mm);
+    let cell_mm = options.cell_px * pixel_mm;
+    // The views' z ranges at the encoder poses, moved by each view's axial correction.
+    let z_range_mm = poses.iter().zip(views).zip(encoder_z_ranges_mm).fold(
+        (f64::MAX, f64::MIN),
+        |(lo, hi), ((pose, view), &(view_lo, view_hi))| {
+            let shift = pose.axial_mm - view.pose.axial_mm;
+            (lo.min(view_lo + shift), hi.max(view_hi + shift))
+        },
+    );
+    let grid = GridSpec::spanning(z_range_mm, cell_mm, part.pipe_od_mm / 2.0).ok_or(PipelineError::NoDepth)?;
+    let mut fusion = Fusion::new(grid);
+    // Binning (angle and radius per point) runs per view in parallel, a few views at a time into
+    // buffers reused from batch to batch; each batch is summed in view order before the next.
+    let batch = 2 * rayon::current_num_threads().max(1);
+    let mut buffers: Vec<Vec<fuse::Binned>> = vec![Vec::new(); batch.min(total)];
+    for (batch_index, views) in poses.iter().zip(depth_maps).collect::<Vec<_>>().chunks(batch).enumerate() {
+        run.check()?;
+        buffers.par_iter_mut().zip(views).for_each(|(buffer, &(pose, depth))| {
+            fusion.bin_into(buffer, cloud::points_of(optics, pose, depth), pose.angle_deg.to_radians());
+        });
+        fusion.accumulate_all(&buffers[..views.len()]);
+        // Binning is most of the work; the sums follow each batch.
+        run.progress(Stage::Fuse, 0.9 * ((batch_index * batch + views.len()) as f64 / total as f64));
+    }
+    drop(buffers);
+    run.progress(Stage::Fuse, 1.0);
+    let map = fusion.finish();
+    run.lap(Stage::Fuse);
+    run.check()?;
+    Ok(map)
+}
+
+/// The mesh is an export: it runs beside the profile, which the verdict needs. Each stage's own
+/// time is reported; together they take the longer of the two.
+fn mesh_and_profile(
+    recording: &dyn Recording,
+    options: &PipelineOptions,
+    map: &UnrolledMap,
+    run: &mut Run,
+) -> Step<(mesh::Mesh, Helix, Vec<ThreadMeasure>)> {
+    run.progress(Stage::Mesh, 0.0);
+    run.progress(Stage::Profile, 0.0);
+    let form = &recording.part().form;
+    fn timed<T>(f: impl FnOnce() -> T) -> (T, f64) {
+        let started = Instant::now();
+        let out = f();
+        (out, started.elapsed().as_secs_f64())
+    }
+    let ((mesh, mesh_seconds), ((helix, threads), profile_seconds)) = rayon::join(
+        || timed(|| mesh::build(map, &options.mesh)),
+        || {
+            timed(|| {
+                let helix = profile::estimate_helix(map, form).map(|first| {
+                    let threads = profile::survey_threads(map, form, &first, &options.profile);
+                    profile::refine_helix(map, form, &first, &threads)
+                });
+                let threads = helix.as_ref().map(|h| profile::measure_threads(map, form, h, &options.profile));
+                (helix, threads)
+            })
+        },
+    );
+    let mesh = mesh.map_err(PipelineError::from)?;
+    let helix = helix.ok_or(PipelineError::NoThread { pitch_mm: form.pitch_mm })?;
+    let threads = threads.expect("measured whenever the helix was found");
+    run.record_side_by_side(&[(Stage::Mesh, mesh_seconds), (Stage::Profile, profile_seconds)]);
+    run.check()?;
+    Ok((mesh, helix, threads))
+}
+
+/// Black-crest observations from the per-thread measures, then the API 5B rules on them.
+fn crest_and_rules(
+    recording: &dyn Recording,
+    options: &PipelineOptions,
+    helix: &Helix,
+    threads: &[ThreadMeasure],
+    run: &mut Run,
+) -> (rules::Assessment, crest::CrestFindings) {
+    run.progress(Stage::Rules, 0.0);
+    let part = recording.part();
+    let form = &part.form;
+    let mut findings = crest::observations(
+        threads,
+        part.lc_mm,
+        helix.pitch_mm,
+        form.radius_slope(),
+        profile::crest_window_half_mm(form),
+        &options.crest,
+    );
+    let input = RuleInput {
+        family: part.family(),
+        lc_mm: part.lc_mm,
+        circumference_mm: part.circumference_mm(),
+        nominal_height_mm: form.height_mm,
+        height_tolerance_mm: form.height_tolerance_mm,
+        threads: std::mem::take(&mut findings.observations),
+    };
+    let assessment = rules::assess(&input, options.arc_rule);
+    run.lap(Stage::Rules);
+    run.progress(Stage::Rules, 1.0);
+    (assessment, findings)
+}

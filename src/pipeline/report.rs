@@ -1,0 +1,213 @@
+//! The inspection report: the truth file's fields with the same names and meanings
+//! (../shared/spec/bundle.md, "Result shape"), plus measures, timings and diagnostics.
+
+use crate::domain::part::Part;
+use crate::domain::rules::{Assessment, Verdict};
+use crate::domain::thread::Family;
+use crate::pipeline::crest::CrestCone;
+use crate::pipeline::endface::EndFace;
+use crate::pipeline::profile::{Helix, ThreadMeasure};
+use crate::pipeline::register::Registration;
+use serde::{Deserialize, Serialize};
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct HeightSeries {
+    pub angles_deg: Vec<f64>,
+    /// null where the views did not cover the bin.
+    pub values: Vec<Option<f64>>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ThreadReport {
+    pub index: u32,
+    pub height_mm: HeightSeries,
+    pub black_crest_arcs_deg: Vec<[f64; 2]>,
+    pub black_crest_length_mm: f64,
+    // Extras.
+    pub crest_z_mm: [f64; 2],
+    pub min_height_mm: Option<f64>,
+    pub mean_height_mm: Option<f64>,
+    pub max_height_mm: Option<f64>,
+    pub bins_measured: usize,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StageTiming {
+    pub stage: String,
+    pub seconds: f64,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Report {
+    pub connection: Option<String>,
+    pub family: Family,
+    pub pipe_od_mm: f64,
+    pub lc_mm: f64,
+    pub circumference_mm: f64,
+    pub pitch_mm: f64,
+    pub nominal_height_mm: f64,
+    pub threads: Vec<ThreadReport>,
+    pub verdict: Verdict,
+    pub reasons: Vec<String>,
+    // Extras.
+    pub serial: Option<String>,
+    pub height_tolerance_mm: f64,
+    pub assessment: Assessment,
+    pub helix: Helix,
+    pub registration: Registration,
+    /// The end face's silhouette, when the views showed it: the ring's axial offset it found and
+    /// took out of every pose (registration cannot observe it).
+    #[serde(default)]
+    pub end_face: Option<EndFace>,
+    pub depth_coverage: f64,
+    pub map_coverage: f64,
+    pub machined_crest_gray: f32,
+    /// The machined crest cone the geometric black-crest test measured crests against.
+    pub crest_cone: Option<CrestCone>,
+    pub timings: Vec<StageTiming>,
+    /// Peak resident memory of the process (Linux VmHWM), when known.
+    pub peak_memory_mb: Option<f64>,
+}
+
+impl Report {
+    /// A short human summary: verdict, the reasons, thread height statistics.
+    pub fn summary(&self) -> String {
+        let heights: Vec<f64> =
+            self.threads.iter().flat_map(|t| t.height_mm.values.iter().flatten().copied()).collect();
+        let full: Vec<f64> = heights
+            .iter()
+            .copied()
+            .filter(|h| (h - self.nominal_height_mm).abs() <= self.height_tolerance_mm)
+            .collect();
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+        let mut out = format!(
+            "{} {}: {}\n",
+            self.serial.as_deref().unwrap_or("(no serial)"),
+            self.connection.as_deref().unwrap_or("custom thread"),
+            self.verdict.as_str().to_uppercase()
+        );
+        for r in &self.reasons {
+            out.push_str(&format!("  {r}\n"));
+        }
+        out.push_str(&format!(
+            "  {} threads, {} height bins; full crests {:.4} mm mean (nominal {:.4} ± {:.4}); helix z_h {:.3} mm\n",
+            self.threads.len(),
+            heights.len(),
+            mean(&full),
+            self.nominal_height_mm,
+            self.height_tolerance_mm,
+            self.helix.z_h_mm
+        ));
+        match &self.end_face {
+            Some(end) => out.push_str(&format!(
+                "  z from the end face: the ring's axial offset {:+.1} µm taken out ({} views, scatter {:.1} µm)\n",
+                1e3 * end.z_offset_mm,
+                end.views,
+                end.scatter_um
+            )),
+            None => out.push_str("  z from the encoders (no end face in view)\n"),
+        }
+        // The mesh and the profile run at the same time: together they take the longer of the two.
+        let seconds_of = |stage: &str| self.timings.iter().find(|t| t.stage == stage).map(|t| t.seconds);
+        let overlap = match (seconds_of("mesh"), seconds_of("profile")) {
+            (Some(mesh), Some(profile)) => mesh.min(profile),
+            _ => 0.0,
+        };
+        let total: f64 = self.timings.iter().map(|t| t.seconds).sum::<f64>() - overlap;
+        let stages: Vec<String> = self
+            .timings
+            .iter()
+            .map(|t| match t.stage.as_str() {
+                "profile" if overlap > 0.0 => format!("beside it profile {:.2}", t.seconds),
+                _ => format!("{} {:.2}", t.stage, t.seconds),
+            })
+            .collect();
+        out.push_str(&format!(
+            "  {:.2} s ({}){}",
+            total,
+            stages.join(", "),
+            self.peak_memory_mb.map(|m| format!("; peak memory {m:.0} MB")).unwrap_or_default()
+        ));
+        out
+    }
+}
+
+/// What the stages found, from which the report is assembled.
+pub struct Findings<'a> {
+    pub part: &'a Part,
+    pub helix: Helix,
+    pub threads: &'a [ThreadMeasure],
+    pub assessment: Assessment,
+    pub machined_crest_gray: f32,
+    pub crest_cone: Option<CrestCone>,
+    pub registration: Registration,
+    pub end_face: Option<EndFace>,
+    pub depth_coverage: f64,
+    pub map_coverage: f64,
+    pub timings: Vec<StageTiming>,
+}
+
+impl Report {
+    /// The report of a run: the part's fields, each thread's heights and black crests, the verdict
+    /// with its reasons, and the stages' measures.
+    pub fn assemble(f: Findings) -> Self {
+        let (part, helix) = (f.part, &f.helix);
+        let form = &part.form;
+        let threads = f
+            .threads
+            .iter()
+            .map(|t| {
+                let values: Vec<Option<f64>> = t.bins.iter().map(|b| b.height_mm).collect();
+                let measured: Vec<f64> = values.iter().flatten().copied().collect();
+                let black = f.assessment.black_threads.iter().find(|b| b.index == t.index);
+                ThreadReport {
+                    index: t.index,
+                    height_mm: HeightSeries { angles_deg: t.bins.iter().map(|b| b.angle_deg).collect(), values },
+                    black_crest_arcs_deg: black.map(|b| b.arcs_deg.clone()).unwrap_or_default(),
+                    black_crest_length_mm: black.map_or(0.0, |b| b.length_mm),
+                    crest_z_mm: [
+                        t.bins[0].crest_z_mm - 0.5 * helix.pitch_mm / 360.0,
+                        t.bins[359].crest_z_mm + 0.5 * helix.pitch_mm / 360.0,
+                    ],
+                    min_height_mm: measured.iter().copied().reduce(f64::min),
+                    mean_height_mm: (!measured.is_empty())
+                        .then(|| measured.iter().sum::<f64>() / measured.len() as f64),
+                    max_height_mm: measured.iter().copied().reduce(f64::max),
+                    bins_measured: measured.len(),
+                }
+            })
+            .collect();
+        Report {
+            connection: part.connection.clone(),
+            family: part.family(),
+            pipe_od_mm: part.pipe_od_mm,
+            lc_mm: part.lc_mm,
+            circumference_mm: part.circumference_mm(),
+            pitch_mm: form.pitch_mm,
+            nominal_height_mm: form.height_mm,
+            threads,
+            verdict: f.assessment.verdict,
+            reasons: f.assessment.messages(),
+            serial: part.serial.clone(),
+            height_tolerance_mm: form.height_tolerance_mm,
+            assessment: f.assessment,
+            helix: f.helix,
+            registration: f.registration,
+            end_face: f.end_face,
+            depth_coverage: f.depth_coverage,
+            map_coverage: f.map_coverage,
+            machined_crest_gray: f.machined_crest_gray,
+            crest_cone: f.crest_cone,
+            timings: f.timings,
+            peak_memory_mb: peak_memory_mb(),
+        }
+    }
+}
+
+/// Peak resident set size of this process in MB (Linux), read from /proc/self/status.
+pub fn peak_memory_mb() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb / 1024.0)
+}

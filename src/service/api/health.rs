@@ -1,0 +1,70 @@
+//! Liveness, readiness and metrics.
+
+use crate::problem::Code;
+use super::AppState;
+use super::problem::{ApiError, Problem};
+use axum::Json;
+use axum::extract::State;
+use axum::http::{HeaderValue, header};
+use axum::response::{IntoResponse, Response};
+use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
+
+pub fn router() -> OpenApiRouter<AppState> {
+    OpenApiRouter::new().routes(routes!(healthz)).routes(routes!(readyz)).routes(routes!(metrics))
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
+pub struct Health {
+    pub status: String,
+    pub version: String,
+}
+
+/// Liveness: the process answers.
+#[utoipa::path(get, path = "/healthz", operation_id = "healthz", tag = "operations",
+    responses((status = 200, description = "Alive", body = Health)))]
+pub async fn healthz() -> Json<Health> {
+    Json(Health { status: "ok".into(), version: env!("CARGO_PKG_VERSION").into() })
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
+pub struct Readiness {
+    pub status: String,
+    pub database: String,
+    pub disk: String,
+    pub queued: i64,
+    pub running: i64,
+}
+
+/// Readiness: the database answers, the data directory takes writes; reports the queue depth.
+#[utoipa::path(get, path = "/readyz", operation_id = "readyz", tag = "operations",
+    responses(
+        (status = 200, description = "Ready", body = Readiness),
+        (status = 503, description = "Not ready (database or disk)", body = Problem, content_type = "application/problem+json"),
+    ))]
+pub async fn readyz(State(state): State<AppState>) -> Result<Json<Readiness>, ApiError> {
+    state.store.ping().await.map_err(|e| ApiError::new(Code::NotReady, format!("database: {e}")))?;
+    let files = state.store.files.clone();
+    tokio::task::spawn_blocking(move || files.check_writable())
+        .await
+        .map_err(ApiError::internal)?
+        .map_err(|e| ApiError::new(Code::NotReady, format!("data directory not writable: {e}")))?;
+    let (queued, running) = state.store.queue_depth().await?;
+    Ok(Json(Readiness { status: "ready".into(), database: "ok".into(), disk: "ok".into(), queued, running }))
+}
+
+/// Prometheus metrics (text exposition format).
+#[utoipa::path(get, path = "/metrics", operation_id = "metrics", tag = "operations",
+    responses((status = 200, description = "Prometheus text format", body = String, content_type = "text/plain")))]
+pub async fn metrics(State(state): State<AppState>) -> Result<Response, ApiError> {
+    let (queued, running) = state.store.queue_depth().await?;
+    state.metrics.set_queue(queued, running);
+    let mut response = state.metrics.render().into_response();
+    response.headers_mut().insert(
+        header::CONTENT_TYPE,
+        HeaderValue::from_static("application/openmetrics-text; version=1.0.0; charset=utf-8"),
+    );
+    Ok(response)
+}

@@ -1,0 +1,325 @@
+//! Receiving a bundle: the request body (raw zip/tar, or multipart with one `bundle` part, or a
+//! `manifest` part plus frame parts named by their manifest paths) is streamed to a temporary file
+//! in the data directory while it is hashed; multipart frame parts are written as a tar archive.
+//! File writes run on one blocking thread fed through a bounded channel, so the async runtime never
+//! blocks on the disk.
+
+use crate::problem::Code;
+use super::problem::ApiError;
+use crate::bundle::check_relative_path;
+use crate::service::store::files::{FileStore, HashingWriter};
+use axum::body::{Body, Bytes};
+use axum::extract::{FromRequest, Multipart, Request};
+use axum::http::header;
+use futures_util::StreamExt;
+use std::io::{BufWriter, Write};
+use tokio::sync::mpsc;
+
+/// A received upload, not yet validated or committed.
+pub struct Received {
+    pub file: tempfile::NamedTempFile,
+    pub sha256: String,
+    pub size_bytes: u64,
+    /// The multipart `options` part, if any (JSON).
+    pub options_part: Option<Vec<u8>>,
+}
+
+enum Chunk {
+    Raw(Bytes),
+    Entry { path: String, data: Vec<u8> },
+}
+
+type FileWriter = HashingWriter<BufWriter<std::fs::File>>;
+
+enum Sink {
+    Empty(FileWriter),
+    Raw(FileWriter),
+    Tar(tar::Builder<FileWriter>),
+}
+
+/// The blocking side: owns the file, appends raw bytes or tar entries.
+fn write_loop(file: std::fs::File, mut rx: mpsc::Receiver<Chunk>) -> std::io::Result<(String, u64)> {
+    let mut sink = Sink::Empty(HashingWriter::new(BufWriter::with_capacity(1 << 20, file)));
+    while let Some(chunk) = rx.blocking_recv() {
+        sink = match (sink, chunk) {
+            (Sink::Empty(mut w) | Sink::Raw(mut w), Chunk::Raw(bytes)) => {
+                w.write_all(&bytes)?;
+                Sink::Raw(w)
+            }
+            (Sink::Empty(w), chunk @ Chunk::Entry { .. }) => {
+                let mut builder = tar::Builder::new(w);
+                append_entry(&mut builder, chunk)?;
+                Sink::Tar(builder)
+            }
+            (Sink::Tar(mut builder), chunk @ Chunk::Entry { .. }) => {
+                append_entry(&mut builder, chunk)?;
+                Sink::Tar(builder)
+            }
+            _ => return Err(std::io::Error::other("raw bytes and multipart entries mixed")),
+        };
+    }
+    let writer = match sink {
+        Sink::Empty(w) | Sink::Raw(w) => w,
+        Sink::Tar(builder) => builder.into_inner()?,
+    };
+    let (buffered, sha256, size) = writer.finish();
+    buffered.into_inner().map_err(|e| e.into_error())?.flush()?;
+    Ok((sha256, size))
+}
+
+fn append_entry(builder: &mut tar::Builder<FileWriter>, chunk: Chunk) -> std::io::Result<()> {
+    let Chunk::Entry { path, data } = chunk else { unreachable!("only entries reach here") };
+    let mut header = tar::Header::new_ustar();
+    header.set_size(data.len() as u64);
+    header.set_mode(0o644);
+    header.set_entry_type(tar::EntryType::Regular);
+    builder.append_data(&mut header, &path, data.as_slice())
+}
+
+struct Upload {
+    tx: mpsc::Sender<Chunk>,
+    writer: tokio::task::JoinHandle<std::io::Result<(String, u64)>>,
+    file: tempfile::NamedTempFile,
+    received: u64,
+    limit: u64,
+}
+
+impl Upload {
+    fn start(files: &FileStore, limit: u64) -> Result<Self, ApiError> {
+        let file = files.temp_file().map_err(ApiError::internal)?;
+        let handle = file.reopen().map_err(ApiError::internal)?;
+        let (tx, rx) = mpsc::channel(64);
+        let writer = tokio::task::spawn_blocking(move || write_loop(handle, rx));
+        Ok(Self { tx, writer, file, received: 0, limit })
+    }
+
+    fn count(&mut self, n: usize) -> Result<(), ApiError> {
+        self.received += n as u64;
+        if self.received > self.limit {
+            return Err(too_large(self.limit));
+        }
+        Ok(())
+    }
+
+    async fn send(&mut self, chunk: Chunk) -> Result<(), ApiError> {
+        if self.tx.send(chunk).await.is_err() {
+            // The writer stopped: its error says why.
+            return Err(self.writer_error().await);
+        }
+        Ok(())
+    }
+
+    async fn writer_error(&mut self) -> ApiError {
+        match (&mut self.writer).await {
+            Ok(Err(e)) => ApiError::internal(format!("writing the upload: {e}")),
+            Ok(Ok(_)) => ApiError::internal("upload writer stopped early"),
+            Err(e) => ApiError::internal(format!("upload writer: {e}")),
+        }
+    }
+
+    async fn finish(self, options_part: Option<Vec<u8>>) -> Result<Received, ApiError> {
+        drop(self.tx);
+        let (sha256, size_bytes) = self
+            .writer
+            .await
+            .map_err(ApiError::internal)?
+            .map_err(|e| ApiError::internal(format!("writing the upload: {e}")))?;
+        Ok(Received { file: self.file, sha256, size_bytes, options_part })
+    }
+}
+
+const DRAIN_BYTES: u64 = 64 << 20;
+
+/// Reads and drops up to 64 MiB of a body that is being refused, so a client that sends it whole
+/// (without `Expect: 100-continue`) reads the problem instead of a reset connection.
+pub async fn drain(body: Body) {
+    drain_stream(body.into_data_stream()).await
+}
+
+async fn drain_stream(mut stream: axum::body::BodyDataStream) {
+    let mut seen = 0u64;
+    while let Some(Ok(chunk)) = stream.next().await {
+        seen += chunk.len() as u64;
+        if seen > DRAIN_BYTES {
+            break;
+        }
+    }
+}
+
+fn too_large(limit: u64) -> ApiError {
+    ApiError::new(Code::BodyTooLarge, format!("the upload exceeds the {} MiB limit (max_upload_mb)", limit >> 20))
+}
+
+/// Streams the request body into the file store's temporary area.
+pub async fn receive(request: Request, files: &FileStore, limit: u64) -> Result<Received, ApiError> {
+    let content_type =
+        request.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_ascii_lowercase();
+    if let Some(length) =
+        request.headers().get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()?.parse::<u64>().ok())
+        && length > limit
+    {
+        // Read (and drop) a moderate excess so that clients without `Expect: 100-continue` see the
+        // 413 instead of a reset connection; larger bodies are cut off.
+        if length <= limit.saturating_add(DRAIN_BYTES) {
+            drain(request.into_body()).await;
+        }
+        return Err(too_large(limit));
+    }
+    let essence = content_type.split(';').next().unwrap_or("").trim().to_string();
+    match essence.as_str() {
+        "multipart/form-data" => receive_multipart(request, files, limit).await,
+        "application/zip"
+        | "application/x-zip-compressed"
+        | "application/x-tar"
+        | "application/tar"
+        | "application/octet-stream" => receive_raw(request.into_body(), files, limit).await,
+        other => {
+            let error = ApiError::new(
+            Code::UnsupportedMediaType,
+            format!(
+                "Content-Type {:?}: send the bundle as application/zip, application/x-tar, application/octet-stream or multipart/form-data",
+                if other.is_empty() { "(none)" } else { other }
+            ),
+            )
+            .with_culprit("Content-Type");
+            drain(request.into_body()).await;
+            Err(error)
+        }
+    }
+}
+
+async fn receive_raw(body: Body, files: &FileStore, limit: u64) -> Result<Received, ApiError> {
+    let mut upload = Upload::start(files, limit)?;
+    let mut stream = body.into_data_stream();
+    while let Some(chunk) = stream.next().await {
+        let chunk = chunk.map_err(|e| ApiError::new(Code::BadRequest, format!("reading the body: {e}")))?;
+        if let Err(e) = upload.count(chunk.len()) {
+            drain_stream(stream).await;
+            return Err(e);
+        }
+        upload.send(Chunk::Raw(chunk)).await?;
+    }
+    if upload.received == 0 {
+        return Err(ApiError::new(Code::InvalidArchive, "the body is empty: expected a zip or tar bundle"));
+    }
+    upload.finish(None).await
+}
+
+fn multipart_error(e: axum::extract::multipart::MultipartError) -> ApiError {
+    if e.status() == axum::http::StatusCode::PAYLOAD_TOO_LARGE {
+        return ApiError::new(Code::BodyTooLarge, e.body_text());
+    }
+    ApiError::new(Code::InvalidMultipart, e.body_text())
+}
+
+async fn receive_multipart(request: Request, files: &FileStore, limit: u64) -> Result<Received, ApiError> {
+    let mut multipart =
+        Multipart::from_request(request, &()).await.map_err(|e| ApiError::new(Code::InvalidMultipart, e.body_text()))?;
+    let result = read_parts(&mut multipart, files, limit).await;
+    if result.is_err() {
+        // As for raw bodies: read (and drop) a moderate rest so the client sees the problem.
+        let mut seen = 0u64;
+        'parts: while let Ok(Some(mut field)) = multipart.next_field().await {
+            while let Ok(Some(chunk)) = field.chunk().await {
+                seen += chunk.len() as u64;
+                if seen > DRAIN_BYTES {
+                    break 'parts;
+                }
+            }
+        }
+    }
+    result
+}
+
+/// Reads a whole part into memory, counted against the upload's limit; `too_big` is the refusal
+/// once it passes `cap` bytes.
+async fn read_part(
+    field: &mut axum::extract::multipart::Field<'_>,
+    upload: &mut Upload,
+    cap: u64,
+    too_big: impl FnOnce() -> ApiError,
+) -> Result<Vec<u8>, ApiError> {
+    let mut data = Vec::new();
+    while let Some(chunk) = field.chunk().await.map_err(multipart_error)? {
+        upload.count(chunk.len())?;
+        data.extend_from_slice(&chunk);
+        if data.len() as u64 > cap {
+            return Err(too_big());
+        }
+    }
+    Ok(data)
+}
+
+async fn read_parts(multipart: &mut Multipart, files: &FileStore, limit: u64) -> Result<Received, ApiError> {
+    let mut upload = Upload::start(files, limit)?;
+    let mut options = None;
+    let (mut archive_part, mut manifest_part, mut frame_parts) = (false, false, 0usize);
+    while let Some(mut field) = multipart.next_field().await.map_err(multipart_error)? {
+        let name = field.name().unwrap_or("").to_string();
+        match name.as_str() {
+            "options" => {
+                options = Some(
+                    read_part(&mut field, &mut upload, 1 << 20, || {
+                        ApiError::new(Code::InvalidOption, "the options part exceeds 1 MiB").with_culprit("options")
+                    })
+                    .await?,
+                );
+            }
+            "bundle" => {
+                if archive_part || manifest_part || frame_parts > 0 {
+                    return Err(ApiError::new(Code::InvalidMultipart, "a `bundle` part must be the only bundle content")
+                        .with_culprit("bundle"));
+                }
+                archive_part = true;
+                while let Some(chunk) = field.chunk().await.map_err(multipart_error)? {
+                    upload.count(chunk.len())?;
+                    upload.send(Chunk::Raw(chunk)).await?;
+                }
+            }
+            _ => {
+                if archive_part {
+                    return Err(ApiError::new(Code::InvalidMultipart, format!("part {name:?} next to a `bundle` part"))
+                        .with_culprit(name));
+                }
+                let path = if name == "manifest" || name == "manifest.json" {
+                    if manifest_part {
+                        return Err(ApiError::new(Code::InvalidMultipart, "two manifest parts").with_culprit("manifest"));
+                    }
+                    manifest_part = true;
+                    "manifest.json".to_string()
+                } else {
+                    // Frame parts are named by their manifest path (the part name, else its filename).
+                    let path = if name.is_empty() || name == "file" || name == "frame" {
+                        field.file_name().unwrap_or("").to_string()
+                    } else {
+                        name.clone()
+                    };
+                    check_relative_path(&path).map_err(|message| {
+                        ApiError::new(Code::UnsafePath, format!("part {path:?}: {message}")).with_culprit(path.clone())
+                    })?;
+                    frame_parts += 1;
+                    path
+                };
+                // Parts are held in memory until written as tar entries: each is capped like a
+                // bundle file.
+                let max_part = crate::bundle::Limits::default().max_file_bytes;
+                let data = read_part(&mut field, &mut upload, max_part, || {
+                    ApiError::new(
+                        Code::BundleTooLarge,
+                        format!("part {path:?} exceeds the per-file cap of {max_part} bytes"),
+                    )
+                    .with_culprit(path.clone())
+                })
+                .await?;
+                upload.send(Chunk::Entry { path, data }).await?;
+            }
+        }
+    }
+    if !archive_part && !manifest_part {
+        return Err(ApiError::new(
+            Code::InvalidMultipart,
+            "no bundle: send a `bundle` part (zip or tar), or a `manifest` part and one part per frame named by its manifest path",
+        ));
+    }
+    upload.finish(options).await
+}

@@ -1,0 +1,494 @@
+//! `/v1/inspections`: submit (202 + Location), list with filters and a cursor, get, cancel.
+
+use crate::problem::Code;
+use super::ingest;
+use super::problem::{ApiError, Problem};
+use super::{AppState, Binary, InspectionId, parse_rfc3339, rfc3339};
+use crate::bundle::{Bundle, FrameCheck, OpenOptions};
+use crate::service::queue::JobOptions;
+use crate::pipeline::PipelineOptions;
+use crate::domain::rules::ArcRule;
+use crate::service::store::files::sha256_hex;
+use crate::service::store::{Inserted, InspectionRow, ListFilter, NewInspection, Status};
+use axum::Json;
+use axum::extract::{Path, Query, Request, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use serde::{Deserialize, Serialize};
+use utoipa::{IntoParams, ToSchema};
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
+
+pub fn router() -> OpenApiRouter<AppState> {
+    OpenApiRouter::new()
+        .routes(routes!(create_inspection, list_inspections))
+        .routes(routes!(get_inspection))
+        .routes(routes!(cancel_inspection))
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
+pub struct Progress {
+    /// depth, register, fuse, mesh, profile, crest_and_rules.
+    pub stage: String,
+    /// 0–1 within the stage.
+    pub fraction: f64,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
+pub struct BundleSummary {
+    pub sha256: String,
+    pub size_bytes: i64,
+    pub views: i64,
+    pub frames: i64,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
+pub struct Links {
+    #[serde(rename = "self")]
+    pub self_: String,
+    pub report: String,
+    pub threads: String,
+    pub mesh: String,
+    pub height_map: String,
+    pub all_in_focus: String,
+    pub cmm: String,
+    pub cmm_comparison: String,
+    pub cancel: String,
+}
+
+/// An inspection job and, once it succeeded, where its results are.
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
+pub struct Inspection {
+    pub id: String,
+    pub status: Status,
+    /// While running: the pipeline stage and how far it is.
+    pub progress: Option<Progress>,
+    pub verdict: Option<String>,
+    pub serial: Option<String>,
+    pub connection: Option<String>,
+    pub client_reference: Option<String>,
+    pub created_at: String,
+    pub updated_at: String,
+    pub started_at: Option<String>,
+    pub finished_at: Option<String>,
+    /// Claims so far (a retry or a re-claim after a crash counts).
+    pub attempts: i64,
+    pub cancel_requested: bool,
+    pub bundle: BundleSummary,
+    /// The options the pipeline runs with (defaults filled in).
+    #[schema(value_type = Object)]
+    pub options: serde_json::Value,
+    /// Why it failed: the same problem object HTTP errors use.
+    pub error: Option<Problem>,
+    pub links: Links,
+}
+
+impl From<InspectionRow> for Inspection {
+    fn from(r: InspectionRow) -> Self {
+        let status = r.status();
+        let base = format!("/v1/inspections/{}", r.id);
+        Self {
+            progress: match (status, &r.progress_stage, r.progress_fraction) {
+                (Status::Running, Some(stage), Some(fraction)) => Some(Progress { stage: stage.clone(), fraction }),
+                _ => None,
+            },
+            status,
+            verdict: r.verdict,
+            serial: r.serial,
+            connection: r.connection,
+            client_reference: r.client_reference,
+            created_at: rfc3339(r.created_at),
+            updated_at: rfc3339(r.updated_at),
+            started_at: r.started_at.map(rfc3339),
+            finished_at: r.finished_at.map(rfc3339),
+            attempts: r.attempts,
+            cancel_requested: r.cancel_requested,
+            bundle: BundleSummary {
+                sha256: r.upload_sha256,
+                size_bytes: r.size_bytes,
+                views: r.views,
+                frames: r.frames,
+            },
+            options: serde_json::from_str(&r.options_json).unwrap_or(serde_json::Value::Null),
+            error: r.error_json.as_deref().and_then(|e| serde_json::from_str(e).ok()),
+            links: Links {
+                report: format!("{base}/report"),
+                threads: format!("{base}/threads"),
+                mesh: format!("{base}/mesh"),
+                height_map: format!("{base}/images/height-map"),
+                all_in_focus: format!("{base}/images/all-in-focus"),
+                cmm: format!("{base}/cmm"),
+                cmm_comparison: format!("{base}/cmm-comparison"),
+                cancel: format!("{base}/cancel"),
+                self_: base,
+            },
+            id: r.id,
+        }
+    }
+}
+
+/// Submission options, as query parameters or as a multipart `options` part (JSON; it wins).
+#[derive(Clone, Debug, Default, Serialize, Deserialize, IntoParams, ToSchema)]
+#[serde(deny_unknown_fields)]
+#[into_params(parameter_in = Query)]
+pub struct SubmitOptions {
+    /// Your correlation id (MES order, station run); filterable. At most 200 printable characters.
+    pub client_reference: Option<String>,
+    /// How the buttress 25% limit applies: per_thread (default) or combined.
+    #[param(value_type = Option<String>)]
+    #[schema(value_type = Option<String>)]
+    pub arc_rule: Option<ArcRule>,
+    /// Pipeline options to override (JSON object, same shape as the inspection's `options.pipeline`).
+    /// Only in the multipart `options` part.
+    #[serde(default)]
+    #[param(ignore)]
+    #[schema(value_type = Option<Object>)]
+    pub pipeline: Option<serde_json::Value>,
+}
+
+/// The multipart form of an upload. Instead of `bundle`, a `manifest` part and one part per frame
+/// (named by its manifest path) may be sent.
+#[derive(ToSchema)]
+#[allow(dead_code)]
+pub struct BundleForm {
+    /// The bundle as a zip or tar archive.
+    #[schema(value_type = String, format = Binary)]
+    bundle: Vec<u8>,
+    /// Submission options as JSON: `client_reference`, `arc_rule`, `pipeline`.
+    options: Option<String>,
+}
+
+/// Idempotency-Key: 1–255 visible ASCII characters.
+fn idempotency_key(headers: &HeaderMap) -> Result<Option<String>, ApiError> {
+    let Some(v) = headers.get("idempotency-key") else { return Ok(None) };
+    let bad = || {
+        ApiError::new(Code::InvalidHeader, "Idempotency-Key must be 1–255 visible ASCII characters")
+            .with_culprit("Idempotency-Key")
+    };
+    let s = v.to_str().map_err(|_| bad())?.trim();
+    if s.is_empty() || s.len() > 255 || !s.bytes().all(|b| b.is_ascii_graphic()) {
+        return Err(bad());
+    }
+    Ok(Some(s.to_string()))
+}
+
+fn client_reference(value: Option<String>) -> Result<Option<String>, ApiError> {
+    match value {
+        Some(r) if r.is_empty() || r.chars().count() > 200 || r.chars().any(char::is_control) => {
+            Err(ApiError::new(Code::InvalidOption, "client_reference must be 1–200 characters without control characters")
+                .with_culprit("client_reference"))
+        }
+        other => Ok(other),
+    }
+}
+
+/// Deep-merges `patch` into `base`, refusing keys that `base` does not have (typos would
+/// otherwise be ignored silently).
+fn merge(base: &mut serde_json::Value, patch: &serde_json::Value, path: &str) -> Result<(), ApiError> {
+    match (base, patch) {
+        (serde_json::Value::Object(b), serde_json::Value::Object(p)) => {
+            for (k, v) in p {
+                let here = format!("{path}.{k}");
+                let slot = b.get_mut(k).ok_or_else(|| {
+                    ApiError::new(Code::InvalidOption, format!("{here}: unknown option")).with_culprit(here.clone())
+                })?;
+                merge(slot, v, &here)?;
+            }
+            Ok(())
+        }
+        (b, p) => {
+            *b = p.clone();
+            Ok(())
+        }
+    }
+}
+
+pub fn resolve_options(query: SubmitOptions, part: Option<&[u8]>) -> Result<(Option<String>, JobOptions), ApiError> {
+    let part: SubmitOptions = match part {
+        Some(bytes) => {
+            let de = &mut serde_json::Deserializer::from_slice(bytes);
+            serde_path_to_error::deserialize(de).map_err(|e| {
+                let field = format!("options.{}", e.path());
+                ApiError::new(Code::InvalidOption, format!("{field}: {}", e.inner())).with_culprit(field)
+            })?
+        }
+        None => SubmitOptions::default(),
+    };
+    let reference = client_reference(part.client_reference.or(query.client_reference))?;
+    let mut pipeline = serde_json::to_value(PipelineOptions::default()).expect("options serialise");
+    if let Some(patch) = part.pipeline.as_ref() {
+        if !patch.is_object() {
+            return Err(ApiError::new(Code::InvalidOption, "pipeline: must be a JSON object").with_culprit("pipeline"));
+        }
+        merge(&mut pipeline, patch, "pipeline")?;
+    }
+    let mut pipeline: PipelineOptions = serde_path_to_error::deserialize(pipeline).map_err(|e| {
+        let field = format!("pipeline.{}", e.path());
+        ApiError::new(Code::InvalidOption, format!("{field}: {}", e.inner())).with_culprit(field)
+    })?;
+    if let Some(rule) = part.arc_rule.or(query.arc_rule) {
+        pipeline.arc_rule = rule;
+    }
+    Ok((reference, JobOptions { pipeline }))
+}
+
+fn accepted(row: InspectionRow, replayed: bool) -> Response {
+    let location = format!("/v1/inspections/{}", row.id);
+    let mut response = (StatusCode::ACCEPTED, Json(Inspection::from(row))).into_response();
+    let headers = response.headers_mut();
+    headers.insert(header::LOCATION, HeaderValue::from_str(&location).expect("ids are ASCII"));
+    if replayed {
+        headers.insert("idempotent-replayed", HeaderValue::from_static("true"));
+    }
+    response
+}
+
+/// Submit a bundle for inspection.
+///
+/// The body is the bundle: a raw zip or tar (`application/zip`, `application/x-tar`,
+/// `application/octet-stream`), or `multipart/form-data` with one `bundle` part (zip/tar), or a
+/// `manifest` part plus one part per frame named by its manifest path; an optional `options` part
+/// (JSON) carries the submission options. The whole bundle is validated before the answer: a bad
+/// one is a 4xx naming the field or file, and nothing is stored.
+#[utoipa::path(
+    post,
+    path = "/v1/inspections",
+    operation_id = "create_inspection",
+    tag = "inspections",
+    params(
+        SubmitOptions,
+        ("Idempotency-Key" = Option<String>, Header, description = "Retry-safe submission: the same key and body return the same inspection; the same key with another body is 422."),
+    ),
+    request_body(
+        content(
+            (Binary = "application/octet-stream"),
+            (Binary = "application/zip"),
+            (Binary = "application/x-tar"),
+            (BundleForm = "multipart/form-data"),
+        ),
+        description = "The bundle (../shared/spec/bundle.md)."
+    ),
+    responses(
+        (status = 202, description = "Accepted and queued (or replayed for the same Idempotency-Key).", body = Inspection,
+            headers(("Location" = String, description = "The inspection's URL"))),
+        (status = 400, description = "Malformed request or multipart body", body = Problem, content_type = "application/problem+json"),
+        (status = 413, description = "Body or bundle too large", body = Problem, content_type = "application/problem+json"),
+        (status = 415, description = "Unsupported Content-Type", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Invalid bundle, option, or Idempotency-Key reused with another body", body = Problem, content_type = "application/problem+json"),
+        (status = 500, description = "Server error", body = Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn create_inspection(
+    State(state): State<AppState>,
+    query: Result<Query<SubmitOptions>, axum::extract::rejection::QueryRejection>,
+    headers: HeaderMap,
+    request: Request,
+) -> Result<Response, ApiError> {
+    let early = query
+        .map_err(|e| ApiError::new(Code::InvalidQuery, e.body_text()))
+        .and_then(|q| Ok((q.0, idempotency_key(&headers)?)));
+    let (query, key) = match early {
+        Ok(ok) => ok,
+        Err(e) => {
+            ingest::drain(request.into_body()).await;
+            return Err(e);
+        }
+    };
+    let received = ingest::receive(request, &state.store.files, state.settings.max_upload_bytes()).await?;
+    let (reference, options) = resolve_options(query, received.options_part.as_deref())?;
+    let options_json = serde_json::to_string(&options).expect("options serialise");
+    let request_sha256 =
+        sha256_hex(format!("{}\n{}\n{}", received.sha256, options_json, reference.as_deref().unwrap_or("")).as_bytes());
+    if let Some(key) = &key
+        && let Some(existing) = state.store.by_idempotency_key(key).await?
+    {
+        return if existing.request_sha256 == request_sha256 {
+            Ok(accepted(existing, true))
+        } else {
+            Err(ApiError::new(
+                Code::IdempotencyKeyReused,
+                format!("Idempotency-Key {key:?} was used for inspection {} with another body or options", existing.id),
+            )
+            .with_culprit("Idempotency-Key"))
+        };
+    }
+
+    // Validate the whole bundle (manifest, optics, part, every frame's header) before accepting.
+    let table = state.table.clone();
+    let limit = state.settings.max_upload_bytes();
+    let files = state.store.files.clone();
+    let ingest::Received { file, sha256, size_bytes, .. } = received;
+    let (upload, serial, connection, file) = tokio::task::spawn_blocking(move || {
+        let limits = crate::service::queue::bundle_limits(limit);
+        let bundle = Bundle::open(file.path(), &table, OpenOptions { limits, frame_check: FrameCheck::Headers })?;
+        let serial = bundle.manifest.part.serial.clone();
+        let connection = bundle.manifest.part.connection.clone();
+        let summary = crate::service::store::UploadInfo {
+            sha256: sha256.clone(),
+            size_bytes,
+            views: bundle.views.len(),
+            frames: bundle.frame_count(),
+        };
+        drop(bundle);
+        // Durable now; placed under its hash inside the database transaction.
+        files.prepare(&file).map_err(ApiError::internal)?;
+        Ok::<_, ApiError>((summary, serial, connection, file))
+    })
+    .await
+    .map_err(ApiError::internal)??;
+
+    let new = NewInspection {
+        id: uuid::Uuid::now_v7().to_string(),
+        upload,
+        serial,
+        connection,
+        client_reference: reference,
+        options_json,
+        idempotency_key: key,
+        request_sha256,
+        max_attempts: state.settings.max_attempts,
+    };
+    let response = match state.store.insert_inspection(&new, file).await? {
+        Inserted::Created(row) => {
+            tracing::info!(inspection = %row.id, bytes = new.upload.size_bytes, "accepted");
+            state.wake.notify_one();
+            accepted(row, false)
+        }
+        Inserted::Replayed(row) => accepted(row, true),
+    };
+    Ok(response)
+}
+
+#[derive(Clone, Debug, Default, Deserialize, IntoParams)]
+#[serde(deny_unknown_fields)]
+#[into_params(parameter_in = Query)]
+pub struct ListQuery {
+    /// queued, running, succeeded, failed or canceled.
+    pub status: Option<String>,
+    /// accept or reject.
+    pub verdict: Option<String>,
+    pub serial: Option<String>,
+    pub connection: Option<String>,
+    pub client_reference: Option<String>,
+    /// RFC 3339; only inspections created after it.
+    pub created_after: Option<String>,
+    /// RFC 3339; only inspections created before it.
+    pub created_before: Option<String>,
+    /// Page size, 1–200 (default 50).
+    pub limit: Option<u32>,
+    /// `next_cursor` of the previous page.
+    pub cursor: Option<String>,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
+pub struct InspectionPage {
+    /// Newest first.
+    pub items: Vec<Inspection>,
+    /// Pass as `cursor` for the next page; absent on the last page.
+    pub next_cursor: Option<String>,
+}
+
+/// List inspections, newest first, with filters and cursor pagination.
+#[utoipa::path(
+    get,
+    path = "/v1/inspections",
+    operation_id = "list_inspections",
+    tag = "inspections",
+    params(ListQuery),
+    responses(
+        (status = 200, description = "A page of inspections", body = InspectionPage),
+        (status = 400, description = "Invalid filter or cursor", body = Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn list_inspections(
+    State(state): State<AppState>,
+    query: Result<Query<ListQuery>, axum::extract::rejection::QueryRejection>,
+) -> Result<Json<InspectionPage>, ApiError> {
+    let Query(q) = query.map_err(|e| ApiError::new(Code::InvalidQuery, e.body_text()))?;
+    let invalid = |field: &str, message: String| {
+        ApiError::new(Code::InvalidQuery, format!("{field}: {message}")).with_culprit(field)
+    };
+    let status = q.status.as_deref().map(str::parse::<Status>).transpose().map_err(|e| invalid("status", e))?;
+    if let Some(v) = q.verdict.as_deref()
+        && v != "accept"
+        && v != "reject"
+    {
+        return Err(invalid("verdict", format!("{v:?} is neither accept nor reject")));
+    }
+    let time = |field: &str, v: &Option<String>| {
+        v.as_deref().map(|t| parse_rfc3339(t).map_err(|e| invalid(field, e))).transpose()
+    };
+    let limit = q.limit.unwrap_or(50);
+    if !(1..=200).contains(&limit) {
+        return Err(invalid("limit", format!("{limit} is outside 1–200")));
+    }
+    let before_id = match q.cursor.as_deref() {
+        Some(c) => Some(InspectionId::parse(c).map_err(|_| invalid("cursor", "not a cursor from this list".into()))?.0),
+        None => None,
+    };
+    let filter = ListFilter {
+        status,
+        verdict: q.verdict,
+        serial: q.serial,
+        connection: q.connection,
+        client_reference: q.client_reference,
+        created_after_ms: time("created_after", &q.created_after)?,
+        created_before_ms: time("created_before", &q.created_before)?,
+        before_id,
+        limit: limit + 1,
+    };
+    let mut rows = state.store.list(&filter).await?;
+    let next_cursor = if rows.len() > limit as usize {
+        rows.truncate(limit as usize);
+        rows.last().map(|r| r.id.clone())
+    } else {
+        None
+    };
+    Ok(Json(InspectionPage { items: rows.into_iter().map(Inspection::from).collect(), next_cursor }))
+}
+
+/// Get an inspection: status, progress, timestamps, verdict, and the error if it failed.
+#[utoipa::path(
+    get,
+    path = "/v1/inspections/{id}",
+    operation_id = "get_inspection",
+    tag = "inspections",
+    params(("id" = String, Path, description = "Inspection id")),
+    responses(
+        (status = 200, description = "The inspection", body = Inspection),
+        (status = 404, description = "No such inspection", body = Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn get_inspection(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Json<Inspection>, ApiError> {
+    let id = InspectionId::parse(&id)?;
+    let row = state.store.inspection(&id.0).await.map_err(|e| super::missing_inspection(e, &id.0))?;
+    Ok(Json(row.into()))
+}
+
+/// Cancel an inspection: a queued one at once (200), a running one at its next heartbeat (202).
+#[utoipa::path(
+    post,
+    path = "/v1/inspections/{id}/cancel",
+    operation_id = "cancel_inspection",
+    tag = "inspections",
+    params(("id" = String, Path, description = "Inspection id")),
+    responses(
+        (status = 200, description = "Canceled", body = Inspection),
+        (status = 202, description = "Cancel requested; the worker stops at its next heartbeat", body = Inspection),
+        (status = 404, description = "No such inspection", body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "Already succeeded or failed", body = Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn cancel_inspection(State(state): State<AppState>, Path(id): Path<String>) -> Result<Response, ApiError> {
+    let id = InspectionId::parse(&id)?;
+    let before = state.store.inspection(&id.0).await.map_err(|e| super::missing_inspection(e, &id.0))?;
+    if matches!(before.status(), Status::Succeeded | Status::Failed) {
+        return Err(ApiError::new(Code::InspectionFinished, format!("inspection {} already {}", id.0, before.status)));
+    }
+    let row = state.store.request_cancel(&id.0).await?;
+    let code = if row.status() == Status::Canceled { StatusCode::OK } else { StatusCode::ACCEPTED };
+    Ok((code, Json(Inspection::from(row))).into_response())
+}

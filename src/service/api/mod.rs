@@ -1,0 +1,186 @@
+//! The HTTP edge: per-resource routers (utoipa-axum, so routes and the OpenAPI document come from
+//! the same declarations), merged here with the docs, the fallback and the middleware that turns
+//! every error into problem+json and counts requests.
+
+pub mod connections;
+pub mod health;
+pub mod ingest;
+pub mod inspections;
+pub mod problem;
+pub mod results;
+
+use crate::problem::Code;
+use crate::service::config::Settings;
+use crate::service::store::Store;
+use crate::service::telemetry::Metrics;
+use crate::domain::thread::ConnectionTable;
+use axum::Router;
+use axum::extract::{DefaultBodyLimit, MatchedPath, Request, State};
+use axum::http::{HeaderValue, header};
+use axum::middleware::{self, Next};
+use axum::response::{IntoResponse, Response};
+use problem::{ApiError, PROBLEM_JSON};
+use std::sync::Arc;
+use std::time::Instant;
+use tokio::sync::Notify;
+use utoipa::OpenApi;
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_swagger_ui::SwaggerUi;
+
+#[derive(Clone)]
+pub struct AppState {
+    pub store: Store,
+    pub table: Arc<ConnectionTable>,
+    pub metrics: Arc<Metrics>,
+    pub settings: Arc<Settings>,
+    /// Wakes idle workers when an inspection is queued.
+    pub wake: Arc<Notify>,
+}
+
+/// An inspection id: a UUID, rendered in its canonical lowercase form.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct InspectionId(pub String);
+
+impl InspectionId {
+    pub fn parse(s: &str) -> Result<Self, ApiError> {
+        uuid::Uuid::parse_str(s)
+            .map(|u| Self(u.to_string()))
+            .map_err(|_| ApiError::new(Code::InvalidId, format!("{s:?} is not an inspection id")).with_culprit("id"))
+    }
+}
+
+/// 404 for an unknown inspection; any other store failure stays a 500.
+pub fn missing_inspection(e: crate::service::store::StoreError, id: &str) -> ApiError {
+    match e {
+        crate::service::store::StoreError::NotFound => ApiError::not_found(id),
+        other => other.into(),
+    }
+}
+
+pub fn rfc3339(ms: i64) -> String {
+    time::OffsetDateTime::from_unix_timestamp_nanos(ms as i128 * 1_000_000)
+        .ok()
+        .and_then(|t| t.format(&time::format_description::well_known::Rfc3339).ok())
+        .unwrap_or_default()
+}
+
+pub fn parse_rfc3339(s: &str) -> Result<i64, String> {
+    time::OffsetDateTime::parse(s, &time::format_description::well_known::Rfc3339)
+        .map(|t| (t.unix_timestamp_nanos() / 1_000_000) as i64)
+        .map_err(|e| format!("{s:?} is not an RFC 3339 time ({e})"))
+}
+
+/// Raw bytes (a bundle archive, a mesh, a PNG) in the OpenAPI document.
+pub struct Binary;
+
+impl utoipa::PartialSchema for Binary {
+    fn schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
+        use utoipa::openapi::schema::{KnownFormat, ObjectBuilder, SchemaFormat, Type};
+        ObjectBuilder::new()
+            .schema_type(Type::String)
+            .format(Some(SchemaFormat::KnownFormat(KnownFormat::Binary)))
+            .into()
+    }
+}
+
+impl utoipa::ToSchema for Binary {}
+
+#[derive(OpenApi)]
+#[openapi(
+    info(
+        title = "crestscan",
+        description = "Thread inspection from focal stacks: upload a bundle, poll the inspection, fetch the report, \
+                       per-thread heights, mesh and images, and compare with CMM measurements. Errors are RFC 9457 \
+                       problem+json with a stable `code`.",
+        license(name = "MIT OR Apache-2.0"),
+    ),
+    tags(
+        (name = "inspections", description = "Submit, list, poll and cancel inspections"),
+        (name = "results", description = "Reports, per-thread tables, meshes and images of succeeded inspections"),
+        (name = "cmm", description = "CMM measurements and the comparison with crestscan"),
+        (name = "connections", description = "The API 5B connection table"),
+        (name = "operations", description = "Health, readiness, metrics"),
+    ),
+    components(schemas(problem::Problem))
+)]
+struct ApiDoc;
+
+fn api_routes() -> OpenApiRouter<AppState> {
+    OpenApiRouter::with_openapi(ApiDoc::openapi())
+        .merge(inspections::router())
+        .merge(results::router())
+        .merge(connections::router())
+        .merge(health::router())
+}
+
+/// The OpenAPI document (what `/openapi.json` serves and `crestscan openapi` prints).
+pub fn openapi() -> utoipa::openapi::OpenApi {
+    let mut doc = api_routes().split_for_parts().1;
+    doc.info.version = env!("CARGO_PKG_VERSION").into();
+    doc
+}
+
+pub fn router(state: AppState) -> Router {
+    let (routes, _) = api_routes().split_for_parts();
+    routes
+        .merge(SwaggerUi::new("/docs").url("/openapi.json", openapi()))
+        .fallback(route_not_found)
+        // Uploads stream to disk under their own limit (max_upload_mb); small bodies are capped where read.
+        .layer(DefaultBodyLimit::disable())
+        .layer(tower_http::catch_panic::CatchPanicLayer::new())
+        .layer(middleware::from_fn_with_state(state.clone(), observe))
+        .with_state(state)
+}
+
+async fn route_not_found(request: Request) -> ApiError {
+    ApiError::new(Code::RouteNotFound, format!("no route {} {}", request.method(), request.uri().path()))
+}
+
+/// Counts the request by matched route and makes every error a problem+json with `instance`.
+async fn observe(State(state): State<AppState>, request: Request, next: Next) -> Response {
+    let started = Instant::now();
+    let method = request.method().as_str().to_string();
+    let route = request.extensions().get::<MatchedPath>().map_or("unmatched", |m| m.as_str()).to_string();
+    let path = request.uri().path().to_string();
+    let response = next.run(request).await;
+    let response = if response.status().is_client_error() || response.status().is_server_error() {
+        problem_response(response, path).await
+    } else {
+        response
+    };
+    state.metrics.request(&method, &route, response.status().as_u16(), started.elapsed().as_secs_f64());
+    response
+}
+
+async fn problem_response(response: Response, path: String) -> Response {
+    let status = response.status();
+    if let Some(error) = response.extensions().get::<ApiError>().cloned() {
+        return with_problem(error.problem(Some(path)), response);
+    }
+    let is_problem =
+        response.headers().get(header::CONTENT_TYPE).is_some_and(|v| v.as_bytes().starts_with(PROBLEM_JSON.as_bytes()));
+    if is_problem {
+        return response;
+    }
+    // The framework's own rejection (plain text): keep its text as the detail.
+    let (parts, body) = response.into_parts();
+    let text = axum::body::to_bytes(body, 64 << 10)
+        .await
+        .map(|b| String::from_utf8_lossy(&b).into_owned())
+        .unwrap_or_default();
+    let code = problem::code_for_status(status);
+    let detail = if text.trim().is_empty() { status.canonical_reason().unwrap_or("error").to_string() } else { text };
+    let mut problem = ApiError::new(code, detail).problem(Some(path));
+    problem.status = status.as_u16();
+    with_problem(problem, Response::from_parts(parts, axum::body::Body::empty()))
+}
+
+fn with_problem(problem: problem::Problem, response: Response) -> Response {
+    let (mut parts, _) = response.into_parts();
+    let body = serde_json::to_vec(&problem).expect("problem serialises");
+    parts.headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(PROBLEM_JSON));
+    parts.headers.remove(header::CONTENT_LENGTH);
+    let mut out = Response::from_parts(parts, axum::body::Body::from(body));
+    *out.status_mut() = axum::http::StatusCode::from_u16(problem.status).unwrap_or(out.status());
+    out.into_response()
+}

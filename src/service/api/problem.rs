@@ -1,0 +1,144 @@
+//! One error type for the whole HTTP surface, rendered as RFC 9457 `application/problem+json`. The
+//! codes, their statuses and the problem object live in [`crate::problem`]; this module only
+//! renders them (failed jobs carry the same object).
+
+use crate::bundle::BundleError;
+use crate::problem::{Code, ErrorCode};
+pub use crate::problem::Problem;
+use crate::service::store::StoreError;
+use axum::http::{HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+
+pub const PROBLEM_JSON: &str = "application/problem+json";
+
+#[derive(Debug, Clone)]
+pub struct ApiError {
+    pub code: Code,
+    pub detail: String,
+    pub culprit: Option<String>,
+}
+
+impl ApiError {
+    pub fn new(code: Code, detail: impl Into<String>) -> Self {
+        Self { code, detail: detail.into(), culprit: None }
+    }
+
+    pub fn with_culprit(mut self, culprit: impl Into<String>) -> Self {
+        self.culprit = Some(culprit.into());
+        self
+    }
+
+    pub fn status(&self) -> StatusCode {
+        StatusCode::from_u16(self.code.status()).unwrap_or(StatusCode::INTERNAL_SERVER_ERROR)
+    }
+
+    pub fn problem(&self, instance: Option<String>) -> Problem {
+        Problem { instance, ..Problem::new(self.code, self.detail.clone(), self.culprit.clone()) }
+    }
+
+    /// The error as its own type describes it.
+    pub fn of(e: &impl ErrorCode) -> Self {
+        Self { code: e.code(), detail: e.to_string(), culprit: e.culprit() }
+    }
+
+    pub fn internal(e: impl std::fmt::Display) -> Self {
+        tracing::error!(error = %e, "internal error");
+        Self::new(Code::InternalError, e.to_string())
+    }
+
+    pub fn not_found(id: &str) -> Self {
+        Self::new(Code::InvalidId, format!("no inspection {id}")).with_culprit("id")
+    }
+}
+
+impl From<BundleError> for ApiError {
+    fn from(e: BundleError) -> Self {
+        match e.code() {
+            // The server's own file; not the client's business.
+            Code::IoError => Self::internal(e),
+            _ => Self::of(&e),
+        }
+    }
+}
+
+impl From<StoreError> for ApiError {
+    fn from(e: StoreError) -> Self {
+        match e {
+            StoreError::NotFound => Self::new(Code::NotFound, "not found"),
+            StoreError::IdempotencyConflict { .. } => {
+                Self::new(Code::IdempotencyKeyReused, e.to_string()).with_culprit("Idempotency-Key")
+            }
+            other => Self::internal(other),
+        }
+    }
+}
+
+/// The request path, stashed by the middleware so errors can name their `instance`.
+#[derive(Clone)]
+pub struct RequestPath(pub String);
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        let status = self.status();
+        let mut response =
+            (status, serde_json::to_vec(&self.problem(None)).expect("problem serialises")).into_response();
+        response.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(PROBLEM_JSON));
+        // Lets the middleware fill `instance` without re-parsing.
+        response.extensions_mut().insert(self);
+        response
+    }
+}
+
+/// Codes for responses the framework produced by itself (no ApiError attached).
+pub fn code_for_status(status: StatusCode) -> Code {
+    match status.as_u16() {
+        400 => Code::BadRequest,
+        404 => Code::RouteNotFound,
+        405 => Code::MethodNotAllowed,
+        406 => Code::NotAcceptable,
+        408 => Code::RequestTimeout,
+        413 => Code::BodyTooLarge,
+        415 => Code::UnsupportedMediaType,
+        422 => Code::InvalidJson,
+        503 => Code::NotReady,
+        _ => Code::InternalError,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bundle_errors_are_client_errors_with_their_own_code_and_culprit() {
+        for e in [
+            BundleError::FormatVersion { found: "x".into() },
+            BundleError::Limit { message: "x".into() },
+            BundleError::InspectionTooLarge { field: "views".into(), message: "x".into() },
+            BundleError::Archive { message: "x".into() },
+            BundleError::MissingFile { path: "views/0/a.png".into() },
+        ] {
+            let api = ApiError::from(e.clone());
+            assert_eq!(api.code, e.code());
+            assert!(api.status().is_client_error(), "{}", api.code);
+            assert_eq!(api.problem(None).status, e.code().status());
+        }
+        assert_eq!(ApiError::from(BundleError::MissingFile { path: "a.png".into() }).culprit.as_deref(), Some("a.png"));
+        let io = ApiError::from(BundleError::Io { path: "uploads/ab".into(), message: "EIO".into() });
+        assert_eq!((io.code, io.culprit), (Code::InternalError, None), "the server's own file is not named");
+    }
+
+    #[test]
+    fn every_code_is_documented_in_the_service_doc_under_its_status() {
+        let doc = include_str!("../../../docs/service.md");
+        let errors = &doc[doc.find("## Errors").expect("docs/service.md has an Errors section")..];
+        for code in Code::ALL {
+            let status = code.status();
+            let row = errors
+                .lines()
+                .find(|l| l.contains(&format!("`{code}`")))
+                .unwrap_or_else(|| panic!("{code} is not in docs/service.md's error table"));
+            assert!(row.contains(&status.to_string()), "{code} listed under the wrong status: {row}");
+        }
+    }
+}

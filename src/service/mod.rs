@@ -1,0 +1,9 @@
+//! The service at the edge: axum, sqlx and tokio live here and nowhere below.
+
+pub mod api;
+pub mod config;
+pub mod queue;
+pub mod startup;
+pub mod store;
+pub mod telemetry;
+pub mod worker;

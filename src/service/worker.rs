@@ -1,0 +1,326 @@
+//! The workers: claim a job from the SQLite queue, run the pipeline off the async runtime on the
+//! compute pool, heartbeat the lease (publishing progress, picking up cancel requests), and
+//! complete with success, retry or abort. A panic in the pipeline fails that job only.
+
+use crate::bundle::{Bundle, OpenOptions};
+use crate::domain::rules::Verdict;
+use crate::domain::thread::ConnectionTable;
+use crate::export::{ply, png, stl};
+use crate::pipeline::{self, Stage};
+use crate::problem::{Code, ErrorCode, Problem};
+use crate::service::queue::JobOptions;
+use crate::service::store::{Artifact, Claimed, Heartbeat, JobResults, Status, Store};
+use crate::service::telemetry::Metrics;
+use std::panic::AssertUnwindSafe;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+use tokio::sync::{Notify, watch};
+
+#[derive(Clone)]
+pub struct WorkerContext {
+    pub store: Store,
+    pub table: Arc<ConnectionTable>,
+    pub metrics: Arc<Metrics>,
+    pub compute: Arc<rayon::ThreadPool>,
+    pub settings: crate::service::config::Settings,
+    /// Wakes idle workers when work arrives.
+    pub wake: Arc<Notify>,
+    /// Unique per process; each claim's lease token starts with it.
+    pub owner: String,
+}
+
+enum Outcome {
+    Succeeded(Box<JobResults>),
+    Canceled,
+    /// Retry later (the failure may pass: I/O).
+    Retry(Problem),
+    /// Fail for good (the input cannot be inspected, or the pipeline crashed on it).
+    Fail(Problem),
+}
+
+fn problem(code: Code, detail: impl Into<String>) -> Problem {
+    Problem::new(code, detail, None)
+}
+
+/// The caps a bundle is opened with, at ingest and in the worker alike.
+pub fn bundle_limits(max_upload_bytes: u64) -> crate::bundle::Limits {
+    crate::bundle::Limits { max_total_bytes: max_upload_bytes.saturating_mul(4), ..crate::bundle::Limits::default() }
+}
+
+/// Builds the compute pool: one thread per core (or `threads`), scheduled SCHED_IDLE on Linux so
+/// that request handling keeps its latency while inspections saturate the CPU (the pool takes
+/// whatever CPU the request threads leave).
+pub fn compute_pool(threads: usize) -> Arc<rayon::ThreadPool> {
+    let mut builder = rayon::ThreadPoolBuilder::new().thread_name(|i| format!("compute-{i}")).start_handler(|_| {
+        #[cfg(target_os = "linux")]
+        // SAFETY: plain syscalls on the calling thread with a valid, initialised parameter.
+        unsafe {
+            let param = libc::sched_param { sched_priority: 0 };
+            if libc::sched_setscheduler(0, libc::SCHED_IDLE, &param) != 0 {
+                // Not permitted (some sandboxes): fall back to a lower nice value.
+                libc::setpriority(libc::PRIO_PROCESS, 0, 10);
+            }
+        }
+    });
+    if threads > 0 {
+        builder = builder.num_threads(threads);
+    }
+    Arc::new(builder.build().expect("compute pool starts"))
+}
+
+/// Runs `settings.workers` worker loops until `shutdown` turns true, then lets running jobs finish
+/// within the grace period and releases the rest to the queue.
+pub async fn run(ctx: WorkerContext, shutdown: watch::Receiver<bool>) {
+    let mut loops = Vec::new();
+    for slot in 0..ctx.settings.workers {
+        let ctx = ctx.clone();
+        let shutdown = shutdown.clone();
+        loops.push(tokio::spawn(async move { worker_loop(ctx, slot, shutdown).await }));
+    }
+    for l in loops {
+        let _ = l.await;
+    }
+}
+
+async fn worker_loop(ctx: WorkerContext, slot: usize, mut shutdown: watch::Receiver<bool>) {
+    let lease = Duration::from_secs_f64(ctx.settings.lease_seconds);
+    let poll = Duration::from_millis(ctx.settings.poll_interval_ms);
+    loop {
+        if *shutdown.borrow() {
+            return;
+        }
+        // A lease names the claim, not only the process: two slots of one process never share one.
+        let lease_token = format!("{}/{}", ctx.owner, uuid::Uuid::now_v7());
+        match ctx.store.claim(&lease_token, lease).await {
+            Ok(Some(job)) => {
+                tracing::info!(inspection = %job.id, attempt = job.attempts, slot, "claimed");
+                process(&ctx, job, &lease_token, &mut shutdown).await;
+            }
+            Ok(None) => {
+                tokio::select! {
+                    _ = ctx.wake.notified() => {}
+                    _ = tokio::time::sleep(poll) => {}
+                    _ = shutdown.changed() => {}
+                }
+            }
+            Err(e) => {
+                tracing::error!(error = %e, "claim failed; retrying");
+                tokio::time::sleep(poll).await;
+            }
+        }
+    }
+}
+
+async fn process(ctx: &WorkerContext, job: Claimed, lease_token: &str, shutdown: &mut watch::Receiver<bool>) {
+    let started = Instant::now();
+    let cancel = Arc::new(AtomicBool::new(false));
+    let progress: Arc<Mutex<Option<(Stage, f64)>>> = Arc::new(Mutex::new(None));
+    let lease = Duration::from_secs_f64(ctx.settings.lease_seconds);
+    let lease_lost = Arc::new(AtomicBool::new(false));
+
+    let task = {
+        let (ctx, job, cancel, progress) = (ctx.clone(), job.clone(), cancel.clone(), progress.clone());
+        tokio::task::spawn_blocking(move || {
+            let pool = ctx.compute.clone();
+            pool.install(|| contain(&job.id, || run_job(&ctx, &job, &cancel, &progress)))
+        })
+    };
+    tokio::pin!(task);
+
+    let mut beat = tokio::time::interval(Duration::from_secs_f64(ctx.settings.heartbeat_seconds));
+    beat.tick().await;
+    let mut grace_deadline: Option<tokio::time::Instant> = None;
+    let outcome = loop {
+        let deadline =
+            grace_deadline.unwrap_or_else(|| tokio::time::Instant::now() + Duration::from_secs(86_400 * 365));
+        tokio::select! {
+            result = &mut task => break result,
+            _ = beat.tick() => {
+                let snapshot = *progress.lock().expect("progress lock");
+                let stage = snapshot.map(|(s, f)| (s.as_str(), f));
+                match ctx.store.heartbeat(&job.id, lease_token, lease, stage).await {
+                    Ok(Heartbeat::Held { cancel_requested }) => if cancel_requested { cancel.store(true, Ordering::Relaxed) },
+                    Ok(Heartbeat::Lost) => {
+                        tracing::warn!(inspection = %job.id, "lease lost; stopping");
+                        lease_lost.store(true, Ordering::Relaxed);
+                        cancel.store(true, Ordering::Relaxed);
+                    }
+                    Err(e) => tracing::warn!(inspection = %job.id, error = %e, "heartbeat failed"),
+                }
+            }
+            _ = shutdown.changed(), if grace_deadline.is_none() => {
+                grace_deadline = Some(tokio::time::Instant::now() + Duration::from_secs_f64(ctx.settings.shutdown_grace_seconds));
+                tracing::info!(inspection = %job.id, grace_s = ctx.settings.shutdown_grace_seconds, "shutting down: letting the job finish");
+            }
+            _ = tokio::time::sleep_until(deadline), if grace_deadline.is_some() => {
+                tracing::info!(inspection = %job.id, "grace period over: stopping the job and releasing it");
+                cancel.store(true, Ordering::Relaxed);
+                let _ = (&mut task).await;
+                if let Err(e) = ctx.store.requeue(&job.id, lease_token, Duration::ZERO, None, true).await {
+                    tracing::error!(inspection = %job.id, error = %e, "release failed; the lease will lapse");
+                }
+                return;
+            }
+        }
+    };
+    let outcome =
+        outcome.unwrap_or_else(|e| Outcome::Fail(problem(Code::PipelinePanic, format!("worker task failed: {e}"))));
+    if lease_lost.load(Ordering::Relaxed) {
+        return;
+    }
+    let elapsed = started.elapsed().as_secs_f64();
+    let (label, stored) = match outcome {
+        Outcome::Succeeded(results) => {
+            for t in &results.report.timings {
+                ctx.metrics.observe_stage(&t.stage, t.seconds);
+            }
+            ("succeeded", ctx.store.complete_success(&job.id, lease_token, &results).await)
+        }
+        Outcome::Canceled => {
+            ("canceled", ctx.store.complete_without_results(&job.id, lease_token, Status::Canceled, None).await)
+        }
+        Outcome::Fail(p) => {
+            let json = serde_json::to_string(&p).expect("problem serialises");
+            ("failed", ctx.store.complete_without_results(&job.id, lease_token, Status::Failed, Some(&json)).await)
+        }
+        Outcome::Retry(p) => {
+            let json = serde_json::to_string(&p).expect("problem serialises");
+            let result = if job.attempts >= job.max_attempts {
+                ctx.store.complete_without_results(&job.id, lease_token, Status::Failed, Some(&json)).await
+            } else {
+                let backoff = Duration::from_secs((1u64 << job.attempts.clamp(0, 6)).min(60));
+                ctx.store.requeue(&job.id, lease_token, backoff, Some(&json), false).await
+            };
+            ("retry", result)
+        }
+    };
+    match stored {
+        Ok(true) => {
+            ctx.metrics.job_finished(label, elapsed);
+            tracing::info!(inspection = %job.id, outcome = label, seconds = elapsed, "job done");
+        }
+        Ok(false) => tracing::warn!(inspection = %job.id, "job was re-claimed elsewhere; result dropped"),
+        Err(e) => {
+            tracing::error!(inspection = %job.id, error = %e, "could not record the outcome; the lease will lapse and the job re-run")
+        }
+    }
+}
+
+/// Runs a job's blocking part; a panic becomes that job's permanent failure, not the worker's end.
+fn contain(id: &str, run: impl FnOnce() -> Outcome) -> Outcome {
+    std::panic::catch_unwind(AssertUnwindSafe(run)).unwrap_or_else(|panic| {
+        let message = panic
+            .downcast_ref::<&str>()
+            .map(|s| s.to_string())
+            .or_else(|| panic.downcast_ref::<String>().cloned())
+            .unwrap_or_else(|| "unknown panic".into());
+        tracing::error!(inspection = %id, %message, "pipeline panicked");
+        Outcome::Fail(problem(Code::PipelinePanic, format!("the pipeline crashed on this bundle: {message}")))
+    })
+}
+
+/// The blocking part: open the stored bundle, run the pipeline, encode the results.
+fn run_job(ctx: &WorkerContext, job: &Claimed, cancel: &AtomicBool, progress: &Mutex<Option<(Stage, f64)>>) -> Outcome {
+    let options: JobOptions = match serde_json::from_str(&job.options_json) {
+        Ok(o) => o,
+        Err(e) => return Outcome::Fail(problem(Code::InvalidOption, format!("stored options unreadable: {e}"))),
+    };
+    let path = ctx.store.files.path_of(&job.upload_sha256);
+    if !path.is_file() {
+        return Outcome::Fail(problem(
+            Code::UploadMissing,
+            format!("the uploaded bundle {} is no longer in the store", job.upload_sha256),
+        ));
+    }
+    let limits = crate::service::queue::bundle_limits(ctx.settings.max_upload_bytes());
+    let bundle = match Bundle::open(&path, &ctx.table, OpenOptions { limits, ..OpenOptions::default() }) {
+        Ok(b) => b,
+        Err(e) => return failure(&e),
+    };
+    let report_progress = |stage: Stage, fraction: f64| {
+        *progress.lock().expect("progress lock") = Some((stage, fraction));
+    };
+    let inspection = match pipeline::inspect(&bundle, &options.pipeline, &report_progress, cancel) {
+        Ok(Some(i)) => i,
+        Ok(None) => return Outcome::Canceled,
+        Err(e) => return failure(&e),
+    };
+    match encode_results(&inspection) {
+        Ok(r) => Outcome::Succeeded(Box::new(r)),
+        Err(e) => Outcome::Retry(problem(Code::IoError, e.to_string())),
+    }
+}
+
+/// A bundle that cannot be read or inspected fails for good with its own problem; a transient
+/// failure (the server's storage) is retried, shown as an internal error (its path is the
+/// operator's business, in the log), as the API shows it.
+fn failure(e: &impl ErrorCode) -> Outcome {
+    if e.code().is_transient() {
+        Outcome::Retry(problem(Code::InternalError, e.to_string()))
+    } else {
+        Outcome::Fail(Problem::of(e))
+    }
+}
+
+pub fn encode_results(
+    inspection: &pipeline::Inspection,
+) -> Result<JobResults, Box<dyn std::error::Error + Send + Sync>> {
+    let report = &inspection.report;
+    let mut ply = Vec::new();
+    ply::write(&inspection.mesh, &mut ply)?;
+    let mut stl = Vec::new();
+    stl::write(&inspection.mesh, &mut stl)?;
+    Ok(JobResults {
+        verdict: match report.verdict {
+            Verdict::Accept => "accept",
+            Verdict::Reject => "reject",
+        },
+        report_json: serde_json::to_string(report)?,
+        report: report.clone(),
+        artifacts: vec![
+            Artifact { kind: "mesh.ply", content_type: "application/x-ply", body: ply },
+            Artifact { kind: "mesh.stl", content_type: "model/stl", body: stl },
+            Artifact {
+                kind: "height-map.png",
+                content_type: "image/png",
+                body: png::height_map_png(&inspection.map)?,
+            },
+            Artifact {
+                kind: "all-in-focus.png",
+                content_type: "image/png",
+                body: png::mosaic_png(&inspection.map)?,
+            },
+        ],
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_panicking_job_fails_with_a_problem_and_the_caller_goes_on() {
+        let outcome = contain("job-1", || {
+            let empty: Vec<u8> = Vec::new();
+            Outcome::Fail(problem(Code::NoDepth, format!("{}", empty[3])))
+        });
+        let Outcome::Fail(p) = outcome else { panic!("a panic must fail the job") };
+        assert_eq!((p.code.as_str(), p.status), ("pipeline_panic", 500));
+        assert!(p.detail.contains("index out of bounds"), "{}", p.detail);
+        assert!(matches!(contain("job-2", || Outcome::Canceled), Outcome::Canceled));
+    }
+
+    #[test]
+    fn io_errors_retry_and_bad_input_fails() {
+        use crate::bundle::BundleError;
+        let Outcome::Retry(p) = failure(&BundleError::Io { path: "x".into(), message: "EIO".into() }) else {
+            panic!("I/O is retried")
+        };
+        assert_eq!((p.code.as_str(), p.culprit), ("internal_error", None));
+        let Outcome::Fail(p) = failure(&BundleError::MissingFile { path: "a/0.png".into() }) else { panic!() };
+        assert_eq!((p.code.as_str(), p.culprit.as_deref()), ("missing_file", Some("a/0.png")));
+        let Outcome::Fail(p) = failure(&pipeline::PipelineError::NoDepth) else { panic!() };
+        assert_eq!((p.code.as_str(), p.status), ("no_depth", 422));
+    }
+}
