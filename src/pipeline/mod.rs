@@ -233,7 +233,7 @@ fn register_views(
     let end_face = options
         .anchor_end_face
         .then(|| {
-            let edges: Vec<&[endface::FrameEdge]> = depth_maps.iter().map(|d| d.end_edges.as_slice()).collect();
+            let edges: Vec<&[depth::FrameEdge]> = depth_maps.iter().map(|d| d.end_edges.as_slice()).collect();
             endface::anchor(optics, &poses, &edges, format.width, format.height, 3, 20.0)
         })
         .flatten();

@@ -1,0 +1,371 @@
+//! Depth from focus, per view.
+//!
+//! Frames are decoded one at a time. A focus measure (squared Laplacian, box-summed) is taken on
+//! each frame's own pixel grid, then brought onto the geometry of offset 0: the sensor distance is
+//! fixed, so moving the camera back by `o` shrinks the image of a point at depth d (from the
+//! offset-0 lens) by d / (d + o); the points that matter in frame k are those in focus there
+//! (d + o = F), so the measure is scaled about the principal point by F / (F − o). (Resampling the
+//! smooth measure rather than the image keeps interpolation from blurring some frames more than
+//! others, which would bias the peak.) Each pixel's focus curve is located between frames by the
+//! midpoint of its shoulders (see [`peak_offset`]), the bundle's sub-frame phases are equalised
+//! (see [`equalize_sub_frame_phase`]), and the result is turned into depth through the optics: in
+//! focus at offset o* means depth F − o* at offset 0. The confidence
+//! says how sharply the measure peaks above its floor, so that texture-less and saturated pixels
+//! are recognised rather than trusted. The all-in-focus image keeps each pixel's sharpest colour.
+//! At a steep edge, where the box holds two surfaces and the curve peaks at both, a small box
+//! says which peak (and colour) is the pixel's own ([`DepthOptions::edge_window_radius_px`]).
+
+mod measure;
+mod peak;
+mod phase;
+mod resample;
+mod silhouette;
+
+pub use peak::peak_offset;
+pub use phase::{equalize_sub_frame_phase, even_frame_grid};
+pub use silhouette::{FrameEdge, frame_edge};
+
+use crate::domain::frame::{Frame, FrameError, View};
+use crate::domain::optics::{Optics, Projection};
+use crate::domain::thread::{ProfileShape, ThreadForm};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use crate::pipeline::depth::measure::focus_measures;
+use crate::pipeline::depth::peak::MedianNetwork;
+use crate::pipeline::depth::peak::Ties;
+use crate::pipeline::depth::peak::keep_sharpest;
+use crate::pipeline::depth::peak::own_peak;
+use crate::pipeline::depth::resample::HeldFrame;
+use crate::pipeline::depth::resample::Taps;
+use crate::pipeline::depth::resample::axis_taps;
+use crate::pipeline::depth::resample::resample_row;
+use crate::pipeline::depth::resample::tap_spans;
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DepthOptions {
+    /// Half size of the box that sums the focus measure. [`DepthOptions::for_form`] sets it from
+    /// the thread's profile: this value where crests and roots are arcs, `flat_window_radius_px`
+    /// where they are flat.
+    pub window_radius_px: usize,
+    /// The box's half size on a form with flat crests and roots (buttress). Each pixel's focus
+    /// curve is the sum over the box, so a wider box averages more texture and its depth is less
+    /// noisy; on an arc it would also average depth over a curved section and flatten crests and
+    /// roots (lower their heights), but a flat is many boxes wide.
+    #[serde(default = "flat_window_radius_px")]
+    pub flat_window_radius_px: usize,
+    /// Pixels whose peak-to-floor ratio is below this are not trusted (depth NaN).
+    pub min_peak_ratio: f32,
+    /// The focus curve's centre is the midpoint of its crossings of this fraction of its height.
+    pub peak_fraction: f32,
+    /// Undo the sub-frame phase bias over the bundle ([`equalize_sub_frame_phase`]).
+    #[serde(default = "yes")]
+    pub equalize_phase: bool,
+    /// Depth is estimated on every `row_step`-th pixel row (rows run across the arc: the frames'
+    /// height spans the view's angle, their width the pipe's axis). A pixel's focus curve is the
+    /// sum over a box 2·radius + 1 rows tall, so neighbouring rows' curves share all but one of
+    /// its rows, and along the arc the thread changes slowly (a pitch per turn); every row of
+    /// every frame still feeds the focus measure. 2 inspects the rings about a fifth faster
+    /// with heights as accurate, but registration loses precision and black-crest ends move
+    /// (docs/accuracy.md, "Depth on every second row"): the default is every row.
+    #[serde(default = "row_step")]
+    pub row_step: usize,
+    /// Half size of a second, small box that decides which surface a pixel at a steep edge shows
+    /// (0: none). Within a big box's half size of a crest's steep flank the box holds both the
+    /// crest and the root, a thread's height apart, and the focus curve peaks at both; the side
+    /// whose texture is stronger there wins, which moves the edge by up to the half size toward
+    /// the weaker side. Under chaser marks, which shade every crest alike, that moved every edge
+    /// of a part the same way (docs/accuracy.md, "Absolute z"). Where the small
+    /// box's sharpest frame is
+    /// [`EDGE_MIN_SEPARATION_FRAMES`] or more from the big box's, and the big curve has a peak of
+    /// its own there, that peak is the pixel's.
+    #[serde(default = "edge_window_radius_px")]
+    pub edge_window_radius_px: usize,
+}
+
+/// Frames between the small box's sharpest frame and the big box's beyond which they see two
+/// surfaces rather than one curve's plateau (about two frames wide at the presets' step).
+pub const EDGE_MIN_SEPARATION_FRAMES: usize = 3;
+
+/// The big curve's peak at the small box's frame must rise this fraction of the main peak's
+/// height above the floor (the shoulders' cut, [`DepthOptions::peak_fraction`]'s default).
+const EDGE_PEAK_FRACTION: f32 = 0.3;
+
+fn yes() -> bool {
+    true
+}
+
+fn flat_window_radius_px() -> usize {
+    DepthOptions::default().flat_window_radius_px
+}
+
+fn row_step() -> usize {
+    DepthOptions::default().row_step
+}
+
+fn edge_window_radius_px() -> usize {
+    DepthOptions::default().edge_window_radius_px
+}
+
+impl Default for DepthOptions {
+    fn default() -> Self {
+        Self {
+            window_radius_px: 4,
+            flat_window_radius_px: 5,
+            min_peak_ratio: 1.6,
+            peak_fraction: 0.3,
+            equalize_phase: true,
+            row_step: 1,
+            edge_window_radius_px: 1,
+        }
+    }
+}
+
+impl DepthOptions {
+    /// These options for a thread of `form`: the focus window is `flat_window_radius_px` where the
+    /// crests and roots are flat, `window_radius_px` where they are arcs. Meant for the options as
+    /// configured: the result's `window_radius_px` is the window that runs.
+    pub fn for_form(&self, form: &ThreadForm) -> Self {
+        let window_radius_px = match form.profile {
+            ProfileShape::Trapezoid { .. } => self.flat_window_radius_px,
+            ProfileShape::Rounded { .. } => self.window_radius_px,
+        };
+        Self { window_radius_px, ..self.clone() }
+    }
+}
+
+/// A view's depth map on the offset-0 pixel grid: every column, every `row_step`-th row.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DepthMap {
+    /// The frames' size in pixels.
+    pub width: usize,
+    pub height: usize,
+    /// Map row r is pixel row r · `row_step` ([`DepthOptions::row_step`]); the map holds
+    /// [`DepthMap::rows`] rows of `width` values.
+    pub row_step: usize,
+    /// Depth along the camera axis from the offset-0 lens centre; NaN where not trusted.
+    pub depth_mm: Vec<f32>,
+    /// Peak focus measure over its floor (median over the stack); ≥ 1.
+    pub peak_ratio: Vec<f32>,
+    /// Sharpest colour per pixel, RGB interleaved in [0, 1].
+    pub all_in_focus: Vec<f32>,
+    /// The end face's silhouette in each frame that shows it (for [`crate::pipeline::endface`]).
+    pub end_edges: Vec<FrameEdge>,
+}
+
+impl DepthMap {
+    /// Rows of the map: the pixel rows 0, `row_step`, 2·`row_step`, … below `height`.
+    pub fn rows(&self) -> usize {
+        self.height.div_ceil(self.row_step.max(1))
+    }
+
+    pub fn coverage(&self) -> f64 {
+        self.depth_mm.iter().filter(|d| d.is_finite()).count() as f64 / self.depth_mm.len() as f64
+    }
+}
+
+/// Runs depth from focus over one view. `frame_at(k)` decodes frame k (called once per frame, in
+/// order); `cancelled()` is polled between frames.
+pub fn depth_from_focus(
+    optics: &Optics,
+    view: &View,
+    options: &DepthOptions,
+    frame_at: impl FnMut(usize) -> Result<Frame, FrameError>,
+    cancelled: &dyn Fn() -> bool,
+) -> Result<Option<DepthMap>, FrameError> {
+    depth_from_focus_in(&mut DepthScratch::default(), optics, view, options, frame_at, cancelled)
+}
+
+/// The working buffers of [`depth_from_focus_in`]: the focus volume (frames × pixels, tens of MB)
+/// and a few frame-sized planes, which a caller keeps from view to view: fresh ones cost a page
+/// fault per 4 kB.
+#[derive(Default)]
+pub struct DepthScratch {
+    volume: Vec<f32>,
+    best: Vec<f32>,
+    best_frame: Vec<u32>,
+    gray: Vec<f32>,
+    native: Vec<f32>,
+    scratch: Vec<f32>,
+    /// The small box's measure, its best so far and where ([`DepthOptions::edge_window_radius_px`]).
+    native_edge: Vec<f32>,
+    best_edge: Vec<f32>,
+    best_edge_frame: Vec<u32>,
+    edge_row: Vec<f32>,
+}
+
+/// `buffer` holding `len` copies of `value` (its allocation kept).
+fn refill<T: Copy>(buffer: &mut Vec<T>, len: usize, value: T) {
+    buffer.clear();
+    buffer.resize(len, value);
+}
+
+/// [`depth_from_focus`] in buffers the caller keeps from view to view ([`DepthScratch`]).
+pub fn depth_from_focus_in(
+    buffers: &mut DepthScratch,
+    optics: &Optics,
+    view: &View,
+    options: &DepthOptions,
+    mut frame_at: impl FnMut(usize) -> Result<Frame, FrameError>,
+    cancelled: &dyn Fn() -> bool,
+) -> Result<Option<DepthMap>, FrameError> {
+    let (w, h) = (view.format.width as usize, view.format.height as usize);
+    let step = options.row_step.max(1);
+    // Map rows: pixel rows 0, step, 2·step, …
+    let rows = h.div_ceil(step);
+    let n = view.frames.len();
+    let principal = optics.principal_point(view.format.width, view.format.height);
+    let big_f = optics.focus_distance_mm;
+    // Focus volume, frame-major: each frame's measure is written as one contiguous plane (a
+    // pixel-major layout would scatter every write to its own cache line); the peak search gathers
+    // a row's curves from the n planes.
+    let plane = w * rows;
+    let DepthScratch {
+        volume,
+        best,
+        best_frame,
+        gray,
+        native,
+        scratch,
+        native_edge,
+        best_edge,
+        best_edge_frame,
+        edge_row,
+    } = buffers;
+    let edge_radius = options.edge_window_radius_px;
+    let edge_aware = edge_radius > 0;
+    if edge_aware {
+        native_edge.resize(w * h, 0.0);
+        refill(best_edge, plane, f32::MIN);
+        refill(best_edge_frame, plane, 0u32);
+        edge_row.resize(w, 0.0);
+    }
+    // Every cell is written before it is read (each frame fills its whole plane).
+    volume.resize(plane * n, 0.0);
+    refill(best, plane, f32::MIN);
+    // The frame (index) where each pixel's measure is highest so far (the first such).
+    refill(best_frame, plane, 0u32);
+    // Every cell of these is written before it is read, frame by frame.
+    native.resize(w * h, 0.0);
+    scratch.resize(w * h, 0.0);
+    let mut end_edges = Vec::new();
+    // The view's frames are held until its colours are taken, once per pixel from its sharpest
+    // frame when the stack is done (0.8 MB a frame of the standard preset's: one view's stack per
+    // view in flight, never every view's). Sampled as the stack streamed, every pixel was mixed
+    // at each frame that was its sharpest so far, and the search for those pixels scanned the
+    // frame: 10% of an inspection, against 2.5% once per pixel.
+    let mut held: Vec<HeldFrame> = Vec::with_capacity(n);
+    for (k, entry) in view.frames.iter().enumerate() {
+        if cancelled() {
+            return Ok(None);
+        }
+        let frame = frame_at(k)?;
+        let scale = match optics.projection {
+            Projection::Perspective => (big_f - entry.offset_mm) / big_f,
+            Projection::Telecentric => 1.0,
+        };
+        frame.gray_into(gray);
+        let edge = edge_aware.then_some((edge_radius, &mut native_edge[..]));
+        focus_measures(gray, w, h, options.window_radius_px, scratch, native, edge);
+        end_edges.extend(frame_edge(gray, w, h, entry.offset_mm));
+        let taps = Taps { xs: axis_taps(w, principal[0], scale), ys: axis_taps(h, principal[1], scale) };
+        let (spans, fxs) = (tap_spans(&taps.xs), taps.xs.iter().map(|t| t.2).collect::<Vec<f32>>());
+        let k32 = k as u32;
+        // Map row r is pixel row r · step.
+        for (r, &(y0, y1, fy)) in taps.ys.iter().step_by(step).enumerate() {
+            let (above, below) = (&native[y0 * w..(y0 + 1) * w], &native[y1 * w..(y1 + 1) * w]);
+            let measures = &mut volume[k * plane + r * w..k * plane + (r + 1) * w];
+            resample_row(above, below, fy, &taps.xs, &spans, &fxs, measures);
+            let (best_row, best_frame_row) = (&mut best[r * w..(r + 1) * w], &mut best_frame[r * w..(r + 1) * w]);
+            keep_sharpest(measures, k32, best_row, best_frame_row, Ties::KeepEarlier);
+            if edge_aware {
+                let (above, below) = (&native_edge[y0 * w..(y0 + 1) * w], &native_edge[y1 * w..(y1 + 1) * w]);
+                resample_row(above, below, fy, &taps.xs, &spans, &fxs, edge_row);
+                let rows = r * w..(r + 1) * w;
+                keep_sharpest(
+                    edge_row,
+                    k32,
+                    &mut best_edge[rows.clone()],
+                    &mut best_edge_frame[rows],
+                    Ties::KeepEarlier,
+                );
+            }
+        }
+        held.push(HeldFrame { frame, taps });
+    }
+    let offsets: Vec<f64> = view.frames.iter().map(|f| f.offset_mm).collect();
+    // Breathing moves content by up to |o|/F of its distance from the principal point.
+    let max_offset = offsets.iter().fold(0.0f64, |m, o| m.max(o.abs()));
+    let breathing_px = match optics.projection {
+        Projection::Perspective => (max_offset / big_f * (w.max(h) as f64)).ceil() as usize,
+        Projection::Telecentric => 0,
+    };
+    let border = options.window_radius_px + 1 + breathing_px;
+    let mut depth_mm = vec![f32::NAN; plane];
+    let mut peak_ratio = vec![1f32; plane];
+    let network = MedianNetwork::new(n);
+    let mut all_in_focus = vec![0f32; plane * 3];
+    let volume: &[f32] = volume;
+    let (best_frame, best_edge_frame): (&[u32], &[u32]) = (best_frame, best_edge_frame);
+    let held = &held;
+    // Per row: the n frames' rows (each one contiguous run of the frame-major volume) give the
+    // maximum and, copied out, the median for all of the row's pixels at once; only trusted
+    // pixels' curves are walked one by one.
+    let init = || (vec![0f32; n * w], vec![0f32; w], vec![0u32; w], vec![0f32; n]);
+    depth_mm
+        .par_chunks_mut(w)
+        .zip(peak_ratio.par_chunks_mut(w))
+        .zip(all_in_focus.par_chunks_mut(3 * w))
+        .enumerate()
+        .for_each_init(init, |(sorted, peak, k_best, column), (r, ((depth_row, ratio_row), colour_row))| {
+            let y = r * step;
+            let row_of = |k: usize| &volume[k * plane + r * w..k * plane + (r + 1) * w];
+            for k in 0..n {
+                sorted[k * w..(k + 1) * w].copy_from_slice(row_of(k));
+            }
+            // The last maximum, as `max_by` would give.
+            peak.copy_from_slice(row_of(0));
+            k_best.fill(0);
+            for k in 1..n {
+                keep_sharpest(row_of(k), k as u32, peak, k_best, Ties::TakeLater);
+            }
+            network.apply(sorted, w);
+            let floors = &sorted[network.rank * w..(network.rank + 1) * w];
+            // Every pixel's colour from its sharpest frame (the first of equals).
+            for (x, colour) in colour_row.chunks_exact_mut(3).enumerate() {
+                held[best_frame[r * w + x] as usize].colour_at(x, y, w, colour);
+            }
+            for x in 0..w {
+                let floor = floors[x].max(1e-12);
+                let (peak, mut k_best) = (peak[x], k_best[x] as usize);
+                let ratio = peak / floor;
+                ratio_row[x] = ratio;
+                if x < border || y < border || x + border >= w || y + border >= h {
+                    continue; // the focus window or the breathing correction runs off the frame
+                }
+                if ratio < options.min_peak_ratio || k_best == 0 || k_best + 1 == n {
+                    continue;
+                }
+                for (k, c) in column.iter_mut().enumerate() {
+                    *c = volume[k * plane + r * w + x];
+                }
+                if edge_aware {
+                    let k_edge = best_edge_frame[r * w + x] as usize;
+                    let own = own_peak(column, k_best, k_edge, floor);
+                    if own != k_best {
+                        // The pixel's colour where the small box is sharpest, not from the other
+                        // surface's frame (with the big box's colour, registration's texture lost
+                        // precision: standard's axial error 1.6 → 4.4 µm RMS; with this, 1.5 µm).
+                        held[k_edge].colour_at(x, y, w, &mut colour_row[3 * x..3 * x + 3]);
+                        k_best = own;
+                    }
+                }
+                if let Some(in_focus_offset) = peak_offset(column, &offsets, k_best, floor, options.peak_fraction) {
+                    depth_row[x] = (big_f - in_focus_offset) as f32;
+                }
+            }
+        });
+    Ok(Some(DepthMap { width: w, height: h, row_step: step, depth_mm, peak_ratio, all_in_focus, end_edges }))
+}
+
+#[cfg(test)]
+mod tests;
