@@ -4,3 +4,4 @@ pub mod angle;
 pub mod runs;
 pub mod sequence;
 pub mod stats;
+pub mod union_find;

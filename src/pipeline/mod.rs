@@ -5,7 +5,7 @@
 //! |---|---|---|
 //! | [`depth`] | each view's focal stack | a depth map per view (and the end face's edge per frame) |
 //! | [`cloud`] | a depth map and its pose | surface points, streamed |
-//! | [`register`] | every view's points on one lattice | pose corrections, per-pair residuals; [`endface`] the ring's absolute z |
+//! | [`register`] | every view's points on one lattice | pose corrections, per-pair residuals; [`register::anchor`] the ring's absolute z from the end face |
 //! | [`fuse`] | every view's points at the refined poses | the unrolled surface ([`surface`]) |
 //! | [`mesh`] | the unrolled surface | a triangle mesh (an export; runs beside the profile) |
 //! | [`profile`] | the unrolled surface and the thread form | the helix, per-thread heights per 1° bin |
@@ -19,7 +19,6 @@
 pub mod cloud;
 pub mod crest;
 pub mod depth;
-pub mod endface;
 pub mod fuse;
 pub mod mesh;
 pub mod options;
@@ -38,11 +37,10 @@ use crate::domain::optics::ViewPose;
 use crate::domain::rules::{self, RuleInput};
 use crate::problem::{Code, ErrorCode};
 use depth::{DepthMap, DepthScratch, depth_from_focus_in};
-use endface::EndFace;
 use fuse::Fusion;
 use profile::{Helix, ThreadMeasure};
 use rayon::prelude::*;
-use register::{Registration, RegisterOptions};
+use register::{EndFace, RegisterOptions, Registration};
 use report::Report;
 use run::{Halt, Run};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
@@ -234,7 +232,7 @@ fn register_views(
         .anchor_end_face
         .then(|| {
             let edges: Vec<&[depth::FrameEdge]> = depth_maps.iter().map(|d| d.end_edges.as_slice()).collect();
-            endface::anchor(optics, &poses, &edges, format.width, format.height, 3, 20.0)
+            register::anchor(optics, &poses, &edges, format.width, format.height, 3, 20.0)
         })
         .flatten();
     if let Some(end) = &end_face {

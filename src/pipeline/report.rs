@@ -5,7 +5,7 @@ use crate::domain::part::Part;
 use crate::domain::rules::{Assessment, Verdict};
 use crate::domain::thread::Family;
 use crate::pipeline::crest::CrestCone;
-use crate::pipeline::endface::EndFace;
+use crate::pipeline::register::EndFace;
 use crate::pipeline::profile::{Helix, ThreadMeasure};
 use crate::pipeline::register::Registration;
 use serde::{Deserialize, Serialize};

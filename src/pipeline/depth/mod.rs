@@ -148,7 +148,7 @@ pub struct DepthMap {
     pub peak_ratio: Vec<f32>,
     /// Sharpest colour per pixel, RGB interleaved in [0, 1].
     pub all_in_focus: Vec<f32>,
-    /// The end face's silhouette in each frame that shows it (for [`crate::pipeline::endface`]).
+    /// The end face's silhouette in each frame that shows it (for [`crate::pipeline::register::anchor`]).
     pub end_edges: Vec<FrameEdge>,
 }
 

@@ -1,6 +1,6 @@
 //! The end face's silhouette in one frame: per row whose first columns are background, the first
 //! lit column, and how sharp the silhouette is. Measured per frame beside the focus measure;
-//! [`crate::pipeline::endface`] turns it into the ring's absolute z after registration.
+//! [`crate::pipeline::register::anchor`] turns it into the ring's absolute z after registration.
 
 /// One frame's view of the end: rows (y, first lit column) and how sharp the silhouette is.
 #[derive(Clone, Debug, PartialEq)]

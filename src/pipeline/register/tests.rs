@@ -1,0 +1,197 @@
+use super::*;
+use crate::numeric::union_find::components;
+
+#[test]
+fn a_gaussian_peaks_centre_is_found_exactly_where_a_parabola_pulls_it_toward_the_cell() {
+    for true_offset in [-0.4, -0.25, -0.1, 0.0, 0.1, 0.25, 0.4] {
+        // A peak one cell wide (σ), sampled at the best cell and its two neighbours.
+        let peak = |x: f64| 0.8 * (-(x - true_offset).powi(2) / 2.0).exp();
+        let (left, centre, right) = (peak(-1.0), peak(0.0), peak(1.0));
+        assert!((sub_cell_gaussian(left, centre, right) - true_offset).abs() < 1e-12, "{true_offset}");
+        // The parabola's bias: 0.022, 0.045 and 0.038 cells at 0.1, 0.25 and 0.4.
+        let parabola = sub_cell(left, centre, right);
+        assert!(parabola.abs() <= true_offset.abs() - 0.02 || true_offset == 0.0, "{true_offset}: {parabola}");
+    }
+    // A neighbour that is not positive has no logarithm: the parabola's estimate.
+    assert_eq!(sub_cell_gaussian(-0.1, 0.5, 0.3), sub_cell(-0.1, 0.5, 0.3));
+    assert_eq!(sub_cell_gaussian(0.2, 0.5, 0.0), sub_cell(0.2, 0.5, 0.0));
+}
+
+#[test]
+fn a_lens_radius_error_shifts_an_overlap_along_the_arc_as_the_geometry_does() {
+    // A surface point midway between two views (their overlap's centre). A view whose lens is
+    // δ farther out than its pose says places the point δ nearer the axis along its optical
+    // axis; the content shift b → a is then the angle where a places it minus where b does.
+    let lattice = Lattice::new(57.15, 0.041);
+    let r = lattice.radius_ref_mm;
+    for (angle_a, angle_b, delta_a, delta_b) in
+        [(10.0, 17.8, 0.05, -0.03), (17.8, 10.0, 0.05, -0.03), (356.0, 3.8, -0.04, -0.05), (30.0, 30.0, 0.05, 0.05)]
+    {
+        let pose = |angle_deg: f64| ViewPose { angle_deg, axial_mm: 10.0, lens_radius_mm: 270.0 };
+        let (pa, pb) = (pose(angle_a), pose(angle_b));
+        let mid = pa.angle_deg.to_radians() + 0.5 * wrap_pi((pb.angle_deg - pa.angle_deg).to_radians());
+        let placed = |view_deg: f64, delta: f64| {
+            let axis = view_deg.to_radians();
+            let (x, y) = (r * mid.cos() - delta * axis.cos(), r * mid.sin() - delta * axis.sin());
+            y.atan2(x)
+        };
+        let exact = wrap_pi(placed(angle_a, delta_a) - placed(angle_b, delta_b)).to_degrees();
+        let model = lens_radius_arc_shift_deg(&pa, &pb, delta_a, delta_b, &lattice);
+        // First order in δ/r: within 1% (0.3% here, a few nanometres of arc).
+        assert!((model - exact).abs() <= 1e-2 * exact.abs(), "{angle_a}→{angle_b}: {model} vs {exact}");
+        if angle_a != angle_b {
+            // 0.05 mm at 3.9° off centre: several µm of arc, more than a pair's other errors.
+            assert!(exact.abs().to_radians() * r > 1e-3, "{exact}");
+        }
+    }
+}
+
+#[test]
+fn views_cut_off_from_the_ring_stay_at_their_encoder_poses() {
+    // Six views; pairs 2–3 and 3–4 failed (view 3 is alone) and 5–0 failed: components
+    // {0, 1, 2} and {4, 5} each keep their measured differences about a zero mean.
+    let truth = [0.3, -0.1, 0.2, 0.0, 0.25, -0.05];
+    let pairs: Vec<(usize, usize, f64)> =
+        [(0, 1), (1, 2), (4, 5)].iter().map(|&(a, b)| (a, b, truth[b] - truth[a])).collect();
+    assert_eq!(components(6, pairs.iter().map(|&(a, b, _)| (a, b))), [0, 0, 0, 3, 4, 4]);
+    let c = solve_axis(6, &pairs, 0.02);
+    assert!(c.iter().all(|v| v.is_finite() && v.abs() < 1.0), "{c:?}");
+    assert!(c[3].abs() < 1e-12, "{c:?}");
+    for &(a, b, m) in &pairs {
+        assert!((c[b] - c[a] - m).abs() < 1e-9, "{c:?}");
+    }
+    assert!((c[0] + c[1] + c[2]).abs() < 1e-9 && (c[4] + c[5]).abs() < 1e-9, "{c:?}");
+}
+
+#[test]
+fn graph_solve_spreads_a_ring_consistently() {
+    // Four views in a ring with true corrections (0.3, −0.1, 0.2, −0.4): measured differences
+    // c_b − c_a, one of them corrupted; Huber weighting keeps the corrupt one from spreading.
+    let truth = [0.3, -0.1, 0.2, -0.4];
+    let mut pairs: Vec<(usize, usize, f64)> =
+        (0..4).map(|a| (a, (a + 1) % 4, truth[(a + 1) % 4] - truth[a])).collect();
+    pairs.push((0, 2, truth[2] - truth[0]));
+    pairs.push((1, 3, truth[3] - truth[1]));
+    pairs[1].2 += 0.5;
+    let c = solve_axis(4, &pairs, 0.02);
+    for v in 0..4 {
+        assert!((c[v] - truth[v]).abs() < 0.02, "{c:?}");
+    }
+}
+
+/// Brute-force NCC of a's cells (s, z) on the `step` grid against b's (s + off_s, z + off_z),
+/// both z-major with NaN for missing cells: what the masked grids must reproduce.
+fn brute_ncc(
+    a: &[f32],
+    (ans, anz): (usize, usize),
+    b: &[f32],
+    (bns, bnz): (usize, usize),
+    off: (i64, i64),
+    step: usize,
+) -> f64 {
+    let (mut n, mut sa, mut sb, mut saa, mut sbb, mut sab) = (0f64, 0f64, 0f64, 0f64, 0f64, 0f64);
+    for z in (0..anz).step_by(step) {
+        for s in (0..ans).step_by(step) {
+            let (bs, bz) = (s as i64 + off.0, z as i64 + off.1);
+            if bs < 0 || bz < 0 || bs >= bns as i64 || bz >= bnz as i64 {
+                continue;
+            }
+            let (x, y) = (a[z * ans + s], b[bz as usize * bns + bs as usize]);
+            if x.is_nan() || y.is_nan() {
+                continue;
+            }
+            let (x, y) = (x as f64, y as f64);
+            (n, sa, sb, saa, sbb, sab) = (n + 1.0, sa + x, sb + y, saa + x * x, sbb + y * y, sab + x * y);
+        }
+    }
+    (sab - sa * sb / n) / ((saa - sa * sa / n) * (sbb - sb * sb / n)).sqrt()
+}
+
+#[test]
+fn masked_grids_match_a_brute_force_ncc_at_every_parity() {
+    let mut state = 7u64;
+    let mut next = || {
+        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        ((state >> 33) % 1000) as f32 / 1000.0 - 0.5
+    };
+    let (ans, anz, bns, bnz) = (23, 57, 29, 61);
+    let a: Vec<f32> = (0..ans * anz).map(|i| if i % 17 == 3 { f32::NAN } else { next() }).collect();
+    // b holds a's texture moved by (3, −2) cells, noise elsewhere, and holes of its own.
+    let b: Vec<f32> = (0..bns * bnz)
+        .map(|i| {
+            let (s, z) = ((i % bns) as i64 - 3, (i / bns) as i64 + 2);
+            let v = if s >= 0 && z >= 0 && (s as usize) < ans && (z as usize) < anz {
+                a[z as usize * ans + s as usize]
+            } else {
+                next()
+            };
+            if i % 13 == 5 { f32::NAN } else { v }
+        })
+        .collect();
+    let full = (TextureGrid::sampled(&a, ans, anz, 1, 0, 0), TextureGrid::sampled(&b, bns, bnz, 1, 0, 0));
+    let (peak, _) = ncc_grids(&full.0, &full.1, 3, -2, 20);
+    assert!((peak - 1.0).abs() < 1e-6, "{peak}");
+    let coarse = (StrideTwo::new(&a, (ans, anz)), StrideTwo::new(&b, (bns, bnz)));
+    for off_s in -4..=5i64 {
+        for off_z in -3..=4i64 {
+            let want = brute_ncc(&a, (ans, anz), &b, (bns, bnz), (off_s, off_z), 1);
+            let (got, _) = ncc_grids(&full.0, &full.1, off_s, off_z, 20);
+            assert!((got - want).abs() < 1e-5, "full ({off_s}, {off_z}): {got} vs {want}");
+            // One pass over the twelve rows or six passes (and AVX2, where there is one): the
+            // same sums, bit for bit, so the choice of loop never moves a registration.
+            let six_passes = overlap_sums(&full.0, &full.1, off_s, off_z, false);
+            assert_eq!(overlap_sums(&full.0, &full.1, off_s, off_z, true), six_passes);
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx2") {
+                // SAFETY: the processor has AVX2 (checked just above).
+                assert_eq!(unsafe { overlap_sums_avx2(&full.0, &full.1, off_s, off_z) }, six_passes);
+            }
+            let want = brute_ncc(&a, (ans, anz), &b, (bns, bnz), (off_s, off_z), 2);
+            let (got, _) = StrideTwo::ncc(&coarse.0, &coarse.1, off_s, off_z, 20);
+            assert!((got - want).abs() < 1e-5, "stride 2 ({off_s}, {off_z}): {got} vs {want}");
+        }
+    }
+}
+
+#[test]
+fn the_lattice_divides_the_turn_and_carries_a_neighbour_across_angle_zero() {
+    let lattice = Lattice::new(57.15, 0.041);
+    assert_eq!(lattice.cells_around % 2, 0);
+    assert!((lattice.cell_arc_mm * lattice.cells_around as f64 - TAU * 57.15).abs() < 1e-9);
+    assert!((lattice.cell_arc_mm - 0.041).abs() < 0.041 / lattice.cells_around as f64);
+    let turn = |a_deg: f64, b_deg: f64| lattice.turn_cells(a_deg.to_radians(), b_deg.to_radians());
+    assert_eq!(turn(8.0, 16.0), 0);
+    // b at 0° is a's neighbour at 360°: its indices move up a turn, and back the other way.
+    assert_eq!(turn(352.0, 0.0), lattice.cells_around);
+    assert_eq!(turn(0.0, 352.0), -lattice.cells_around);
+    assert_eq!(turn(-8.0, 352.0), -lattice.cells_around);
+    // A point seen at 359.9° by b and 359.9° − 360° by a lands in the same cell of a's turn.
+    let cell = |deg: f64| (deg.to_radians() * lattice.radius_ref_mm / lattice.cell_arc_mm).floor() as i64;
+    assert_eq!(cell(359.9) + turn(-8.0, 352.0), cell(-0.1));
+}
+
+#[test]
+fn a_view_without_trusted_points_is_left_where_the_encoder_put_it() {
+    let lattice = Lattice::new(57.15, 0.041);
+    let poses: Vec<ViewPose> =
+        // 352°, 0° and 8°: the first pair spans angle 0.
+        [352.0, 0.0, 8.0].map(|angle_deg| ViewPose { angle_deg, axial_mm: 10.0, lens_radius_mm: 200.0 }).into();
+    let grids: Vec<ViewGrid> = poses
+        .iter()
+        .map(|p| {
+            view_grid(std::iter::empty(), p.angle_deg.to_radians(), &lattice, false, &mut GridScratch::default())
+        })
+        .collect();
+    let registration = register(&grids, &poses, &lattice, 7.0, 17.0, &RegisterOptions::default());
+    assert!(registration.pairs.is_empty());
+    assert!(registration.corrections.iter().all(|c| *c == PoseCorrection::default()));
+}
+
+#[test]
+fn neighbours_include_the_wrap_around_pair() {
+    let poses: Vec<ViewPose> =
+        (0..8).map(|i| ViewPose { angle_deg: i as f64 * 45.0, axial_mm: 10.0, lens_radius_mm: 200.0 }).collect();
+    let pairs = overlapping_pairs(&poses, 30.0, 15.0);
+    assert_eq!(pairs.len(), 8);
+    assert!(pairs.contains(&(0, 7)));
+}
