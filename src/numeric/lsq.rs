@@ -1,4 +1,4 @@
-//! Small nonlinear least squares: Levenberg–Marquardt over a fixed number of parameters.
+//! Small least squares: a straight line, and Levenberg–Marquardt over a fixed number of parameters.
 
 use nalgebra::{Const, DimMin, SMatrix, SVector};
 
@@ -43,6 +43,20 @@ where
         }
     }
     p
+}
+
+/// Least-squares line through (x_k, y_k): (intercept at x = 0, slope); slope 0 when the x do not
+/// spread.
+pub fn fit_line(x: &[f64], y: &[f64]) -> (f64, f64) {
+    let n = x.len() as f64;
+    let (mx, my) = (x.iter().sum::<f64>() / n, y.iter().sum::<f64>() / n);
+    let (mut sxx, mut sxy) = (0.0, 0.0);
+    for (a, b) in x.iter().zip(y) {
+        sxx += (a - mx) * (a - mx);
+        sxy += (a - mx) * (b - my);
+    }
+    let slope = if sxx > 0.0 { sxy / sxx } else { 0.0 };
+    (my - slope * mx, slope)
 }
 
 #[cfg(test)]

@@ -1,0 +1,271 @@
+//! Per-thread heights per 1° bin: crest and root radii fitted over windows along z with the form's
+//! known section, crest minus root, then a trimmed mean along the helix.
+
+use super::*;
+
+/// Half width of the strip around the crest centre line whose brightness decides black crests.
+pub(super) const CREST_LINE_HALF_MM: f64 = 0.15;
+
+/// Half width along z of the window a crest's radius is fitted over (the crest stage models how a
+/// mill surface that cuts part of that window shows in the fitted radius).
+pub fn crest_window_half_mm(form: &ThreadForm) -> f64 {
+    windows(form).0
+}
+
+/// Half widths of the windows fitted around the crest and root centres.
+pub(super) fn windows(form: &ThreadForm) -> (f64, f64) {
+    match form.profile {
+        ProfileShape::Trapezoid { load_flank_deg, stab_flank_deg, crest_width_mm } => {
+            let root = form.pitch_mm
+                - crest_width_mm
+                - form.height_mm * (load_flank_deg.to_radians().tan() + stab_flank_deg.to_radians().tan());
+            (0.6 * crest_width_mm / 2.0, 0.6 * root / 2.0)
+        }
+        ProfileShape::Rounded { flank_deg, .. } => {
+            // An arc meets its flanks at ρ·cos α either side of its centre.
+            let cos = flank_deg.to_radians().cos();
+            let (crest, root) = form.arc_radii_mm().expect("a rounded form");
+            (0.6 * (crest * cos), 0.6 * (root * cos))
+        }
+    }
+}
+
+/// Nominal curvatures (c of r = c·x²) of a rounded form's crest and root arcs (∓1/2ρ); None for
+/// a flat-crested form.
+pub(super) fn nominal_curvatures(form: &ThreadForm) -> Option<(f64, f64)> {
+    form.arc_radii_mm().map(|(crest, root)| (-0.5 / crest, 0.5 / root))
+}
+
+/// The part of a crest's or root's section about its centre that is fitted once for the whole
+/// part rather than per bin: flat for a buttress, r = c·x² for a round thread.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(super) enum Section {
+    Flat,
+    Parabola { c_per_mm: f64 },
+}
+
+impl Section {
+    fn offset_mm(self, x: f64) -> f64 {
+        match self {
+            Section::Flat => 0.0,
+            Section::Parabola { c_per_mm } => c_per_mm * x * x,
+        }
+    }
+}
+
+/// Least-squares curvature c of r = a + b·x + c·x² (None without enough samples spread in x).
+pub(super) fn fit_curvature(pts: &[(f64, f64)]) -> Option<f64> {
+    if pts.len() < 9 {
+        return None;
+    }
+    let mut ata = nalgebra::Matrix3::<f64>::zeros();
+    let mut atb = nalgebra::Vector3::<f64>::zeros();
+    for &(x, r) in pts {
+        let row = nalgebra::Vector3::new(1.0, x, x * x);
+        ata += row * row.transpose();
+        atb += row * r;
+    }
+    ata.lu().solve(&atb).map(|sol| sol[2])
+}
+
+/// The section's curvature shared by all crests (or roots) of a round thread: the median of the
+/// windows' own curvatures. Measured rather than taken from the form because the fused surface is
+/// the true one smoothed by the focus window; fitted once, it costs each bin no variance, whereas a
+/// free curvature per bin more than doubles the variance of the height at the centre. Falls back
+/// to the form's nominal curvature when too few windows are usable.
+pub(super) fn shared_section(windows: &[&[(f64, f64)]], nominal_c_per_mm: f64) -> Section {
+    let mut c: Vec<f64> = windows.iter().filter_map(|w| fit_curvature(w)).filter(|c| c.is_finite()).collect();
+    let measured = if c.len() < 30 { None } else { median(&mut c) };
+    Section::Parabola { c_per_mm: measured.unwrap_or(nominal_c_per_mm) }
+}
+
+/// Value at x = 0 of a least-squares fit r = a + b·x + section(x) with one pass of outlier rejection
+/// (residuals beyond 3 MAD). The section's shape is known from the form, so only its height and
+/// tilt are fitted: a free curvature term would more than double the variance of the height at
+/// the centre. None unless samples lie on both sides of the centre (`half` is the window's half
+/// width): an edge of the data would make it an extrapolation.
+pub(super) fn fit_at_centre(samples: &[(f64, f64)], section: Section, half: f64) -> Option<f64> {
+    let (lo, hi) = samples.iter().fold((f64::MAX, f64::MIN), |(l, h), s| (l.min(s.0), h.max(s.0)));
+    if lo > -0.5 * half || hi < 0.5 * half {
+        return None;
+    }
+    let levelled: Vec<(f64, f64)> = samples.iter().map(|&(x, r)| (x, r - section.offset_mm(x))).collect();
+    let (a, b) = fit_line_checked(&levelled)?;
+    let resid: Vec<f64> = levelled.iter().map(|&(x, r)| (r - a - b * x).abs()).collect();
+    let mad = median(&mut resid.clone()).expect("at least six samples").max(1e-6);
+    let kept: Vec<(f64, f64)> =
+        levelled.iter().zip(&resid).filter(|(_, e)| **e <= 3.0 * 1.4826 * mad).map(|(s, _)| *s).collect();
+    fit_line_checked(&kept).map(|(a, _)| a)
+}
+
+/// [`fit_line`] through at least six samples that spread in x.
+pub(super) fn fit_line_checked(pts: &[(f64, f64)]) -> Option<(f64, f64)> {
+    let (x, r): (Vec<f64>, Vec<f64>) = pts.iter().copied().unzip();
+    let spread = x.iter().fold(f64::MAX, |m, &v| m.min(v)) < x.iter().fold(f64::MIN, |m, &v| m.max(v));
+    (pts.len() >= 6 && spread).then(|| fit_line(&x, &r))
+}
+
+/// Heights of every thread whose crest line starts within the map, per 1° bin.
+pub fn measure_threads(
+    map: &UnrolledMap,
+    form: &ThreadForm,
+    helix: &Helix,
+    options: &ProfileOptions,
+) -> Vec<ThreadMeasure> {
+    measure_threads_every(map, form, helix, options, 1)
+}
+
+/// Bins between surveyed ones in [`survey_threads`].
+pub(super) const SURVEY_BIN_STEP: usize = 6;
+
+/// [`measure_threads`] on every sixth 1° bin only (0.5°, 6.5°, …), for [`refine_helix`], which
+/// asks of the first helix estimate only which threads are full (fractions of each thread's
+/// bins): a sixth of the work, and on every benchmark and held-out case the same threads, hence
+/// the same refined helix and report, as all 360 bins.
+pub fn survey_threads(
+    map: &UnrolledMap,
+    form: &ThreadForm,
+    helix: &Helix,
+    options: &ProfileOptions,
+) -> Vec<ThreadMeasure> {
+    measure_threads_every(map, form, helix, options, SURVEY_BIN_STEP)
+}
+
+pub(super) fn measure_threads_every(
+    map: &UnrolledMap,
+    form: &ThreadForm,
+    helix: &Helix,
+    options: &ProfileOptions,
+    bin_step: usize,
+) -> Vec<ThreadMeasure> {
+    let g = &map.grid;
+    let p = helix.pitch_mm;
+    let (crest_half, root_half) = windows(form);
+    let (before, after) = form.root_centres_mm();
+    let z_max = g.z0_mm + g.nz as f64 * g.dz_mm;
+    let mut threads: Vec<ThreadMeasure> = Vec::new();
+    let mut index = 1u32;
+    while helix.z_h_mm + p * (index - 1) as f64 <= z_max {
+        threads.push(ThreadMeasure { index, bins: Vec::with_capacity(360) });
+        index += 1;
+    }
+    /// One thread's windows in one bin, in thread coordinates (x = z − centre, r).
+    struct Pending {
+        thread: usize,
+        angle_deg: f64,
+        crest_z_mm: f64,
+        crest: Vec<(f64, f64)>,
+        root_before: Vec<(f64, f64)>,
+        root_after: Vec<(f64, f64)>,
+        crest_gray: Option<f32>,
+    }
+    // A window's samples in thread coordinates u = (z − z_h)/p − θ/360 (crest of thread i at
+    // u = i − 1): per column of the bin, the rows whose u falls in the window (found from the
+    // window's z range, then each one checked on u itself), sorted by u; ties keep the order of
+    // the columns, then the rows.
+    let window = |columns: std::ops::Range<usize>, centre_u: f64, half_mm: f64| -> Vec<(f64, f64, f32)> {
+        let (lo, hi) = (centre_u - half_mm / p, centre_u + half_mm / p);
+        let mut samples: Vec<(f64, f64, f32)> = Vec::new();
+        for it in columns {
+            let theta = g.theta_deg_at(it);
+            // Rows whose centre z is in the window's z range, a row's slack either side.
+            let row_of =
+                |u: f64| ((helix.z_h_mm + p * (u + theta / 360.0) - g.z0_mm) / g.dz_mm - 0.5).clamp(-1.0, g.nz as f64);
+            let first = (row_of(lo).floor() - 1.0).max(0.0) as usize;
+            let last = ((row_of(hi).ceil() + 1.0).max(0.0) as usize).min(g.nz.saturating_sub(1));
+            for iz in first..=last {
+                let i = map.index(iz, it);
+                let r = map.radius_mm[i];
+                if r.is_finite() {
+                    let u = (g.z_at(iz) - helix.z_h_mm) / p - theta / 360.0;
+                    if u >= lo && u <= hi {
+                        samples.push((u, r as f64, map.gray(i)));
+                    }
+                }
+            }
+        }
+        samples.sort_by(|a, b| a.0.total_cmp(&b.0));
+        samples.into_iter().map(|(u, r, g)| ((u - centre_u) * p, r, g)).collect()
+    };
+    // Bins are gathered in parallel and kept in bin order, then thread order.
+    let pending: Vec<Pending> = (0..360)
+        .into_par_iter()
+        .step_by(bin_step.max(1))
+        .map(|bin| {
+            let centre_deg = bin as f64 + 0.5;
+            let columns = bin_columns(g, bin);
+            threads
+                .iter()
+                .enumerate()
+                .map(|(t, thread)| {
+                    let u_crest = (thread.index - 1) as f64;
+                    let crest_z = helix.z_h_mm + p * (u_crest + centre_deg / 360.0);
+                    let crest = window(columns.clone(), u_crest, crest_half);
+                    let xy = |w: &[(f64, f64, f32)]| w.iter().map(|&(x, r, _)| (x, r)).collect::<Vec<_>>();
+                    // Black is defined on the crest centre line: its brightness, not the whole flat's
+                    // (at the onset of a black crest only a strip around the centre line keeps the
+                    // mill scale).
+                    let centre_line: Vec<f32> =
+                        crest.iter().filter(|s| s.0.abs() <= CREST_LINE_HALF_MM).map(|s| s.2).collect();
+                    let crest_gray =
+                        (!centre_line.is_empty()).then(|| centre_line.iter().sum::<f32>() / centre_line.len() as f32);
+                    Pending {
+                        thread: t,
+                        angle_deg: centre_deg,
+                        crest_z_mm: crest_z,
+                        crest: xy(&crest),
+                        root_before: xy(&window(columns.clone(), u_crest + before / p, root_half)),
+                        root_after: xy(&window(columns.clone(), u_crest + after / p, root_half)),
+                        crest_gray,
+                    }
+                })
+                .collect::<Vec<_>>()
+        })
+        .flatten_iter()
+        .collect();
+    let (crest_section, root_section) = match nominal_curvatures(form) {
+        None => (Section::Flat, Section::Flat),
+        Some((crest_c, root_c)) => {
+            let crests: Vec<&[(f64, f64)]> = pending.iter().map(|w| w.crest.as_slice()).collect();
+            let roots: Vec<&[(f64, f64)]> =
+                pending.iter().flat_map(|w| [w.root_before.as_slice(), w.root_after.as_slice()]).collect();
+            (shared_section(&crests, crest_c), shared_section(&roots, root_c))
+        }
+    };
+    let measured: Vec<BinMeasure> = pending
+        .par_iter()
+        .map(|w| {
+            let crest_r = fit_at_centre(&w.crest, crest_section, crest_half);
+            let rb = fit_at_centre(&w.root_before, root_section, root_half);
+            let ra = fit_at_centre(&w.root_after, root_section, root_half);
+            // A root whose window reaches past the end face is not on the part (or is the chamfer):
+            // there is no adjacent root to measure from. Nor is one whose window reaches into the
+            // map's first cell on the part: that cell holds the end face's edge, whose silhouette
+            // pulls the fused radius off the root (round thread 1's first bins read 25–50 µm high).
+            let root_on_part = w.crest_z_mm + before - root_half > g.dz_mm;
+            let height = match (crest_r, rb, ra) {
+                (Some(c), Some(b), Some(a)) if root_on_part => {
+                    Some(c - (b + (a - b) * (0.0 - before) / (after - before)))
+                }
+                _ => None,
+            };
+            BinMeasure {
+                angle_deg: w.angle_deg,
+                crest_z_mm: w.crest_z_mm,
+                height_mm: height,
+                crest_radius_mm: crest_r,
+                crest_gray: w.crest_gray,
+            }
+        })
+        .collect();
+    for (w, bin) in pending.iter().zip(measured) {
+        threads[w.thread].bins.push(bin);
+    }
+    // Along the helix, thread i's last bin (359.5°) is followed by thread i + 1's first (0.5°).
+    let helix_order: Vec<Option<f64>> = threads.iter().flat_map(|t| t.bins.iter().map(|b| b.height_mm)).collect();
+    let filtered = trimmed_mean(&helix_order, options.height_window_half_bins);
+    for (bin, h) in threads.iter_mut().flat_map(|t| t.bins.iter_mut()).zip(filtered) {
+        bin.height_mm = h;
+    }
+    threads
+}

@@ -1,0 +1,182 @@
+use super::*;
+
+use crate::pipeline::surface::GridSpec;
+
+/// A synthetic fused map of an ideal buttress thread.
+fn ideal_map(z_h: f64, noise: f64) -> (UnrolledMap, ThreadForm) {
+    ideal_map_of(ThreadForm::api_buttress(5.08, 1.5748, 0.0508, 0.0625).unwrap(), z_h, noise)
+}
+
+/// A synthetic fused map of an ideal thread of `form`, with uniform noise of ± `noise` mm.
+fn ideal_map_of(form: ThreadForm, z_h: f64, noise: f64) -> (UnrolledMap, ThreadForm) {
+    let pitch = form.pitch_mm;
+    let grid = GridSpec { z0_mm: 0.0, dz_mm: 0.04, nz: 800, ntheta: 1440 };
+    let mut radius = Vec::with_capacity(grid.nz * grid.ntheta);
+    let mut seed = 12345u64;
+    for iz in 0..grid.nz {
+        for it in 0..grid.ntheta {
+            let (z, theta) = (grid.z_at(iz), grid.theta_deg_at(it));
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            let jitter = ((seed >> 33) as f64 / (1u64 << 31) as f64 - 0.5) * 2.0 * noise;
+            let r = 55.0 + z * form.radius_slope() + form.height_at(z - z_h - pitch * theta / 360.0) + jitter;
+            radius.push(r as f32);
+        }
+    }
+    let cells = radius.len();
+    (UnrolledMap { grid, radius_mm: radius, weight: vec![1.0; cells], rgb: vec![[0.6; 3]; cells] }, form)
+}
+
+/// Threads vanishing towards the far end (their roots rising, as on the seed's Table 1 part)
+/// pull the whole-length phase of an asymmetric form; read over the full threads alone (and
+/// with the taper line fitted beside the harmonics), the phase is the crests' again.
+#[test]
+fn the_helix_phase_is_read_over_the_full_threads() {
+    let z_h = 1.234;
+    let (mut map, form) = ideal_map(z_h, 0.0);
+    let g = map.grid.clone();
+    // From z = 26 mm the roots rise 0.25 mm per mm above the root cone.
+    for iz in 0..g.nz {
+        let floor_mm = 55.0 + g.z_at(iz) * form.radius_slope() + 0.25 * (g.z_at(iz) - 26.0).max(0.0);
+        for it in 0..g.ntheta {
+            let i = map.index(iz, it);
+            map.radius_mm[i] = map.radius_mm[i].max(floor_mm as f32);
+        }
+    }
+    let first = estimate_helix(&map, &form).unwrap();
+    let threads = measure_threads(&map, &form, &first, &ProfileOptions::default());
+    let refined = refine_helix(&map, &form, &first, &threads);
+    assert!(refined.z_h_mm != first.z_h_mm, "two full threads were found, so the phase was read again");
+    let after_um = 1e3 * (refined.z_h_mm - z_h).abs();
+    assert!(after_um < 1.0, "full threads {after_um} µm");
+    // The survey of every sixth bin (what the pipeline hands refine_helix) finds the same full
+    // threads, so the same helix, bit for bit.
+    let surveyed = survey_threads(&map, &form, &first, &ProfileOptions::default());
+    assert!(surveyed.iter().all(|t| t.bins.len() == 60 && t.bins[1].angle_deg == 6.5), "every sixth bin");
+    assert_eq!(refine_helix(&map, &form, &first, &surveyed), refined);
+}
+
+/// Over a few pitches of an asymmetric (buttress) form on a taper, a line removed first takes
+/// part of the thread with it and shifts the fundamental's phase; fitted beside the harmonics
+/// it does not.
+#[test]
+fn the_fundamental_is_fitted_beside_the_taper_line() {
+    let form = ThreadForm::api_buttress(5.08, 1.5748, 0.0508, 0.0625).unwrap();
+    let p = form.pitch_mm;
+    let phase_form = form_fundamental(&form).arg();
+    let z_crest = 1.1;
+    let samples: Vec<(f64, f64)> = (0..381)
+        .map(|k| 0.04 * k as f64 + z_crest - 0.5 * p)
+        .map(|z| (z, 55.0 + form.radius_slope() * z + form.height_at(z - z_crest)))
+        .collect();
+    let crest_from = |c: Complex<f64>| (phase_form - c.arg()) * p / TAU;
+    let joint = crest_from(fundamental_beside_a_line(samples.iter().copied(), p).unwrap());
+    let (z, r): (Vec<f64>, Vec<f64>) = samples.iter().copied().unzip();
+    let (a, b) = fit_line(&z, &r);
+    let line_first =
+        crest_from(z.iter().zip(&r).map(|(&z, &r)| Complex::from_polar(r - a - b * z, -TAU * z / p)).sum());
+    let wrap = |x: f64| 1e3 * ((x - z_crest + 0.5 * p).rem_euclid(p) - 0.5 * p).abs();
+    assert!(
+        wrap(joint) < 0.2 && wrap(line_first) > 1.0,
+        "joint {} µm, line first {} µm",
+        wrap(joint),
+        wrap(line_first)
+    );
+}
+
+#[test]
+fn helix_and_heights_of_an_ideal_thread() {
+    let (map, form) = ideal_map(1.234, 0.0);
+    let helix = estimate_helix(&map, &form).unwrap();
+    assert!((helix.z_h_mm - 1.234).abs() < 0.01, "{}", helix.z_h_mm);
+    assert!((helix.taper_on_diameter - 0.0625).abs() < 0.005, "{}", helix.taper_on_diameter);
+    let threads = measure_threads(&map, &form, &helix, &ProfileOptions::default());
+    let mut checked = 0;
+    for t in &threads {
+        for b in &t.bins {
+            if let Some(h) = b.height_mm {
+                assert!((h - 1.5748).abs() < 0.002, "thread {} at {}: {h}", t.index, b.angle_deg);
+                checked += 1;
+            }
+        }
+    }
+    assert!(checked > 360 * 4, "{checked}");
+}
+
+#[test]
+fn noise_averages_out() {
+    let (map, form) = ideal_map(3.9, 0.06);
+    let helix = estimate_helix(&map, &form).unwrap();
+    assert!((helix.z_h_mm - 3.9).abs() < 0.02, "{}", helix.z_h_mm);
+    let threads = measure_threads(&map, &form, &helix, &ProfileOptions::default());
+    let heights: Vec<f64> = threads.iter().flat_map(|t| t.bins.iter().filter_map(|b| b.height_mm)).collect();
+    let rms = (heights.iter().map(|h| (h - 1.5748).powi(2)).sum::<f64>() / heights.len() as f64).sqrt();
+    assert!(rms < 0.01, "{rms}");
+}
+
+/// The map's first cell on the part holds the end face's edge, whose silhouette pulls the
+/// fused radius off the surface: no root window reaches into it.
+#[test]
+fn the_end_face_cell_is_not_taken_for_a_root() {
+    let form = ThreadForm::api_round(3.175, 1.810, 0.05, 0.0625, None).unwrap();
+    let (mut map, form) = ideal_map_of(form, 1.1, 0.01);
+    let helix = estimate_helix(&map, &form).unwrap();
+    let options = ProfileOptions { height_window_half_bins: 0 };
+    let clean = measure_threads(&map, &form, &helix, &options);
+    // The edge reads 12 µm low all round (within the noise's reach: no outlier to reject).
+    let ntheta = map.grid.ntheta;
+    map.radius_mm[..ntheta].iter_mut().for_each(|r| *r -= 0.012);
+    let edged = measure_threads(&map, &form, &helix, &options);
+    // Every height as before, but for the shared section's curvature, refitted over windows
+    // that include the edge (−0.017 µm on every bin here). With the root windows allowed into
+    // the edge cell, thread 1's first bin reads +0.44 µm.
+    let mut measured = 0;
+    for (e, c) in edged[0].bins.iter().zip(&clean[0].bins) {
+        assert_eq!(e.height_mm.is_some(), c.height_mm.is_some());
+        if let (Some(edged_mm), Some(clean_mm)) = (e.height_mm, c.height_mm) {
+            assert!(
+                (edged_mm - clean_mm).abs() < 1e-4,
+                "{}° moved {} µm",
+                e.angle_deg,
+                (edged_mm - clean_mm) * 1e3
+            );
+            measured += 1;
+        }
+    }
+    assert!(measured > 200, "{measured}");
+}
+
+/// A round thread's crest and root arcs: the shared curvature is measured from the map (here
+/// the form's own, ∓1/2ρ) and the heights come out unbiased with less scatter than a free
+/// curvature per bin would give.
+#[test]
+fn round_thread_heights_with_a_shared_section() {
+    let form = ThreadForm::api_round(3.175, 1.810, 0.05, 0.0625, None).unwrap();
+    let nominal = form.height_mm;
+    let (crest_c, root_c) = nominal_curvatures(&form).unwrap();
+    assert!(crest_c < 0.0 && root_c > 0.0, "{crest_c} {root_c}");
+    let (map, form) = ideal_map_of(form, 2.2, 0.03);
+    let helix = estimate_helix(&map, &form).unwrap();
+    assert!((helix.z_h_mm - 2.2).abs() < 0.02, "{}", helix.z_h_mm);
+    let threads = measure_threads(&map, &form, &helix, &ProfileOptions::default());
+    let heights: Vec<f64> = threads.iter().flat_map(|t| t.bins.iter().filter_map(|b| b.height_mm)).collect();
+    assert!(heights.len() > 360 * 5, "{}", heights.len());
+    let mean = heights.iter().sum::<f64>() / heights.len() as f64;
+    let rms = (heights.iter().map(|h| (h - nominal).powi(2)).sum::<f64>() / heights.len() as f64).sqrt();
+    assert!((mean - nominal).abs() < 0.002, "bias {}", mean - nominal);
+    assert!(rms < 0.006, "{rms}");
+}
+
+#[test]
+fn fixed_section_fit_recovers_the_centre_of_an_arc() {
+    let radius = 0.45;
+    let section = Section::Parabola { c_per_mm: -0.5 / radius };
+    // An arc seen from x = −0.25 … 0.25 mm, tilted by the taper.
+    let pts: Vec<(f64, f64)> =
+        (0..=50).map(|i| -0.25 + 0.01 * i as f64).map(|x| (x, 10.0 + 0.03 * x - x * x / (2.0 * radius))).collect();
+    let centre = fit_at_centre(&pts, section, 0.25).unwrap();
+    assert!((centre - 10.0).abs() < 1e-9, "{centre}");
+    let measured = fit_curvature(&pts).unwrap();
+    assert!((measured + 0.5 / radius).abs() < 1e-6, "{measured}");
+    // Samples on one side only: an extrapolation, refused.
+    assert!(fit_at_centre(&pts[30..], section, 0.25).is_none());
+}
