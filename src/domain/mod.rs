@@ -1,6 +1,7 @@
 //! The domain: what a threaded pipe end, a station and the API 5B rules are, independent of how a
 //! bundle arrives or how the pipeline measures.
 
+pub mod arcs;
 pub mod frame;
 pub mod optics;
 pub mod part;

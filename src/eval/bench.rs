@@ -57,7 +57,7 @@ pub fn compare(report: &Report, truth: &Truth) -> Accuracy {
         height_max_um: max,
         height_bias_um: bias,
         black_crest_length_max_error_mm: length_error,
-        seen_crest_deg: seen.map(|threads| threads.iter().map(|t| crate::domain::rules::arcs_deg(&t.arcs_deg)).sum()),
+        seen_crest_deg: seen.map(|threads| threads.iter().map(|t| crate::domain::arcs::arcs_deg(&t.arcs_deg)).sum()),
         verdict_agrees: report.verdict == truth.verdict,
         worst: errors.iter().take(5).map(|e| (e.1, e.2, e.3, e.4)).collect(),
     }
@@ -86,8 +86,8 @@ pub fn black_crests(report: &Report, truth: &Truth) -> Vec<BlackCrest> {
                 None => (t.black_crest_arcs_deg.clone(), t.black_crest_length_mm),
                 Some(seen) => {
                     let thread_seen = seen.iter().find(|s| s.index == t.index).map_or(&[][..], |s| &s.arcs_deg[..]);
-                    let arcs = crate::domain::rules::intersect_arcs(&t.black_crest_arcs_deg, thread_seen);
-                    let mm = crate::domain::rules::arc_length_mm(&arcs, truth.circumference_mm);
+                    let arcs = crate::domain::arcs::intersect_arcs(&t.black_crest_arcs_deg, thread_seen);
+                    let mm = crate::domain::arcs::arc_length_mm(&arcs, truth.circumference_mm);
                     (arcs, mm)
                 }
             };

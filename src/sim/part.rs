@@ -3,7 +3,8 @@
 //! crest that would rise above the mill surface keeps it (a black crest), and past the vanish point
 //! the unthreaded body remains.
 
-use crate::domain::rules::{self, CrestBin, RuleInput, ThreadObservation};
+use crate::domain::arcs::arc_length_mm;
+use crate::domain::rules::{CrestBin, RuleInput, ThreadObservation};
 use crate::domain::thread::{ProfileKernel, ThreadForm};
 use serde::{Deserialize, Serialize};
 use std::f64::consts::{PI, TAU};
@@ -315,7 +316,7 @@ impl PartModel {
                 });
             }
             let arcs = self.black_arcs(index);
-            let length = rules::arc_length_mm(&arcs, circ);
+            let length = arc_length_mm(&arcs, circ);
             threads.push(ThreadTruth {
                 index,
                 height_mm: HeightBins { angles_deg: bin_centres_deg(), values },

@@ -35,7 +35,7 @@ fn inspection_of_the_ci_bundle_matches_truth() {
     // Three views over 13° near Lc: the report says which crests within Lc they showed, after the
     // verdict's reason, and black crests are measured against truth over those crests.
     let seen_crests = inspection.report.assessment.seen_crest_arcs.clone().expect("crests within Lc not seen");
-    let seen_deg: f64 = seen_crests.iter().map(|t| crestscan::domain::rules::arcs_deg(&t.arcs_deg)).sum();
+    let seen_deg: f64 = seen_crests.iter().map(|t| crestscan::domain::arcs::arcs_deg(&t.arcs_deg)).sum();
     assert_eq!(accuracy.seen_crest_deg, Some(seen_deg));
     let last = inspection.report.assessment.reasons.last().unwrap();
     assert_eq!(last.code, crestscan::domain::rules::ReasonCode::PartialCoverage);
@@ -49,7 +49,7 @@ fn inspection_of_the_ci_bundle_matches_truth() {
     assert!(rows.iter().any(|b| b.truth_mm > 0.0 && b.reported_mm > 0.0), "{rows:?}");
     for b in &rows {
         let thread_seen = seen_crests.iter().find(|t| t.index == b.thread).map_or(&[][..], |t| &t.arcs_deg[..]);
-        assert_eq!(crestscan::domain::rules::intersect_arcs(&b.truth_arcs_deg, thread_seen), b.truth_arcs_deg, "{b:?}");
+        assert_eq!(crestscan::domain::arcs::intersect_arcs(&b.truth_arcs_deg, thread_seen), b.truth_arcs_deg, "{b:?}");
     }
     let worst = rows.iter().map(|b| (b.reported_mm - b.truth_mm).abs()).fold(0.0, f64::max);
     assert_eq!(worst, accuracy.black_crest_length_max_error_mm);

@@ -245,7 +245,7 @@ pub fn observations(
                     seen: b.crest_gray.is_some() || b.crest_radius_mm.is_some(),
                 });
             }
-            ThreadObservation { index: t.index, black_crest_arcs_deg: crate::domain::rules::union_arcs(arcs), bins }
+            ThreadObservation { index: t.index, black_crest_arcs_deg: crate::domain::arcs::union_arcs(arcs), bins }
         })
         .collect();
     CrestFindings { observations, machined_crest_gray: reference, cone }

@@ -35,7 +35,7 @@ fn part(crest: impl Fn(u32, f64, f64) -> f64) -> Vec<ThreadMeasure> {
 
 fn mill_arcs(findings: &CrestFindings, index: u32) -> Vec<[f64; 2]> {
     let t = findings.observations.iter().find(|t| t.index == index).unwrap();
-    crate::domain::rules::union_arcs(
+    crate::domain::arcs::union_arcs(
         t.bins.iter().filter(|b| b.on_mill_surface).map(|b| b.mill_arc_deg.unwrap_or(b.span_deg())).collect(),
     )
 }

@@ -2,6 +2,7 @@
 //! known section, crest minus root, then a trimmed mean along the helix.
 
 use super::*;
+use crate::pipeline::profile::helix::bin_columns;
 
 /// Half width of the strip around the crest centre line whose brightness decides black crests.
 pub(super) const CREST_LINE_HALF_MM: f64 = 0.15;

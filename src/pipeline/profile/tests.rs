@@ -1,6 +1,12 @@
 use super::*;
 
 use crate::pipeline::surface::GridSpec;
+use crate::pipeline::profile::heights::Section;
+use crate::pipeline::profile::heights::fit_at_centre;
+use crate::pipeline::profile::heights::fit_curvature;
+use crate::pipeline::profile::heights::nominal_curvatures;
+use crate::pipeline::profile::helix::form_fundamental;
+use crate::pipeline::profile::helix::fundamental_beside_a_line;
 
 /// A synthetic fused map of an ideal buttress thread.
 fn ideal_map(z_h: f64, noise: f64) -> (UnrolledMap, ThreadForm) {
