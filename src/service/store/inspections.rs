@@ -1,0 +1,219 @@
+//! Inspections: submitting (with idempotency), reading, listing with filters and cursors, and
+//! requesting cancellation.
+
+use super::*;
+
+/// An inspection as stored, joined with its upload's summary.
+#[derive(Clone, Debug, sqlx::FromRow)]
+pub struct InspectionRow {
+    pub id: String,
+    pub status: String,
+    pub upload_sha256: String,
+    pub serial: Option<String>,
+    pub connection: Option<String>,
+    pub client_reference: Option<String>,
+    pub options_json: String,
+    pub verdict: Option<String>,
+    pub created_at: i64,
+    pub updated_at: i64,
+    pub started_at: Option<i64>,
+    pub finished_at: Option<i64>,
+    pub progress_stage: Option<String>,
+    pub progress_fraction: Option<f64>,
+    pub attempts: i64,
+    pub max_attempts: i64,
+    pub cancel_requested: bool,
+    pub error_json: Option<String>,
+    pub request_sha256: String,
+    pub size_bytes: i64,
+    pub views: i64,
+    pub frames: i64,
+}
+
+impl InspectionRow {
+    pub fn status(&self) -> Status {
+        self.status.parse().unwrap_or(Status::Failed)
+    }
+}
+
+const SELECT_INSPECTION: &str = "SELECT i.id, i.status, i.upload_sha256, i.serial, i.connection, i.client_reference, \
+     i.options_json, i.verdict, i.created_at, i.updated_at, i.started_at, i.finished_at, i.progress_stage, \
+     i.progress_fraction, i.attempts, i.max_attempts, i.cancel_requested, i.error_json, i.request_sha256, \
+     u.size_bytes, u.views, u.frames FROM inspections i JOIN uploads u ON u.sha256 = i.upload_sha256";
+
+#[derive(Clone, Debug)]
+pub struct UploadInfo {
+    pub sha256: String,
+    pub size_bytes: u64,
+    pub views: usize,
+    pub frames: usize,
+}
+
+#[derive(Clone, Debug)]
+pub struct NewInspection {
+    pub id: String,
+    pub upload: UploadInfo,
+    pub serial: Option<String>,
+    pub connection: Option<String>,
+    pub client_reference: Option<String>,
+    pub options_json: String,
+    pub idempotency_key: Option<String>,
+    /// Hash of the upload and the options: what "the same request" means for Idempotency-Key.
+    pub request_sha256: String,
+    pub max_attempts: u32,
+}
+
+pub enum Inserted {
+    Created(InspectionRow),
+    /// Same Idempotency-Key, same request: the earlier inspection.
+    Replayed(InspectionRow),
+}
+
+#[derive(Clone, Debug, Default)]
+pub struct ListFilter {
+    pub status: Option<Status>,
+    pub verdict: Option<String>,
+    pub serial: Option<String>,
+    pub connection: Option<String>,
+    pub client_reference: Option<String>,
+    pub created_after_ms: Option<i64>,
+    pub created_before_ms: Option<i64>,
+    /// Only ids strictly older than this one (newest first).
+    pub before_id: Option<String>,
+    pub limit: u32,
+}
+
+impl Store {
+    pub async fn inspection(&self, id: &str) -> Result<InspectionRow, StoreError> {
+        sqlx::query_as::<_, InspectionRow>(&format!("{SELECT_INSPECTION} WHERE i.id = ?"))
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?
+            .ok_or(StoreError::NotFound)
+    }
+
+    pub async fn by_idempotency_key(&self, key: &str) -> Result<Option<InspectionRow>, StoreError> {
+        Ok(sqlx::query_as::<_, InspectionRow>(&format!("{SELECT_INSPECTION} WHERE i.idempotency_key = ?"))
+            .bind(key)
+            .fetch_optional(&self.pool)
+            .await?)
+    }
+
+    /// Records an accepted upload and its queued inspection in one transaction, placing the
+    /// (prepared, i.e. fsynced) upload file under its hash while the transaction holds the write
+    /// lock: the retention sweep deletes files under the same lock, so a committed row always has
+    /// its file.
+    pub async fn insert_inspection(
+        &self,
+        new: &NewInspection,
+        file: tempfile::NamedTempFile,
+    ) -> Result<Inserted, StoreError> {
+        let now = now_ms();
+        let mut tx = self.pool.begin().await?;
+        // A write first, so the transaction holds the write lock before it reads the key.
+        sqlx::query(
+            "INSERT INTO uploads (sha256, size_bytes, views, frames, created_at) VALUES (?, ?, ?, ?, ?) \
+             ON CONFLICT (sha256) DO UPDATE SET purged_at = NULL",
+        )
+        .bind(&new.upload.sha256)
+        .bind(new.upload.size_bytes as i64)
+        .bind(new.upload.views as i64)
+        .bind(new.upload.frames as i64)
+        .bind(now)
+        .execute(&mut *tx)
+        .await?;
+        if let Some(key) = &new.idempotency_key {
+            let existing: Option<(String, String)> =
+                sqlx::query_as("SELECT id, request_sha256 FROM inspections WHERE idempotency_key = ?")
+                    .bind(key)
+                    .fetch_optional(&mut *tx)
+                    .await?;
+            if let Some((id, hash)) = existing {
+                tx.rollback().await?;
+                return if hash == new.request_sha256 {
+                    Ok(Inserted::Replayed(self.inspection(&id).await?))
+                } else {
+                    Err(StoreError::IdempotencyConflict { existing_id: id })
+                };
+            }
+        }
+        let files = self.files.clone();
+        let sha = new.upload.sha256.clone();
+        tokio::task::spawn_blocking(move || files.place(file, &sha))
+            .await
+            .map_err(|e| StoreError::Io(std::io::Error::other(e)))??;
+        sqlx::query(
+            "INSERT INTO inspections (id, status, upload_sha256, serial, connection, client_reference, options_json, \
+             created_at, updated_at, max_attempts, available_at, idempotency_key, request_sha256) \
+             VALUES (?, 'queued', ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+        )
+        .bind(&new.id)
+        .bind(&new.upload.sha256)
+        .bind(&new.serial)
+        .bind(&new.connection)
+        .bind(&new.client_reference)
+        .bind(&new.options_json)
+        .bind(now)
+        .bind(now)
+        .bind(new.max_attempts as i64)
+        .bind(now)
+        .bind(&new.idempotency_key)
+        .bind(&new.request_sha256)
+        .execute(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(Inserted::Created(self.inspection(&new.id).await?))
+    }
+
+    pub async fn list(&self, filter: &ListFilter) -> Result<Vec<InspectionRow>, StoreError> {
+        let mut q: QueryBuilder<Sqlite> = QueryBuilder::new(SELECT_INSPECTION);
+        q.push(" WHERE 1 = 1");
+        if let Some(s) = filter.status {
+            q.push(" AND i.status = ").push_bind(s.as_str());
+        }
+        if let Some(v) = &filter.verdict {
+            q.push(" AND i.verdict = ").push_bind(v.clone());
+        }
+        if let Some(v) = &filter.serial {
+            q.push(" AND i.serial = ").push_bind(v.clone());
+        }
+        if let Some(v) = &filter.connection {
+            q.push(" AND i.connection = ").push_bind(v.clone());
+        }
+        if let Some(v) = &filter.client_reference {
+            q.push(" AND i.client_reference = ").push_bind(v.clone());
+        }
+        if let Some(t) = filter.created_after_ms {
+            q.push(" AND i.created_at > ").push_bind(t);
+        }
+        if let Some(t) = filter.created_before_ms {
+            q.push(" AND i.created_at < ").push_bind(t);
+        }
+        if let Some(id) = &filter.before_id {
+            q.push(" AND i.id < ").push_bind(id.clone());
+        }
+        q.push(" ORDER BY i.id DESC LIMIT ").push_bind(filter.limit as i64);
+        Ok(q.build_query_as::<InspectionRow>().fetch_all(&self.pool).await?)
+    }
+
+    /// Cancels a queued inspection at once, or asks a running one to stop (its worker sees the
+    /// flag at the next heartbeat). Terminal ones are returned unchanged.
+    pub async fn request_cancel(&self, id: &str) -> Result<InspectionRow, StoreError> {
+        let now = now_ms();
+        sqlx::query(
+            "UPDATE inspections SET status = 'canceled', finished_at = ?, updated_at = ?, lease_owner = NULL, \
+             lease_expires_at = NULL WHERE id = ? AND status = 'queued'",
+        )
+        .bind(now)
+        .bind(now)
+        .bind(id)
+        .execute(&self.pool)
+        .await?;
+        sqlx::query("UPDATE inspections SET cancel_requested = 1, updated_at = ? WHERE id = ? AND status = 'running'")
+            .bind(now)
+            .bind(id)
+            .execute(&self.pool)
+            .await?;
+        self.inspection(id).await
+    }
+}

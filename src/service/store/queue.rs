@@ -1,0 +1,246 @@
+//! The job queue: claim the oldest due job (or one whose lease lapsed), heartbeat the lease, and
+//! complete exactly once (success with results, failure, cancellation, or back to the queue).
+
+use super::*;
+
+/// A claimed job.
+#[derive(Clone, Debug, sqlx::FromRow)]
+pub struct Claimed {
+    pub id: String,
+    pub upload_sha256: String,
+    pub options_json: String,
+    pub attempts: i64,
+    pub max_attempts: i64,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Heartbeat {
+    Held {
+        cancel_requested: bool,
+    },
+    /// The lease expired and another worker (or nobody) owns the job now.
+    Lost,
+}
+
+fn attempts_exhausted_problem() -> String {
+    let problem = Problem::new(
+        Code::AttemptsExhausted,
+        "the job's worker stopped (crash or kill) on every attempt; it was not retried again",
+        None,
+    );
+    serde_json::to_string(&problem).expect("a problem serialises")
+}
+
+impl Store {
+    /// Atomically claims the oldest available job: queued and due, or running with a lapsed lease.
+    pub async fn claim(&self, owner: &str, lease: Duration) -> Result<Option<Claimed>, StoreError> {
+        let now = now_ms();
+        // Jobs whose attempts are spent (they kept dying) fail instead of looping forever.
+        sqlx::query(
+            "UPDATE inspections SET status = 'failed', finished_at = ?, updated_at = ?, lease_owner = NULL, \
+             lease_expires_at = NULL, error_json = ? \
+             WHERE status = 'running' AND lease_expires_at < ? AND attempts >= max_attempts",
+        )
+        .bind(now)
+        .bind(now)
+        .bind(attempts_exhausted_problem())
+        .bind(now)
+        .execute(&self.pool)
+        .await?;
+        let claimed = sqlx::query_as::<_, Claimed>(
+            "UPDATE inspections SET status = 'running', lease_owner = ?, lease_expires_at = ?, \
+             attempts = attempts + 1, started_at = COALESCE(started_at, ?), updated_at = ?, \
+             progress_stage = NULL, progress_fraction = NULL \
+             WHERE id = (SELECT id FROM inspections WHERE cancel_requested = 0 AND \
+               ((status = 'queued' AND available_at <= ?) OR (status = 'running' AND lease_expires_at < ?)) \
+               ORDER BY id LIMIT 1) \
+             RETURNING id, upload_sha256, options_json, attempts, max_attempts",
+        )
+        .bind(owner)
+        .bind(now + lease.as_millis() as i64)
+        .bind(now)
+        .bind(now)
+        .bind(now)
+        .bind(now)
+        .fetch_optional(&self.pool)
+        .await?;
+        // A running job whose worker died after a cancel request: cancel it now.
+        sqlx::query(
+            "UPDATE inspections SET status = 'canceled', finished_at = ?, updated_at = ?, lease_owner = NULL, \
+             lease_expires_at = NULL WHERE status = 'running' AND cancel_requested = 1 AND lease_expires_at < ?",
+        )
+        .bind(now)
+        .bind(now)
+        .bind(now)
+        .execute(&self.pool)
+        .await?;
+        Ok(claimed)
+    }
+
+    /// Renews the lease and publishes progress; tells the worker whether to stop.
+    pub async fn heartbeat(
+        &self,
+        id: &str,
+        owner: &str,
+        lease: Duration,
+        progress: Option<(&str, f64)>,
+    ) -> Result<Heartbeat, StoreError> {
+        let now = now_ms();
+        let row: Option<(bool,)> = sqlx::query_as(
+            "UPDATE inspections SET lease_expires_at = ?, updated_at = ?, \
+             progress_stage = COALESCE(?, progress_stage), progress_fraction = COALESCE(?, progress_fraction) \
+             WHERE id = ? AND lease_owner = ? AND status = 'running' RETURNING cancel_requested",
+        )
+        .bind(now + lease.as_millis() as i64)
+        .bind(now)
+        .bind(progress.map(|p| p.0))
+        .bind(progress.map(|p| p.1))
+        .bind(id)
+        .bind(owner)
+        .fetch_optional(&self.pool)
+        .await?;
+        Ok(match row {
+            Some((cancel_requested,)) => Heartbeat::Held { cancel_requested },
+            None => Heartbeat::Lost,
+        })
+    }
+
+    /// Stores the results and marks the job succeeded, in one transaction, only if this worker
+    /// still holds the lease (so a job finishes exactly once). Returns false when it did not.
+    pub async fn complete_success(&self, id: &str, owner: &str, results: &JobResults) -> Result<bool, StoreError> {
+        let now = now_ms();
+        let mut tx = self.pool.begin().await?;
+        let updated = sqlx::query(
+            "UPDATE inspections SET status = 'succeeded', verdict = ?, finished_at = ?, updated_at = ?, \
+             lease_owner = NULL, lease_expires_at = NULL, progress_fraction = 1.0, error_json = NULL \
+             WHERE id = ? AND lease_owner = ? AND status = 'running'",
+        )
+        .bind(results.verdict)
+        .bind(now)
+        .bind(now)
+        .bind(id)
+        .bind(owner)
+        .execute(&mut *tx)
+        .await?;
+        if updated.rows_affected() == 0 {
+            tx.rollback().await?;
+            return Ok(false);
+        }
+        sqlx::query("INSERT INTO reports (inspection_id, report_json, etag) VALUES (?, ?, ?)")
+            .bind(id)
+            .bind(&results.report_json)
+            .bind(etag_of(results.report_json.as_bytes()))
+            .execute(&mut *tx)
+            .await?;
+        for a in &results.artifacts {
+            sqlx::query("INSERT INTO artifacts (inspection_id, kind, content_type, body, etag) VALUES (?, ?, ?, ?, ?)")
+                .bind(id)
+                .bind(a.kind)
+                .bind(a.content_type)
+                .bind(&a.body)
+                .bind(etag_of(&a.body))
+                .execute(&mut *tx)
+                .await?;
+        }
+        for t in &results.report.threads {
+            sqlx::query(
+                "INSERT INTO threads (inspection_id, thread_index, crest_z_start_mm, crest_z_end_mm, min_height_mm, \
+                 mean_height_mm, max_height_mm, bins_measured, black_crest_length_mm, black_crest_arcs_json) \
+                 VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            )
+            .bind(id)
+            .bind(t.index as i64)
+            .bind(t.crest_z_mm[0])
+            .bind(t.crest_z_mm[1])
+            .bind(t.min_height_mm)
+            .bind(t.mean_height_mm)
+            .bind(t.max_height_mm)
+            .bind(t.bins_measured as i64)
+            .bind(t.black_crest_length_mm)
+            .bind(serde_json::to_string(&t.black_crest_arcs_deg).expect("arcs serialise"))
+            .execute(&mut *tx)
+            .await?;
+        }
+        let rows: Vec<(u32, f64, Option<f64>)> = results
+            .report
+            .threads
+            .iter()
+            .flat_map(|t| t.height_mm.angles_deg.iter().zip(&t.height_mm.values).map(|(&a, &h)| (t.index, a, h)))
+            .collect();
+        // 4 parameters a row; SQLite allows 32 766 per statement.
+        for chunk in rows.chunks(2000) {
+            let mut q: QueryBuilder<Sqlite> =
+                QueryBuilder::new("INSERT INTO thread_heights (inspection_id, thread_index, angle_deg, height_mm) ");
+            q.push_values(chunk, |mut b, (t, a, h)| {
+                b.push_bind(id).push_bind(*t as i64).push_bind(*a).push_bind(*h);
+            });
+            q.build().execute(&mut *tx).await?;
+        }
+        tx.commit().await?;
+        Ok(true)
+    }
+
+    /// Ends a job without results: failed (with its problem object) or canceled.
+    pub async fn complete_without_results(
+        &self,
+        id: &str,
+        owner: &str,
+        status: Status,
+        problem_json: Option<&str>,
+    ) -> Result<bool, StoreError> {
+        let now = now_ms();
+        let updated = sqlx::query(
+            "UPDATE inspections SET status = ?, finished_at = ?, updated_at = ?, lease_owner = NULL, \
+             lease_expires_at = NULL, error_json = ? WHERE id = ? AND lease_owner = ? AND status = 'running'",
+        )
+        .bind(status.as_str())
+        .bind(now)
+        .bind(now)
+        .bind(problem_json)
+        .bind(id)
+        .bind(owner)
+        .execute(&self.pool)
+        .await?;
+        Ok(updated.rows_affected() == 1)
+    }
+
+    /// Puts a job back in the queue: a retryable failure (after `delay`, error kept for the
+    /// record) or a release at shutdown (delay zero, attempt not counted). A job whose cancel was
+    /// requested is canceled instead (claims skip it, so queued it would wait forever).
+    pub async fn requeue(
+        &self,
+        id: &str,
+        owner: &str,
+        delay: Duration,
+        problem_json: Option<&str>,
+        refund_attempt: bool,
+    ) -> Result<bool, StoreError> {
+        let now = now_ms();
+        let updated = sqlx::query(
+            "UPDATE inspections SET status = CASE WHEN cancel_requested = 1 THEN 'canceled' ELSE 'queued' END, \
+             finished_at = CASE WHEN cancel_requested = 1 THEN ? ELSE NULL END, available_at = ?, updated_at = ?, \
+             lease_owner = NULL, lease_expires_at = NULL, error_json = COALESCE(?, error_json), attempts = attempts - ?, \
+             progress_stage = NULL, progress_fraction = NULL WHERE id = ? AND lease_owner = ? AND status = 'running'",
+        )
+        .bind(now)
+        .bind(now + delay.as_millis() as i64)
+        .bind(now)
+        .bind(problem_json)
+        .bind(refund_attempt as i64)
+        .bind(id)
+        .bind(owner)
+        .execute(&self.pool)
+        .await?;
+        Ok(updated.rows_affected() == 1)
+    }
+
+    /// Jobs waiting (queued) and running.
+    pub async fn queue_depth(&self) -> Result<(i64, i64), StoreError> {
+        Ok(sqlx::query_as(
+            "SELECT COALESCE(SUM(status = 'queued'), 0), COALESCE(SUM(status = 'running'), 0) FROM inspections \
+             WHERE status IN ('queued', 'running')",
+        )
+        .fetch_one(&self.pool)
+        .await?)
+    }
+}

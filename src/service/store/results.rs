@@ -1,0 +1,117 @@
+//! Results: the report, the per-thread table, the stored artifacts (meshes, images), and the
+//! retention of finished uploads.
+
+use super::*;
+
+/// A result file kept as a BLOB.
+#[derive(Clone, Debug)]
+pub struct Artifact {
+    pub kind: &'static str,
+    pub content_type: &'static str,
+    pub body: Vec<u8>,
+}
+
+#[derive(Clone, Debug, sqlx::FromRow)]
+pub struct StoredArtifact {
+    pub content_type: String,
+    pub body: Vec<u8>,
+    pub etag: String,
+}
+
+#[derive(Clone, Debug)]
+pub struct JobResults {
+    pub verdict: &'static str,
+    pub report_json: String,
+    pub report: crate::pipeline::report::Report,
+    pub artifacts: Vec<Artifact>,
+}
+
+#[derive(Clone, Debug, sqlx::FromRow)]
+pub struct ThreadRow {
+    pub thread_index: i64,
+    pub crest_z_start_mm: f64,
+    pub crest_z_end_mm: f64,
+    pub min_height_mm: Option<f64>,
+    pub mean_height_mm: Option<f64>,
+    pub max_height_mm: Option<f64>,
+    pub bins_measured: i64,
+    pub black_crest_length_mm: f64,
+    pub black_crest_arcs_json: String,
+}
+
+#[derive(Clone, Debug, sqlx::FromRow)]
+pub struct HeightRow {
+    pub thread_index: i64,
+    pub angle_deg: f64,
+    pub height_mm: Option<f64>,
+}
+
+impl Store {
+    pub async fn report(&self, id: &str) -> Result<(String, String), StoreError> {
+        sqlx::query_as("SELECT report_json, etag FROM reports WHERE inspection_id = ?")
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?
+            .ok_or(StoreError::NotFound)
+    }
+
+    pub async fn artifact(&self, id: &str, kind: &str) -> Result<StoredArtifact, StoreError> {
+        sqlx::query_as("SELECT content_type, body, etag FROM artifacts WHERE inspection_id = ? AND kind = ?")
+            .bind(id)
+            .bind(kind)
+            .fetch_optional(&self.pool)
+            .await?
+            .ok_or(StoreError::NotFound)
+    }
+
+    pub async fn threads(&self, id: &str) -> Result<(Vec<ThreadRow>, Vec<HeightRow>), StoreError> {
+        let threads = sqlx::query_as::<_, ThreadRow>(
+            "SELECT thread_index, crest_z_start_mm, crest_z_end_mm, min_height_mm, mean_height_mm, max_height_mm, \
+             bins_measured, black_crest_length_mm, black_crest_arcs_json FROM threads WHERE inspection_id = ? \
+             ORDER BY thread_index",
+        )
+        .bind(id)
+        .fetch_all(&self.pool)
+        .await?;
+        let heights = sqlx::query_as::<_, HeightRow>(
+            "SELECT thread_index, angle_deg, height_mm FROM thread_heights WHERE inspection_id = ? \
+             ORDER BY thread_index, angle_deg",
+        )
+        .bind(id)
+        .fetch_all(&self.pool)
+        .await?;
+        Ok((threads, heights))
+    }
+
+    /// Deletes uploaded bundles whose inspections all finished before `cutoff_ms`.
+    pub async fn purge_uploads(&self, cutoff_ms: i64) -> Result<usize, StoreError> {
+        let due: Vec<(String,)> = sqlx::query_as(
+            "SELECT u.sha256 FROM uploads u WHERE u.purged_at IS NULL AND NOT EXISTS (SELECT 1 FROM inspections i \
+             WHERE i.upload_sha256 = u.sha256 AND (i.finished_at IS NULL OR i.finished_at >= ?))",
+        )
+        .bind(cutoff_ms)
+        .fetch_all(&self.pool)
+        .await?;
+        let mut purged = 0;
+        for (sha,) in &due {
+            // Re-checked and deleted under the write lock: an upload of the same bundle accepted
+            // since the SELECT keeps its file (it places it under the same lock).
+            let mut tx = self.pool.begin().await?;
+            let marked = sqlx::query(
+                "UPDATE uploads SET purged_at = ? WHERE sha256 = ? AND purged_at IS NULL AND NOT EXISTS (SELECT 1 \
+                 FROM inspections i WHERE i.upload_sha256 = uploads.sha256 AND (i.finished_at IS NULL OR i.finished_at >= ?))",
+            )
+            .bind(now_ms())
+            .bind(sha)
+            .bind(cutoff_ms)
+            .execute(&mut *tx)
+            .await?;
+            if marked.rows_affected() == 1 {
+                self.files.remove(sha)?;
+                purged += 1;
+            }
+            tx.commit().await?;
+        }
+        Ok(purged)
+    }
+}
