@@ -242,7 +242,7 @@ enum SuiteArg {
     Holdout,
 }
 
-impl From<SuiteArg> for crestscan::eval::bench::Suite {
+impl From<SuiteArg> for crestscan::eval::Suite {
     fn from(s: SuiteArg) -> Self {
         match s {
             SuiteArg::Accuracy => Self::Accuracy,
@@ -358,7 +358,7 @@ pub fn main() -> Result<()> {
             }
         }
         Command::Bench { suite, work, only, json, repeat, depth } => {
-            let suite = crestscan::eval::bench::Suite::from(suite);
+            let suite = crestscan::eval::Suite::from(suite);
             let work = work.unwrap_or_else(|| PathBuf::from(suite.default_work_dir()));
             if let Some(o) = only.iter().find(|o| !suite.cases().iter().any(|c| c.matches(o))) {
                 let names: Vec<String> = suite.cases().iter().map(|c| c.name()).collect();
@@ -368,9 +368,9 @@ pub fn main() -> Result<()> {
             let mut results = Vec::new();
             for case in suite.cases().iter().filter(|c| only.is_empty() || only.iter().any(|o| c.matches(o))) {
                 eprintln!("bench: {} (seed {})", case.preset, case.seed);
-                results.push(crestscan::eval::bench::run_case(case, &work, repeat, &options)?);
+                results.push(crestscan::eval::run_case(case, &work, repeat, &options)?);
             }
-            println!("{}", crestscan::eval::bench::table(&results));
+            println!("{}", crestscan::eval::table(&results));
             if let Some(path) = json {
                 std::fs::write(&path, serde_json::to_vec_pretty(&results)?)?;
             }
@@ -378,7 +378,7 @@ pub fn main() -> Result<()> {
         Command::Compare { report, truth } => {
             let report: crestscan::pipeline::report::Report = serde_json::from_slice(&std::fs::read(&report)?)?;
             let truth: sim::Truth = serde_json::from_slice(&std::fs::read(&truth)?)?;
-            println!("{}", serde_json::to_string_pretty(&crestscan::eval::bench::compare(&report, &truth))?);
+            println!("{}", serde_json::to_string_pretty(&crestscan::eval::compare(&report, &truth))?);
         }
         Command::Validate { bundle, decode } => {
             let table = ConnectionTable::api5b();

@@ -1,4 +1,14 @@
-//! A report measured against ground truth: the simulator's truth (the benchmark suites) or a CMM.
+//! A report measured against ground truth: the simulator's truth (the benchmark suites behind
+//! `crestscan bench`) or a CMM's measurements.
 
-pub mod bench;
 pub mod cmm;
+pub mod suite;
+pub mod table;
+pub mod truth;
+
+pub use suite::{ACCURACY_SUITE, BenchError, Case, CaseResult, HOLDOUT_SUITE, Suite, run_case};
+pub use table::{TargetCheck, table, targets};
+pub use truth::{Accuracy, BlackCrest, RegistrationError, black_crests, compare};
+
+#[cfg(test)]
+mod tests;

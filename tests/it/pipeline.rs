@@ -1,7 +1,7 @@
 //! The whole pipeline on a rendered ci bundle, against its truth.
 
 use crate::common::{Scratch, ci_bundle, rendered};
-use crestscan::eval::bench;
+use crestscan::eval;
 use crestscan::bundle::{Bundle, OpenOptions};
 use crestscan::pipeline::{self, PipelineOptions, Stage};
 use crestscan::sim::Truth;
@@ -26,7 +26,7 @@ fn inspection_of_the_ci_bundle_matches_truth() {
     .unwrap()
     .expect("not cancelled");
     let truth = truth(ci_bundle());
-    let accuracy = bench::compare(&inspection.report, &truth);
+    let accuracy = eval::compare(&inspection.report, &truth);
     eprintln!("ci: {accuracy:?}");
     assert!(accuracy.verdict_agrees);
     assert!(accuracy.bins_compared >= 10, "{}", accuracy.bins_compared);
@@ -45,7 +45,7 @@ fn inspection_of_the_ci_bundle_matches_truth() {
     assert!(accuracy.black_crest_length_max_error_mm <= 2.0, "{}", accuracy.black_crest_length_max_error_mm);
     // The benchmark's per-thread black-crest rows: the crest across threads 6–7 is found, its true
     // arcs are those the views showed, and the worst row is the accuracy's black-crest error.
-    let rows = bench::black_crests(&inspection.report, &truth);
+    let rows = eval::black_crests(&inspection.report, &truth);
     assert!(rows.iter().any(|b| b.truth_mm > 0.0 && b.reported_mm > 0.0), "{rows:?}");
     for b in &rows {
         let thread_seen = seen_crests.iter().find(|t| t.index == b.thread).map_or(&[][..], |t| &t.arcs_deg[..]);
@@ -132,7 +132,7 @@ fn telecentric_round_thread_inspection() {
     let bundle = Bundle::open(dir, &ConnectionTable::api5b(), OpenOptions::default()).unwrap();
     let inspection =
         pipeline::inspect(&bundle, &PipelineOptions::default(), &|_, _| {}, &AtomicBool::new(false)).unwrap().unwrap();
-    let accuracy = bench::compare(&inspection.report, &truth(dir));
+    let accuracy = eval::compare(&inspection.report, &truth(dir));
     eprintln!("ci-telecentric: {accuracy:?}");
     assert!(accuracy.verdict_agrees);
     assert!(accuracy.bins_compared >= 5, "{}", accuracy.bins_compared);
@@ -187,8 +187,8 @@ fn cli_inspect_writes_the_report_in_the_contract_shape() {
 #[test]
 fn seed_table1_threads_are_recovered_within_10_um() {
     let work = tempfile::tempdir().unwrap();
-    let case = bench::Case { preset: "seed-table1", seed: crate::common::CI_SEED };
-    let result = bench::run_case(&case, work.path(), 1, &PipelineOptions::default()).unwrap();
+    let case = eval::Case { preset: "seed-table1", seed: crate::common::CI_SEED };
+    let result = eval::run_case(&case, work.path(), 1, &PipelineOptions::default()).unwrap();
     eprintln!("seed-table1 seed {}: {:?} {:?} {:?}", case.seed, result.accuracy, result.table1, result.registration);
     assert!(result.accuracy.verdict_agrees);
     // Thread 1 meets the chamfer and is not measured; 2–10 are.

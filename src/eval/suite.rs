@@ -1,0 +1,322 @@
+//! The benchmark suites: their cases, and running one (render once, cached; decode as the yardstick;
+//! inspect; compare with truth).
+
+use crate::eval::truth::{Accuracy, BlackCrest, RegistrationError, black_crests, compare, registration_error};
+use crate::sim::Truth;
+use serde::Serialize;
+
+/// A benchmark case: a preset rendered with one seed.
+#[derive(Clone, Copy, Debug)]
+pub struct Case {
+    pub preset: &'static str,
+    pub seed: u64,
+}
+
+/// The accuracy suite: the standard preset, the defects that decide verdicts, and the seed's
+/// Table 1, each with a seed of its own that no test or tuning uses.
+pub const ACCURACY_SUITE: &[Case] = &[
+    Case { preset: "standard", seed: 9001 },
+    Case { preset: "bc-black-2", seed: 9002 },
+    Case { preset: "bc-arc-over-25", seed: 9003 },
+    Case { preset: "lc-round-black", seed: 9004 },
+    Case { preset: "bc-polished", seed: 9005 },
+    Case { preset: "seed-table1", seed: 9006 },
+];
+
+/// The held-out suite: the defect presets rendered again with other seeds. The black-crest
+/// thresholds were chosen while looking at the accuracy suite's cases, so these show whether its
+/// numbers carry over (the polished crest sixteen times: its ends scatter most). Not untouched: the
+/// round seeds 1–3 chose the width of the height window and round seed 2 showed the faint end bin
+/// a dark run now bridges (README); round seeds 4–6 and the second seeds of the other two were
+/// rendered only after that change, to check it. bc-arc-over-25 seed 3 and polished seeds 9–12 were
+/// first rendered after the steep-edge depth change, to check it (polished seed 9 got a wrong
+/// verdict there), and joined the suite in the round that fitted the polished crest's ends;
+/// polished seeds 13–16 were rendered after that fit was written, to check it. bc-black-1,
+/// bc-black-3 and lc-accept (seed 1), the presets no suite had, joined in the same round, seen by
+/// nothing before, and bc-black-1 seed 2 after seed 1's 1.77 mm.
+pub const HOLDOUT_SUITE: &[Case] = &[
+    Case { preset: "lc-round-black", seed: 1 },
+    Case { preset: "lc-round-black", seed: 2 },
+    Case { preset: "lc-round-black", seed: 3 },
+    Case { preset: "lc-round-black", seed: 4 },
+    Case { preset: "lc-round-black", seed: 5 },
+    Case { preset: "lc-round-black", seed: 6 },
+    Case { preset: "lc-accept", seed: 1 },
+    Case { preset: "bc-black-1", seed: 1 },
+    Case { preset: "bc-black-1", seed: 2 },
+    Case { preset: "bc-black-2", seed: 1 },
+    Case { preset: "bc-black-2", seed: 2 },
+    Case { preset: "bc-black-3", seed: 1 },
+    Case { preset: "bc-arc-over-25", seed: 1 },
+    Case { preset: "bc-arc-over-25", seed: 2 },
+    Case { preset: "bc-arc-over-25", seed: 3 },
+    Case { preset: "bc-polished", seed: 1 },
+    Case { preset: "bc-polished", seed: 2 },
+    Case { preset: "bc-polished", seed: 3 },
+    Case { preset: "bc-polished", seed: 4 },
+    Case { preset: "bc-polished", seed: 5 },
+    Case { preset: "bc-polished", seed: 6 },
+    Case { preset: "bc-polished", seed: 7 },
+    Case { preset: "bc-polished", seed: 8 },
+    Case { preset: "bc-polished", seed: 9 },
+    Case { preset: "bc-polished", seed: 10 },
+    Case { preset: "bc-polished", seed: 11 },
+    Case { preset: "bc-polished", seed: 12 },
+    Case { preset: "bc-polished", seed: 13 },
+    Case { preset: "bc-polished", seed: 14 },
+    Case { preset: "bc-polished", seed: 15 },
+    Case { preset: "bc-polished", seed: 16 },
+    Case { preset: "bc-polished-long", seed: 1 },
+    Case { preset: "bc-polished-long", seed: 2 },
+    Case { preset: "bc-polished-long", seed: 3 },
+    Case { preset: "bc-polished-long", seed: 4 },
+    Case { preset: "bc-polished-end", seed: 1 },
+    Case { preset: "bc-polished-end", seed: 2 },
+    Case { preset: "bc-polished-end", seed: 3 },
+    Case { preset: "lc-round-black", seed: 7 },
+    Case { preset: "bc-polished-long", seed: 5 },
+    Case { preset: "bc-polished-long", seed: 6 },
+    Case { preset: "bc-polished-end", seed: 4 },
+    Case { preset: "bc-polished-end", seed: 5 },
+];
+
+/// A named benchmark suite.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Suite {
+    Accuracy,
+    Holdout,
+}
+
+impl Suite {
+    pub fn name(self) -> &'static str {
+        match self {
+            Suite::Accuracy => "accuracy",
+            Suite::Holdout => "holdout",
+        }
+    }
+
+    pub fn cases(self) -> &'static [Case] {
+        match self {
+            Suite::Accuracy => ACCURACY_SUITE,
+            Suite::Holdout => HOLDOUT_SUITE,
+        }
+    }
+
+    /// Where its renderings are cached unless `--work` says otherwise.
+    pub fn default_work_dir(self) -> &'static str {
+        match self {
+            Suite::Accuracy => "out/bench",
+            Suite::Holdout => "out/holdout",
+        }
+    }
+}
+
+impl Case {
+    /// The case's folder under the work directory, and its name for `--only`.
+    pub fn name(&self) -> String {
+        format!("{}-{}", self.preset, self.seed)
+    }
+
+    /// `--only` picks a case by its preset (every seed) or by `preset-seed`.
+    pub fn matches(&self, only: &str) -> bool {
+        only == self.preset || only == self.name()
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct CaseResult {
+    pub preset: String,
+    pub seed: u64,
+    pub accuracy: Accuracy,
+    pub depth_rms_um: f64,
+    pub depth_median_um: f64,
+    pub depth_coverage: f64,
+    pub registration: RegistrationError,
+    pub decode_seconds: f64,
+    pub inspect_seconds: f64,
+    pub render: crate::sim::SimSummary,
+    pub stage_seconds: Vec<(String, f64)>,
+    /// Seed Table 1: (thread, measured mean of bins 0–4, truth mean of the same bins), mm.
+    pub table1: Vec<(u32, f64, f64)>,
+    /// Absolute z, which overlaps cannot observe: measured helix phase z_h minus truth (wrapped to
+    /// ±half a pitch), and the encoders' mean axial offset (encoder − true), which registration
+    /// keeps (its mean correction is zero), µm.
+    pub helix_z_error_um: f64,
+    pub encoder_mean_axial_offset_um: f64,
+    pub black_crests: Vec<BlackCrest>,
+}
+
+impl CaseResult {
+    /// How the benchmark's blocks name the case: "preset seed N".
+    pub fn label(&self) -> String {
+        format!("{} seed {}", self.preset, self.seed)
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum BenchError {
+    #[error("unknown preset {0}")]
+    Preset(String),
+    #[error(transparent)]
+    Sim(#[from] crate::sim::SimError),
+    #[error(transparent)]
+    Bundle(#[from] crate::bundle::BundleError),
+    #[error(transparent)]
+    Pipeline(#[from] crate::pipeline::PipelineError),
+    #[error("{0}")]
+    Other(String),
+}
+
+/// Renders the case into `work/<preset>-<seed>` unless a complete rendering is there, times a plain
+/// decode of every frame (the yardstick), inspects it, and compares with truth. With `repeat` > 1
+/// the decode and the inspection alternate that many times and the median times are reported.
+pub fn run_case(
+    case: &Case,
+    work: &std::path::Path,
+    repeat: usize,
+    options: &crate::pipeline::PipelineOptions,
+) -> Result<CaseResult, BenchError> {
+    use crate::bundle::{Bundle, OpenOptions};
+    use rayon::prelude::*;
+    let spec = crate::sim::preset(case.preset).ok_or_else(|| BenchError::Preset(case.preset.into()))?;
+    let dir = work.join(case.name());
+    // A finished rendering leaves its summary (render time, size) beside the bundle.
+    let done = dir.join("render-summary.json");
+    let rendered: crate::sim::SimSummary = match std::fs::read(&done).ok().and_then(|b| serde_json::from_slice(&b).ok())
+    {
+        Some(summary) => summary,
+        None => {
+            let _ = std::fs::remove_dir_all(&dir);
+            let summary = crate::sim::simulate(&spec, case.seed, &dir)?;
+            std::fs::write(&done, serde_json::to_vec(&summary).expect("serialises"))
+                .map_err(|e| BenchError::Other(e.to_string()))?;
+            summary
+        }
+    };
+    // Truth is rewritten every run (it is cheap, the frames are not): a cached rendering keeps its
+    // pixels, but the verdict and black-crest arcs must follow the current rule engine.
+    let truth: Truth = crate::sim::write_truth(&spec, case.seed, &dir)?;
+    let table = crate::domain::thread::ConnectionTable::api5b();
+    let bundle = Bundle::open(&dir, &table, OpenOptions::default())?;
+
+    // Yardstick: decode every frame once, with the pipeline's parallelism (views across cores).
+    // Decode and inspection alternate `repeat` times and each time is the median of its runs: on a
+    // shared 2-core machine one run of either can be 30% off.
+    let decode = || -> Result<f64, BenchError> {
+        let started = std::time::Instant::now();
+        bundle.views.par_iter().enumerate().try_for_each(|(v, view)| {
+            for k in 0..view.frames.len() {
+                std::hint::black_box(bundle.read_frame(v, k)?);
+            }
+            Ok::<_, crate::bundle::BundleError>(())
+        })?;
+        Ok(started.elapsed().as_secs_f64())
+    };
+    let cancel = std::sync::atomic::AtomicBool::new(false);
+    // (decode s, inspect s, stage times) per run; the results are the same every run, so only
+    // the last inspection is kept.
+    let mut runs = Vec::new();
+    let mut last = None;
+    for _ in 0..repeat.max(1) {
+        let decode_seconds = decode()?;
+        drop(last.take()); // the previous run's maps are not held while this one runs
+        let started = std::time::Instant::now();
+        let inspection = crate::pipeline::inspect(&bundle, options, &|_, _| {}, &cancel)?
+            .ok_or_else(|| BenchError::Other("cancelled".into()))?;
+        let stages: Vec<(String, f64)> =
+            inspection.report.timings.iter().map(|t| (t.stage.clone(), t.seconds)).collect();
+        runs.push((decode_seconds, started.elapsed().as_secs_f64(), stages));
+        last = Some(inspection);
+    }
+    let inspection = last.expect("at least one run");
+    let median_of = |mut v: Vec<f64>| crate::numeric::stats::median(&mut v).expect("at least one run");
+    let decode_seconds = median_of(runs.iter().map(|r| r.0).collect());
+    let inspect_seconds = median_of(runs.iter().map(|r| r.1).collect());
+    // Stage times of the run whose inspection time is the median.
+    let stage_seconds = runs
+        .into_iter()
+        .min_by(|a, b| (a.1 - inspect_seconds).abs().total_cmp(&(b.1 - inspect_seconds).abs()))
+        .expect("at least one run")
+        .2;
+
+    let accuracy = compare(&inspection.report, &truth);
+    let (mut sq, mut errors, mut seen, mut total) = (0.0, Vec::new(), 0usize, 0usize);
+    for (view, depth) in bundle.views.iter().zip(&inspection.depth_maps) {
+        let bytes = std::fs::read(dir.join(format!("truth/{}.depth.pfm", view.id)))
+            .map_err(|e| BenchError::Other(e.to_string()))?;
+        let (_, _, t) = crate::sim::pfm::read(&bytes).map_err(BenchError::Other)?;
+        // The map holds every `row_step`-th pixel row; truth holds every row.
+        let truth_rows = t.chunks_exact(depth.width).step_by(depth.row_step.max(1)).flatten();
+        for (d, t) in depth.depth_mm.iter().zip(truth_rows) {
+            if t.is_finite() {
+                total += 1;
+                if d.is_finite() {
+                    let e = 1e3 * (d - t) as f64;
+                    sq += e * e;
+                    errors.push(e.abs());
+                    seen += 1;
+                }
+            }
+        }
+    }
+    errors.sort_by(f64::total_cmp);
+    let truth_poses = bundle
+        .views
+        .iter()
+        .map(|v| {
+            truth
+                .true_poses
+                .get(&v.id)
+                .copied()
+                .ok_or_else(|| BenchError::Other(format!("truth lacks the pose of {}", v.id)))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let encoder: Vec<_> = bundle.views.iter().map(|v| v.pose).collect();
+    let table1 = if case.preset == "seed-table1" {
+        (1..=10u32)
+            .filter_map(|i| {
+                let r = inspection.report.threads.iter().find(|t| t.index == i)?;
+                let t = truth.threads.iter().find(|t| t.index == i)?;
+                let bins: Vec<(f64, f64)> =
+                    (0..5).filter_map(|k| Some((r.height_mm.values[k]?, t.height_mm.values[k]?))).collect();
+                (!bins.is_empty()).then(|| {
+                    let n = bins.len() as f64;
+                    (i, bins.iter().map(|b| b.0).sum::<f64>() / n, bins.iter().map(|b| b.1).sum::<f64>() / n)
+                })
+            })
+            .collect()
+    } else {
+        Vec::new()
+    };
+    Ok(CaseResult {
+        black_crests: black_crests(&inspection.report, &truth),
+        preset: case.preset.into(),
+        seed: case.seed,
+        accuracy,
+        depth_rms_um: (sq / seen.max(1) as f64).sqrt(),
+        depth_median_um: errors.get(errors.len() / 2).copied().unwrap_or(f64::NAN),
+        depth_coverage: seen as f64 / total.max(1) as f64,
+        registration: registration_error(
+            &encoder,
+            &inspection.poses,
+            &truth_poses,
+            &inspection.report.registration.pairs,
+            inspection.report.pipe_od_mm / 2.0,
+        ),
+        decode_seconds,
+        inspect_seconds,
+        render: rendered,
+        stage_seconds,
+        table1,
+        helix_z_error_um: {
+            let (pitch, dz) = (inspection.report.helix.pitch_mm, inspection.report.helix.z_h_mm - truth.helix_z_h_mm);
+            1e3 * (dz - pitch * (dz / pitch).round())
+        },
+        encoder_mean_axial_offset_um: 1e3
+            * encoder.iter().zip(&truth_poses).map(|(e, t)| e.axial_mm - t.axial_mm).sum::<f64>()
+            / encoder.len().max(1) as f64,
+    })
+}
+
+
+
