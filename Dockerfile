@@ -1,5 +1,5 @@
 # crestscan: multi-stage build, small non-root runtime image running the HTTP service.
-# No Docker engine runs on the development machines; this file follows the README's build steps
+# No Docker engine runs on the development machines; this file follows the build steps in CONTRIBUTING.md
 # (cargo build --release --locked) and is kept consistent with them by review, not by a CI build.
 
 FROM rust:1.95-bookworm AS build

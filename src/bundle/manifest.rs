@@ -1,4 +1,4 @@
-//! manifest.json of bundle v1, as written in ../shared/spec/bundle.md. Unknown fields are accepted
+//! manifest.json of bundle v1, as written in docs/bundle.md. Unknown fields are accepted
 //! (the contract lets new optional fields appear); known fields are typed.
 
 use crate::domain::frame::FrameEntry;

@@ -1,4 +1,4 @@
-//! Bundle v1 reader (../shared/spec/bundle.md): a directory, `.zip` or `.tar` holding manifest.json
+//! Bundle v1 reader (docs/bundle.md): a directory, `.zip` or `.tar` holding manifest.json
 //! and focal-stack frames. [`Bundle::open`] validates everything it can before any work starts
 //! (manifest, optics, offsets, paths, every frame's header, size caps) and names the field or file in
 //! every error; frames are then decoded one at a time with [`Bundle::read_frame`].
@@ -13,8 +13,8 @@ pub use source::{Limits, Source, check_relative_path};
 use crate::domain::frame::{Frame, FrameError, FrameFormat, FrameSource, Recording, Samples, View};
 use crate::domain::optics::Optics;
 use crate::domain::part::Part;
-use crate::problem::{Code, ErrorCode};
 use crate::domain::thread::{ConnectionTable, Family, FormError, ProfileShape, ThreadForm};
+use crate::problem::{Code, ErrorCode};
 use image::ImageDecoder;
 use std::collections::HashSet;
 use std::io::Cursor;

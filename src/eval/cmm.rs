@@ -1,4 +1,4 @@
-//! CMM measurements (../shared/spec/bundle.md, "CMM measurements") and their comparison with an
+//! CMM measurements (docs/bundle.md, "CMM measurements") and their comparison with an
 //! inspection's thread heights: per point deviation, bias, RMS, max |deviation|, Bland–Altman
 //! limits of agreement, and a tolerance verdict. Pure: parsing and statistics, no I/O.
 

@@ -27,7 +27,7 @@ pub const ACCURACY_SUITE: &[Case] = &[
 /// thresholds were chosen while looking at the accuracy suite's cases, so these show whether its
 /// numbers carry over (the polished crest sixteen times: its ends scatter most). Not untouched: the
 /// round seeds 1–3 chose the width of the height window and round seed 2 showed the faint end bin
-/// a dark run now bridges (README); round seeds 4–6 and the second seeds of the other two were
+/// a dark run now bridges (docs/notebook/accuracy.md); round seeds 4–6 and the second seeds of the other two were
 /// rendered only after that change, to check it. bc-arc-over-25 seed 3 and polished seeds 9–12 were
 /// first rendered after the steep-edge depth change, to check it (polished seed 9 got a wrong
 /// verdict there), and joined the suite in the round that fitted the polished crest's ends;
@@ -317,6 +317,3 @@ pub fn run_case(
             / encoder.len().max(1) as f64,
     })
 }
-
-
-

@@ -1,5 +1,5 @@
-use super::*;
 use super::truth::*;
+use super::*;
 
 #[test]
 fn suites_name_existing_presets_and_share_no_case() {

@@ -151,9 +151,9 @@ pub(crate) fn registration_error(
     pairs: &[crate::pipeline::register::PairMeasure],
     radius_mm: f64,
 ) -> RegistrationError {
-    let diff = |poses: &[crate::domain::optics::ViewPose], f: &dyn Fn(&crate::domain::optics::ViewPose) -> f64| -> Vec<f64> {
-        poses.iter().zip(truth).map(|(p, t)| f(p) - f(t)).collect()
-    };
+    let diff = |poses: &[crate::domain::optics::ViewPose],
+                f: &dyn Fn(&crate::domain::optics::ViewPose) -> f64|
+     -> Vec<f64> { poses.iter().zip(truth).map(|(p, t)| f(p) - f(t)).collect() };
     let (angle_rms_deg, angle_max_deg) = gauge_free(&diff(refined, &|p| p.angle_deg));
     let (axial_rms, axial_max) = gauge_free(&diff(refined, &|p| p.axial_mm));
     let (radial_rms, _) = gauge_free(&diff(refined, &|p| p.lens_radius_mm));
@@ -162,9 +162,10 @@ pub(crate) fn registration_error(
     let (encoder_angle_rms_deg, _) = gauge_free(&encoder_angle);
     let (encoder_axial_rms, _) = gauge_free(&encoder_axial);
     // A pair measures how far b's content must move onto a's: c_b − c_a, c = truth − encoder.
-    let pair_errors = |shift: &dyn Fn(&crate::pipeline::register::PairMeasure) -> f64, encoder_error: &[f64]| -> Vec<f64> {
-        pairs.iter().map(|p| shift(p) - (encoder_error[p.a] - encoder_error[p.b])).collect()
-    };
+    let pair_errors =
+        |shift: &dyn Fn(&crate::pipeline::register::PairMeasure) -> f64, encoder_error: &[f64]| -> Vec<f64> {
+            pairs.iter().map(|p| shift(p) - (encoder_error[p.a] - encoder_error[p.b])).collect()
+        };
     let rms = |errors: &[f64]| (errors.iter().map(|e| e * e).sum::<f64>() / errors.len() as f64).sqrt();
     let pair_arc_rms_um = 1e3 * radius_mm * rms(&pair_errors(&|p| p.shift_angle_deg, &encoder_angle)).to_radians();
     let pair_axial_rms_um = 1e3 * rms(&pair_errors(&|p| p.shift_axial_mm, &encoder_axial));

@@ -7,12 +7,13 @@ pub mod stl;
 
 #[cfg(test)]
 mod tests {
-    use crate::pipeline::mesh::{self, Mesh, MeshOptions};
     use crate::export::{glb, ply, stl};
+    use crate::pipeline::mesh::{self, Mesh, MeshOptions};
 
     #[test]
     fn ply_and_stl_hold_every_vertex_and_triangle() {
-        let mesh = mesh::build(&mesh::tests::sector_map(), &MeshOptions { max_vertices: 10_000, ..Default::default() }).unwrap();
+        let mesh = mesh::build(&mesh::tests::sector_map(), &MeshOptions { max_vertices: 10_000, ..Default::default() })
+            .unwrap();
         let mut ply = Vec::new();
         ply::write(&mesh, &mut ply).unwrap();
         let header_end = ply.windows(11).position(|w| w == b"end_header\n").unwrap() + 11;
@@ -25,7 +26,8 @@ mod tests {
 
     #[test]
     fn the_glb_reads_back_through_a_gltf_reader_as_the_same_mesh_in_metres() {
-        let mesh = mesh::build(&mesh::tests::sector_map(), &MeshOptions { max_vertices: 10_000, ..Default::default() }).unwrap();
+        let mesh = mesh::build(&mesh::tests::sector_map(), &MeshOptions { max_vertices: 10_000, ..Default::default() })
+            .unwrap();
         let mut glb = Vec::new();
         glb::write(&mesh, &mut glb).unwrap();
         assert_eq!(u32::from_le_bytes(glb[8..12].try_into().unwrap()) as usize, glb.len());
@@ -52,7 +54,8 @@ mod tests {
 
     #[test]
     fn a_stored_ply_reads_back_as_the_mesh_and_a_damaged_one_is_refused() {
-        let mesh = mesh::build(&mesh::tests::sector_map(), &MeshOptions { max_vertices: 10_000, ..Default::default() }).unwrap();
+        let mesh = mesh::build(&mesh::tests::sector_map(), &MeshOptions { max_vertices: 10_000, ..Default::default() })
+            .unwrap();
         let mut ply = Vec::new();
         ply::write(&mesh, &mut ply).unwrap();
         assert_eq!(ply::read(&ply).unwrap(), mesh);

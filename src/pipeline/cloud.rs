@@ -1,8 +1,8 @@
 //! Back-projection: each view's depth map becomes 3D points in the pipe frame, through the
 //! manifest's optics and the view's pose (perspective or telecentric alike, via the pixel ray).
 
-use crate::pipeline::depth::DepthMap;
 use crate::domain::optics::{Optics, ViewPose};
+use crate::pipeline::depth::DepthMap;
 use nalgebra::{Point3, Vector3};
 
 /// A surface point seen by a view, with its colour and trust.

@@ -105,7 +105,8 @@ type Step<T> = Result<T, Halt<PipelineError>>;
 fn run_stages(recording: &dyn Recording, options: &PipelineOptions, mut run: Run) -> Step<Inspection> {
     let depth_maps = measure_depth(recording, options, &mut run)?;
     let registered = register_views(recording, options, &depth_maps, &mut run)?;
-    let map = fuse_views(recording, options, &depth_maps, &registered.poses, &registered.encoder_z_ranges_mm, &mut run)?;
+    let map =
+        fuse_views(recording, options, &depth_maps, &registered.poses, &registered.encoder_z_ranges_mm, &mut run)?;
     let (mesh, helix, threads) = mesh_and_profile(recording, options, &map, &mut run)?;
     let (assessment, crest) = crest_and_rules(recording, options, &helix, &threads, &mut run);
     let report = Report::assemble(report::Findings {

@@ -1,12 +1,12 @@
 //! The inspection report: the truth file's fields with the same names and meanings
-//! (../shared/spec/bundle.md, "Result shape"), plus measures, timings and diagnostics.
+//! (docs/bundle.md, "Result shape"), plus measures, timings and diagnostics.
 
 use crate::domain::part::Part;
 use crate::domain::rules::{Assessment, Verdict};
 use crate::domain::thread::Family;
 use crate::pipeline::crest::CrestCone;
-use crate::pipeline::register::EndFace;
 use crate::pipeline::profile::{Helix, ThreadMeasure};
+use crate::pipeline::register::EndFace;
 use crate::pipeline::register::Registration;
 use serde::{Deserialize, Serialize};
 

@@ -76,7 +76,8 @@ impl<'a> Run<'a> {
 
     /// Records stages that ran side by side, each with its own time, and restarts the clock.
     pub(crate) fn record_side_by_side(&mut self, stages: &[(Stage, f64)]) {
-        self.timings.extend(stages.iter().map(|&(stage, seconds)| StageTiming { stage: stage.as_str().into(), seconds }));
+        self.timings
+            .extend(stages.iter().map(|&(stage, seconds)| StageTiming { stage: stage.as_str().into(), seconds }));
         self.clock = Instant::now();
     }
 

@@ -1,12 +1,12 @@
 //! Building and running the service: open the store (migrations), bind, spawn the workers and the
 //! retention sweep, serve until a shutdown signal, then drain.
 
+use crate::domain::thread::ConnectionTable;
 use crate::service::api::{self, AppState};
 use crate::service::config::Settings;
-use crate::service::worker::{self, WorkerContext};
 use crate::service::store::{Store, StoreError, now_ms};
 use crate::service::telemetry::Metrics;
-use crate::domain::thread::ConnectionTable;
+use crate::service::worker::{self, WorkerContext};
 use std::future::Future;
 use std::net::SocketAddr;
 use std::sync::Arc;

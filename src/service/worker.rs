@@ -281,16 +281,8 @@ pub fn encode_results(
         artifacts: vec![
             Artifact { kind: "mesh.ply", content_type: "application/x-ply", body: ply },
             Artifact { kind: "mesh.stl", content_type: "model/stl", body: stl },
-            Artifact {
-                kind: "height-map.png",
-                content_type: "image/png",
-                body: png::height_map_png(&inspection.map)?,
-            },
-            Artifact {
-                kind: "all-in-focus.png",
-                content_type: "image/png",
-                body: png::mosaic_png(&inspection.map)?,
-            },
+            Artifact { kind: "height-map.png", content_type: "image/png", body: png::height_map_png(&inspection.map)? },
+            Artifact { kind: "all-in-focus.png", content_type: "image/png", body: png::mosaic_png(&inspection.map)? },
         ],
     })
 }

@@ -1,4 +1,4 @@
-//! Focal-stack simulator: writes a bundle per ../shared/spec/bundle.md with exact ground truth.
+//! Focal-stack simulator: writes a bundle per docs/bundle.md with exact ground truth.
 //!
 //! `simulate(&spec, seed, out)` renders every frame of every view (see [`render`]), writes
 //! manifest.json, the frames as PNG, and truth/ (truth.json and one depth PFM per view). The same

@@ -3,9 +3,9 @@
 //! in 8 and 16 bits, gray and RGB.
 
 use crate::common::{Scratch, ci_bundle, walk};
-use crestscan::problem::ErrorCode;
 use crestscan::bundle::{Bundle, BundleError, FrameCheck, Limits, OpenOptions};
 use crestscan::domain::thread::ConnectionTable;
+use crestscan::problem::ErrorCode;
 use serde_json::json;
 use std::io::Write;
 use std::path::Path;

@@ -1,9 +1,9 @@
 use crate::common::rendered;
 use crestscan::bundle::{Bundle, OpenOptions};
-use crestscan::pipeline::depth::{DepthOptions, depth_from_focus};
 use crestscan::domain::frame::FrameSource;
-use crestscan::sim::pfm;
 use crestscan::domain::thread::{ConnectionTable, ThreadForm};
+use crestscan::pipeline::depth::{DepthOptions, depth_from_focus};
+use crestscan::sim::pfm;
 
 /// Depth errors (µm) against truth: all trusted pixels, and those on smooth surface (truth depth
 /// varies < 40 µm within ±`smooth_radius_px`: crests, roots, mill surface, where no focus window
@@ -20,9 +20,10 @@ fn depth_errors(
     let r = smooth_radius_px(&options);
     let (mut all, mut smooth, mut pixels) = (Vec::new(), Vec::new(), 0);
     for (v, view) in bundle.views.iter().enumerate() {
-        let map = depth_from_focus(&bundle.optics, view, &options, |k| FrameSource::read_frame(&bundle, v, k), &|| false)
-            .unwrap()
-            .expect("not cancelled");
+        let map =
+            depth_from_focus(&bundle.optics, view, &options, |k| FrameSource::read_frame(&bundle, v, k), &|| false)
+                .unwrap()
+                .expect("not cancelled");
         let truth_pfm = std::fs::read(dir.join(format!("truth/{}.depth.pfm", view.id))).unwrap();
         let (w, h, truth) = pfm::read(&truth_pfm).unwrap();
         assert_eq!((w, h), (map.width, map.height));

@@ -3,6 +3,8 @@
 mod bundle_reader;
 mod common;
 mod depth;
+mod layers;
+mod numeric_props;
 mod pipeline;
 mod reader_props;
 mod service;

@@ -1,11 +1,11 @@
 //! The whole pipeline on a rendered ci bundle, against its truth.
 
 use crate::common::{Scratch, ci_bundle, rendered};
-use crestscan::eval;
 use crestscan::bundle::{Bundle, OpenOptions};
+use crestscan::domain::thread::ConnectionTable;
+use crestscan::eval;
 use crestscan::pipeline::{self, PipelineOptions, Stage};
 use crestscan::sim::Truth;
-use crestscan::domain::thread::ConnectionTable;
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicBool, Ordering};
 

@@ -2,8 +2,8 @@ use crate::common::{CI_SEED, ci_bundle, rendered, walk};
 use crestscan::bundle::{Bundle, OpenOptions};
 use crestscan::domain::optics::ViewPose;
 use crestscan::domain::rules::{ReasonCode, Verdict};
-use crestscan::sim::{self, part::Material, pfm};
 use crestscan::domain::thread::{ConnectionTable, ProfileShape};
+use crestscan::sim::{self, part::Material, pfm};
 use nalgebra::{Point3, Vector3};
 
 #[test]

@@ -1,4 +1,4 @@
-//! API 5B black-crest acceptance, as ../DOMAIN.md states it for this project.
+//! API 5B black-crest acceptance, as the project states it (docs/rules.md; the shared DOMAIN.md).
 //!
 //! - Round threads: no black-crest point within Lc.
 //! - Buttress: at most two threads may show black crests within Lc, and the black-crest length may
@@ -11,11 +11,11 @@
 //! The chamfer at the pipe end is machined: bins flagged `chamfer` never count as geometric black
 //! crests.
 
-use crate::domain::thread::Family;
-use serde::{Deserialize, Serialize};
 use crate::domain::arcs::arc_length_mm;
 use crate::domain::arcs::arcs_deg;
 use crate::domain::arcs::union_arcs;
+use crate::domain::thread::Family;
+use serde::{Deserialize, Serialize};
 
 /// How the buttress 25% limit applies; the public paraphrases of 5B do not settle it.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]

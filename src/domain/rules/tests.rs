@@ -182,11 +182,8 @@ fn black_crests_only_beyond_lc_accept() {
 #[test]
 fn polished_crest_is_black_by_its_geometry() {
     // Bright crest (no photometric arc) on the mill surface over 30°.
-    let t = ThreadObservation {
-        index: 4,
-        black_crest_arcs_deg: vec![],
-        bins: bins(18.0, 5.08, (100, 130), 0.95, false),
-    };
+    let t =
+        ThreadObservation { index: 4, black_crest_arcs_deg: vec![], bins: bins(18.0, 5.08, (100, 130), 0.95, false) };
     let mut input = buttress(vec![t]);
     input.family = Family::Round;
     let a = assess(&input, ArcRule::PerThread);
@@ -229,11 +226,8 @@ fn chamfered_crest_is_not_black() {
 #[test]
 fn geometric_arc_is_clipped_at_lc() {
     // Crest z crosses Lc = 35.8 at θ = (35.8 − 33.0) / 5.08 · 360 = 198.4°.
-    let t = ThreadObservation {
-        index: 7,
-        black_crest_arcs_deg: vec![],
-        bins: bins(33.0, 5.08, (150, 260), 0.5, false),
-    };
+    let t =
+        ThreadObservation { index: 7, black_crest_arcs_deg: vec![], bins: bins(33.0, 5.08, (150, 260), 0.5, false) };
     let a = assess(&buttress(vec![t]), ArcRule::PerThread);
     let arc = a.black_threads[0].arcs_deg[0];
     assert_eq!(arc[0], 150.0);

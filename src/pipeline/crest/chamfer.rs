@@ -11,7 +11,12 @@
 /// on the round presets it dips thread 1's crest by 10–26 µm a few degrees after the helix starts;
 /// on the Table 1 case thread 1's crests sit 310–360 µm under the cone. Where the later crest is
 /// not measured, the zone's crest is taken for the chamfer.
-pub(super) fn mill_surface_in_chamfer_zone(runs: &[bool], dark: &[bool], zone_end: usize, per_turn: usize) -> Vec<bool> {
+pub(super) fn mill_surface_in_chamfer_zone(
+    runs: &[bool],
+    dark: &[bool],
+    zone_end: usize,
+    per_turn: usize,
+) -> Vec<bool> {
     (0..zone_end)
         .map(|i| {
             let beyond = (i..runs.len()).step_by(per_turn.max(1)).find(|&j| j >= zone_end);

@@ -20,20 +20,19 @@
 //! rises away from the end face, so the mill surface that stands below it there stands below it
 //! on every later turn; the chamfer cuts the first crests alone).
 
-
 mod arch;
 mod chamfer;
 mod cone;
 mod dark;
 
+use crate::domain::rules::{CrestBin, ThreadObservation};
+use crate::numeric::runs::{grow_runs, run_spans};
+use crate::numeric::stats::{median, robust_scale};
+use crate::pipeline::profile::ThreadMeasure;
 use arch::*;
 use chamfer::*;
 use cone::*;
 use dark::*;
-use crate::numeric::runs::{grow_runs, run_spans};
-use crate::numeric::stats::{median, robust_scale};
-use crate::pipeline::profile::ThreadMeasure;
-use crate::domain::rules::{CrestBin, ThreadObservation};
 use nalgebra::{Const, DimMin, Matrix4, SMatrix, SVector, Vector3, Vector4};
 use serde::{Deserialize, Serialize};
 

@@ -200,10 +200,7 @@ fn a_polished_crest_in_the_chamfer_zone_is_black_where_the_crest_beyond_it_is() 
             if polished_threads == 3 && index <= 3 {
                 assert_eq!(arcs.len(), 1, "{case}, thread {index}: {arcs:?}");
                 let [from, to] = arcs[0];
-                assert!(
-                    (from - 100.0).abs() <= 0.4 && (to - 160.0).abs() <= 0.4,
-                    "{case}, thread {index}: {arcs:?}"
-                );
+                assert!((from - 100.0).abs() <= 0.4 && (to - 160.0).abs() <= 0.4, "{case}, thread {index}: {arcs:?}");
             } else {
                 assert!(arcs.is_empty(), "{case}, thread {index}: {arcs:?}");
             }

@@ -33,10 +33,9 @@ pub(super) fn focus_measures(
 
 /// [`focus_measures_body`] compiled for AVX2. The build targets baseline x86-64 (SSE2), so the
 /// binary runs anywhere; these passes are element-wise, so either copy gives the same numbers
-/// (unit-tested). Single-threaded on the standard preset the depth stage takes 3.65 → 3.49 s with
-/// it. The median network and the argmax over frames were slower with AVX2 on this machine (depth
-/// 3.49 → 3.85 s and 3.57 → 3.99 s), as was the whole program built for x86-64-v3, so they keep
-/// the baseline build.
+/// (unit-tested). Only the loops that measured faster with AVX2 have a second copy; the median
+/// network, the argmax over frames and a whole x86-64-v3 build measured slower (the figures:
+/// docs/notebook/accuracy.md, Speed).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 pub(super) fn focus_measures_avx2(

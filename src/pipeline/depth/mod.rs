@@ -28,8 +28,6 @@ pub use silhouette::{FrameEdge, frame_edge};
 use crate::domain::frame::{Frame, FrameError, View};
 use crate::domain::optics::{Optics, Projection};
 use crate::domain::thread::{ProfileShape, ThreadForm};
-use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
 use crate::pipeline::depth::measure::focus_measures;
 use crate::pipeline::depth::peak::MedianNetwork;
 use crate::pipeline::depth::peak::Ties;
@@ -40,6 +38,8 @@ use crate::pipeline::depth::resample::Taps;
 use crate::pipeline::depth::resample::axis_taps;
 use crate::pipeline::depth::resample::resample_row;
 use crate::pipeline::depth::resample::tap_spans;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct DepthOptions {
@@ -66,7 +66,7 @@ pub struct DepthOptions {
     /// its rows, and along the arc the thread changes slowly (a pitch per turn); every row of
     /// every frame still feeds the focus measure. 2 inspects the rings about a fifth faster
     /// with heights as accurate, but registration loses precision and black-crest ends move
-    /// (docs/accuracy.md, "Depth on every second row"): the default is every row.
+    /// (docs/notebook/accuracy.md, "Depth on every second row"): the default is every row.
     #[serde(default = "row_step")]
     pub row_step: usize,
     /// Half size of a second, small box that decides which surface a pixel at a steep edge shows
@@ -74,7 +74,7 @@ pub struct DepthOptions {
     /// crest and the root, a thread's height apart, and the focus curve peaks at both; the side
     /// whose texture is stronger there wins, which moves the edge by up to the half size toward
     /// the weaker side. Under chaser marks, which shade every crest alike, that moved every edge
-    /// of a part the same way (docs/accuracy.md, "Absolute z"). Where the small
+    /// of a part the same way (docs/notebook/accuracy.md, "Absolute z"). Where the small
     /// box's sharpest frame is
     /// [`EDGE_MIN_SEPARATION_FRAMES`] or more from the big box's, and the big curve has a peak of
     /// its own there, that peak is the pixel's.
@@ -353,8 +353,9 @@ pub fn depth_from_focus_in(
                     let own = own_peak(column, k_best, k_edge, floor);
                     if own != k_best {
                         // The pixel's colour where the small box is sharpest, not from the other
-                        // surface's frame (with the big box's colour, registration's texture lost
-                        // precision: standard's axial error 1.6 → 4.4 µm RMS; with this, 1.5 µm).
+                        // surface's frame: the big box's colour mixes two surfaces into
+                        // registration's texture (docs/notebook/accuracy.md, The depth stage's
+                        // edge box).
                         held[k_edge].colour_at(x, y, w, &mut colour_row[3 * x..3 * x + 3]);
                         k_best = own;
                     }

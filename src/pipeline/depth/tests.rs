@@ -75,10 +75,7 @@ fn flat_topped_curve_centre_moves_smoothly_with_focus() {
     let offsets: Vec<f64> = (0..12).map(|k| -1.5 + 0.25 * k as f64).collect();
     // A plateau 0.5 mm wide with symmetric shoulders, centred at `c`.
     let curve = |c: f64| -> Vec<f32> {
-        offsets
-            .iter()
-            .map(|&o| (1.0 / (1.0 + (((o - c).abs() - 0.25).max(0.0) / 0.2).powi(2))) as f32 + 0.05)
-            .collect()
+        offsets.iter().map(|&o| (1.0 / (1.0 + (((o - c).abs() - 0.25).max(0.0) / 0.2).powi(2))) as f32 + 0.05).collect()
     };
     for c in [-0.4, -0.33, -0.2, 0.0, 0.11, 0.3] {
         let column = curve(c);
@@ -204,15 +201,16 @@ fn every_sample_depth_gives_the_same_depth_map() {
                 .collect()
         };
         let frames_as = |samples: &dyn Fn(Vec<u8>) -> Samples| -> Vec<Frame> {
-            (0..n)
-                .map(|k| Frame { width: w as u32, height: h as u32, channels, samples: samples(values(k)) })
-                .collect()
+            (0..n).map(|k| Frame { width: w as u32, height: h as u32, channels, samples: samples(values(k)) }).collect()
         };
         let view = View {
             id: "v".into(),
             pose: crate::domain::optics::ViewPose { angle_deg: 0.0, axial_mm: 0.0, lens_radius_mm: 250.0 },
             frames: (0..n)
-                .map(|k| crate::domain::frame::FrameEntry { file: format!("{k}.png"), offset_mm: -0.75 + 0.25 * k as f64 })
+                .map(|k| crate::domain::frame::FrameEntry {
+                    file: format!("{k}.png"),
+                    offset_mm: -0.75 + 0.25 * k as f64,
+                })
                 .collect(),
             format: crate::domain::frame::FrameFormat { width: w as u32, height: h as u32, channels, bit_depth: 8 },
         };
@@ -242,10 +240,7 @@ fn every_sample_depth_gives_the_same_depth_map() {
         assert_eq!(full.rows(), h);
         for step in [2, 3] {
             let sparse = with_step(step);
-            assert_eq!(
-                (sparse.width, sparse.height, sparse.row_step, sparse.rows()),
-                (w, h, step, h.div_ceil(step))
-            );
+            assert_eq!((sparse.width, sparse.height, sparse.row_step, sparse.rows()), (w, h, step, h.div_ceil(step)));
             let rows_of = |m: &DepthMap, values: &[f32], per: usize| -> Vec<Vec<u32>> {
                 values.chunks_exact(per * m.width).map(|r| r.iter().map(|v| v.to_bits()).collect()).collect()
             };

@@ -9,18 +9,17 @@
 //! centre line and the two adjacent roots at their centres, each by a local least-squares fit over
 //! the flat (or arc) around that point, so that noise averages out and edges are avoided.
 
-
 mod heights;
 mod helix;
 
 pub use heights::{crest_window_half_mm, measure_threads, survey_threads};
 pub use helix::{estimate_helix, refine_helix};
 
-use crate::numeric::lsq::fit_line;
-use crate::pipeline::surface::UnrolledMap;
 use crate::domain::thread::{ProfileShape, ThreadForm};
+use crate::numeric::lsq::fit_line;
 use crate::numeric::sequence::trimmed_mean;
 use crate::numeric::stats::median;
+use crate::pipeline::surface::UnrolledMap;
 use rayon::prelude::*;
 use rustfft::FftPlanner;
 use rustfft::num_complex::Complex;

@@ -1,12 +1,12 @@
 use super::*;
 
-use crate::pipeline::surface::GridSpec;
 use crate::pipeline::profile::heights::Section;
 use crate::pipeline::profile::heights::fit_at_centre;
 use crate::pipeline::profile::heights::fit_curvature;
 use crate::pipeline::profile::heights::nominal_curvatures;
 use crate::pipeline::profile::helix::form_fundamental;
 use crate::pipeline::profile::helix::fundamental_beside_a_line;
+use crate::pipeline::surface::GridSpec;
 
 /// A synthetic fused map of an ideal buttress thread.
 fn ideal_map(z_h: f64, noise: f64) -> (UnrolledMap, ThreadForm) {
@@ -139,12 +139,7 @@ fn the_end_face_cell_is_not_taken_for_a_root() {
     for (e, c) in edged[0].bins.iter().zip(&clean[0].bins) {
         assert_eq!(e.height_mm.is_some(), c.height_mm.is_some());
         if let (Some(edged_mm), Some(clean_mm)) = (e.height_mm, c.height_mm) {
-            assert!(
-                (edged_mm - clean_mm).abs() < 1e-4,
-                "{}° moved {} µm",
-                e.angle_deg,
-                (edged_mm - clean_mm) * 1e3
-            );
+            assert!((edged_mm - clean_mm).abs() < 1e-4, "{}° moved {} µm", e.angle_deg, (edged_mm - clean_mm) * 1e3);
             measured += 1;
         }
     }

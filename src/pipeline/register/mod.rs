@@ -14,7 +14,6 @@
 //! away from its centre, and that part of each pair's arc shift is taken out before the angle is
 //! solved.
 
-
 pub mod anchor;
 mod lattice;
 mod ncc;
@@ -25,12 +24,12 @@ pub use anchor::{EndFace, anchor};
 pub use lattice::{GridScratch, Lattice, ViewGrid, view_grid};
 pub use pair::overlapping_pairs;
 
+use crate::domain::optics::ViewPose;
+use crate::numeric::angle::wrap_pi;
+use crate::pipeline::cloud::SurfacePoint;
 use ncc::*;
 use pair::*;
 use pose_graph::solve_axis;
-use crate::pipeline::cloud::SurfacePoint;
-use crate::domain::optics::ViewPose;
-use crate::numeric::angle::wrap_pi;
 use serde::{Deserialize, Serialize};
 use std::f64::consts::TAU;
 

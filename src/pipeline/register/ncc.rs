@@ -1,7 +1,6 @@
 //! Normalised cross-correlation of two views' textures over their overlap, with an AVX2 path for
 //! the overlap sums, and the sub-cell peak.
 
-
 /// A texture grid laid out for correlation: missing cells are zero in the values and their
 /// squares and 0 in the mask, so that the sums over a shifted overlap need no branches (and run
 /// eight cells at a time). Stored by arc column (z fastest): an overlap between neighbours is long

@@ -68,8 +68,7 @@ fn graph_solve_spreads_a_ring_consistently() {
     // Four views in a ring with true corrections (0.3, −0.1, 0.2, −0.4): measured differences
     // c_b − c_a, one of them corrupted; Huber weighting keeps the corrupt one from spreading.
     let truth = [0.3, -0.1, 0.2, -0.4];
-    let mut pairs: Vec<(usize, usize, f64)> =
-        (0..4).map(|a| (a, (a + 1) % 4, truth[(a + 1) % 4] - truth[a])).collect();
+    let mut pairs: Vec<(usize, usize, f64)> = (0..4).map(|a| (a, (a + 1) % 4, truth[(a + 1) % 4] - truth[a])).collect();
     pairs.push((0, 2, truth[2] - truth[0]));
     pairs.push((1, 3, truth[3] - truth[1]));
     pairs[1].2 += 0.5;
@@ -178,9 +177,7 @@ fn a_view_without_trusted_points_is_left_where_the_encoder_put_it() {
         [352.0, 0.0, 8.0].map(|angle_deg| ViewPose { angle_deg, axial_mm: 10.0, lens_radius_mm: 200.0 }).into();
     let grids: Vec<ViewGrid> = poses
         .iter()
-        .map(|p| {
-            view_grid(std::iter::empty(), p.angle_deg.to_radians(), &lattice, false, &mut GridScratch::default())
-        })
+        .map(|p| view_grid(std::iter::empty(), p.angle_deg.to_radians(), &lattice, false, &mut GridScratch::default()))
         .collect();
     let registration = register(&grids, &poses, &lattice, 7.0, 17.0, &RegisterOptions::default());
     assert!(registration.pairs.is_empty());

@@ -1,9 +1,9 @@
 //! `/v1/connections`: the API 5B connection table the rule engine uses.
 
-use crate::problem::Code;
 use super::AppState;
 use super::problem::{ApiError, Problem};
 use crate::domain::thread::Connection;
+use crate::problem::Code;
 use axum::Json;
 use axum::extract::{Path, Query, State};
 use serde::{Deserialize, Serialize};
@@ -76,7 +76,10 @@ pub async fn get_connection(
     Path(designation): Path<String>,
 ) -> Result<Json<Connection>, ApiError> {
     state.table.get(&designation).cloned().map(Json).ok_or_else(|| {
-        ApiError::new(Code::UnknownDesignation, format!("no connection {designation:?}; GET /v1/connections lists them"))
-            .with_culprit("designation")
+        ApiError::new(
+            Code::UnknownDesignation,
+            format!("no connection {designation:?}; GET /v1/connections lists them"),
+        )
+        .with_culprit("designation")
     })
 }

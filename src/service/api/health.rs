@@ -1,8 +1,8 @@
 //! Liveness, readiness and metrics.
 
-use crate::problem::Code;
 use super::AppState;
 use super::problem::{ApiError, Problem};
+use crate::problem::Code;
 use axum::Json;
 use axum::extract::State;
 use axum::http::{HeaderValue, header};

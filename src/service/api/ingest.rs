@@ -4,9 +4,9 @@
 //! File writes run on one blocking thread fed through a bounded channel, so the async runtime never
 //! blocks on the disk.
 
-use crate::problem::Code;
 use super::problem::ApiError;
 use crate::bundle::check_relative_path;
+use crate::problem::Code;
 use crate::service::store::files::{FileStore, HashingWriter};
 use axum::body::{Body, Bytes};
 use axum::extract::{FromRequest, Multipart, Request};
@@ -213,8 +213,9 @@ fn multipart_error(e: axum::extract::multipart::MultipartError) -> ApiError {
 }
 
 async fn receive_multipart(request: Request, files: &FileStore, limit: u64) -> Result<Received, ApiError> {
-    let mut multipart =
-        Multipart::from_request(request, &()).await.map_err(|e| ApiError::new(Code::InvalidMultipart, e.body_text()))?;
+    let mut multipart = Multipart::from_request(request, &())
+        .await
+        .map_err(|e| ApiError::new(Code::InvalidMultipart, e.body_text()))?;
     let result = read_parts(&mut multipart, files, limit).await;
     if result.is_err() {
         // As for raw bodies: read (and drop) a moderate rest so the client sees the problem.
@@ -267,8 +268,11 @@ async fn read_parts(multipart: &mut Multipart, files: &FileStore, limit: u64) ->
             }
             "bundle" => {
                 if archive_part || manifest_part || frame_parts > 0 {
-                    return Err(ApiError::new(Code::InvalidMultipart, "a `bundle` part must be the only bundle content")
-                        .with_culprit("bundle"));
+                    return Err(ApiError::new(
+                        Code::InvalidMultipart,
+                        "a `bundle` part must be the only bundle content",
+                    )
+                    .with_culprit("bundle"));
                 }
                 archive_part = true;
                 while let Some(chunk) = field.chunk().await.map_err(multipart_error)? {
@@ -278,12 +282,17 @@ async fn read_parts(multipart: &mut Multipart, files: &FileStore, limit: u64) ->
             }
             _ => {
                 if archive_part {
-                    return Err(ApiError::new(Code::InvalidMultipart, format!("part {name:?} next to a `bundle` part"))
-                        .with_culprit(name));
+                    return Err(ApiError::new(
+                        Code::InvalidMultipart,
+                        format!("part {name:?} next to a `bundle` part"),
+                    )
+                    .with_culprit(name));
                 }
                 let path = if name == "manifest" || name == "manifest.json" {
                     if manifest_part {
-                        return Err(ApiError::new(Code::InvalidMultipart, "two manifest parts").with_culprit("manifest"));
+                        return Err(
+                            ApiError::new(Code::InvalidMultipart, "two manifest parts").with_culprit("manifest")
+                        );
                     }
                     manifest_part = true;
                     "manifest.json".to_string()

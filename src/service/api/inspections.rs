@@ -1,13 +1,13 @@
 //! `/v1/inspections`: submit (202 + Location), list with filters and a cursor, get, cancel.
 
-use crate::problem::Code;
 use super::ingest;
 use super::problem::{ApiError, Problem};
 use super::{AppState, Binary, InspectionId, parse_rfc3339, rfc3339};
 use crate::bundle::{Bundle, FrameCheck, OpenOptions};
-use crate::service::queue::JobOptions;
-use crate::pipeline::PipelineOptions;
 use crate::domain::rules::ArcRule;
+use crate::pipeline::PipelineOptions;
+use crate::problem::Code;
+use crate::service::queue::JobOptions;
 use crate::service::store::files::sha256_hex;
 use crate::service::store::{Inserted, InspectionRow, ListFilter, NewInspection, Status};
 use axum::Json;
@@ -174,10 +174,11 @@ fn idempotency_key(headers: &HeaderMap) -> Result<Option<String>, ApiError> {
 
 fn client_reference(value: Option<String>) -> Result<Option<String>, ApiError> {
     match value {
-        Some(r) if r.is_empty() || r.chars().count() > 200 || r.chars().any(char::is_control) => {
-            Err(ApiError::new(Code::InvalidOption, "client_reference must be 1–200 characters without control characters")
-                .with_culprit("client_reference"))
-        }
+        Some(r) if r.is_empty() || r.chars().count() > 200 || r.chars().any(char::is_control) => Err(ApiError::new(
+            Code::InvalidOption,
+            "client_reference must be 1–200 characters without control characters",
+        )
+        .with_culprit("client_reference")),
         other => Ok(other),
     }
 }
@@ -266,7 +267,7 @@ fn accepted(row: InspectionRow, replayed: bool) -> Response {
             (Binary = "application/x-tar"),
             (BundleForm = "multipart/form-data"),
         ),
-        description = "The bundle (../shared/spec/bundle.md)."
+        description = "The bundle (docs/bundle.md)."
     ),
     responses(
         (status = 202, description = "Accepted and queued (or replayed for the same Idempotency-Key).", body = Inspection,

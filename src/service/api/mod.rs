@@ -9,11 +9,11 @@ pub mod inspections;
 pub mod problem;
 pub mod results;
 
+use crate::domain::thread::ConnectionTable;
 use crate::problem::Code;
 use crate::service::config::Settings;
 use crate::service::store::Store;
 use crate::service::telemetry::Metrics;
-use crate::domain::thread::ConnectionTable;
 use axum::Router;
 use axum::extract::{DefaultBodyLimit, MatchedPath, Request, State};
 use axum::http::{HeaderValue, header};

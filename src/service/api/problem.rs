@@ -3,8 +3,8 @@
 //! renders them (failed jobs carry the same object).
 
 use crate::bundle::BundleError;
-use crate::problem::{Code, ErrorCode};
 pub use crate::problem::Problem;
+use crate::problem::{Code, ErrorCode};
 use crate::service::store::StoreError;
 use axum::http::{HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};

@@ -1,11 +1,11 @@
 //! Results of a succeeded inspection (report, per-thread table, mesh, images; immutable, with
 //! strong ETags) and the CMM comparison.
 
-use crate::problem::Code;
 use super::problem::{ApiError, Problem};
 use super::{AppState, Binary, InspectionId, rfc3339};
 use crate::eval::cmm::{self, CmmMeasurements, CmmPoint, Comparison};
 use crate::pipeline::report::Report;
+use crate::problem::Code;
 use crate::service::store::{Status, StoreError};
 use axum::Json;
 use axum::body::Bytes;
@@ -76,7 +76,7 @@ fn immutable(headers: &HeaderMap, etag: &str, content_type: &str, body: impl Int
 }
 
 /// The inspection report: verdict, reasons, per-thread heights and black crests, registration,
-/// timings (the result shape of ../shared/spec/bundle.md plus measures).
+/// timings (the result shape of docs/bundle.md plus measures).
 #[utoipa::path(
     get,
     path = "/v1/inspections/{id}/report",

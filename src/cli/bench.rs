@@ -1,0 +1,69 @@
+//! `crestscan bench`: a benchmark suite against the simulator's truth.
+
+use super::DepthArgs;
+use anyhow::{Result, bail};
+use crestscan::eval::{self, Suite};
+use crestscan::pipeline::PipelineOptions;
+use std::path::PathBuf;
+
+#[derive(clap::Args)]
+pub struct BenchArgs {
+    /// accuracy: the suite the targets are read on (its own seeds); holdout: the defect
+    /// presets again with other seeds.
+    #[arg(long, value_enum, default_value_t = SuiteArg::Accuracy)]
+    suite: SuiteArg,
+    /// Where renderings are cached [default: out/bench for accuracy, out/holdout for holdout].
+    #[arg(long)]
+    work: Option<PathBuf>,
+    /// Only these cases of the suite (comma-separated): a preset (all its seeds) or
+    /// preset-seed, e.g. bc-polished-3.
+    #[arg(long, value_delimiter = ',')]
+    only: Vec<String>,
+    /// Also write the results as JSON here.
+    #[arg(long)]
+    json: Option<PathBuf>,
+    /// Time each case this many times (decode and inspection alternating) and report the
+    /// medians: single timings on a shared machine scatter by tens of percent.
+    #[arg(long, default_value_t = 1)]
+    repeat: usize,
+    #[command(flatten)]
+    depth: DepthArgs,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum SuiteArg {
+    Accuracy,
+    Holdout,
+}
+
+impl From<SuiteArg> for Suite {
+    fn from(s: SuiteArg) -> Self {
+        match s {
+            SuiteArg::Accuracy => Self::Accuracy,
+            SuiteArg::Holdout => Self::Holdout,
+        }
+    }
+}
+
+impl BenchArgs {
+    pub fn run(self) -> Result<()> {
+        let Self { suite, work, only, json, repeat, depth } = self;
+        let suite = Suite::from(suite);
+        let work = work.unwrap_or_else(|| PathBuf::from(suite.default_work_dir()));
+        if let Some(o) = only.iter().find(|o| !suite.cases().iter().any(|c| c.matches(o))) {
+            let names: Vec<String> = suite.cases().iter().map(|c| c.name()).collect();
+            bail!("--only {o:?} is no case of the {} suite; its cases: {}", suite.name(), names.join(", "));
+        }
+        let options = PipelineOptions { depth: depth.into(), ..Default::default() };
+        let mut results = Vec::new();
+        for case in suite.cases().iter().filter(|c| only.is_empty() || only.iter().any(|o| c.matches(o))) {
+            eprintln!("bench: {} (seed {})", case.preset, case.seed);
+            results.push(eval::run_case(case, &work, repeat, &options)?);
+        }
+        println!("{}", eval::table(&results));
+        if let Some(path) = json {
+            std::fs::write(&path, serde_json::to_vec_pretty(&results)?)?;
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,88 @@
+//! `crestscan inspect`: the whole pipeline on one bundle; the summary or the report, and the files.
+
+use super::{DepthArgs, open_bundle};
+use anyhow::{Context, Result};
+use crestscan::bundle::OpenOptions;
+use crestscan::domain::rules::ArcRule;
+use crestscan::export::{glb, ply, png, stl};
+use crestscan::pipeline::mesh::Mesh;
+use crestscan::pipeline::profile::ProfileOptions;
+use crestscan::pipeline::{self, PipelineOptions};
+use std::io::BufWriter;
+use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
+
+#[derive(clap::Args)]
+pub struct InspectArgs {
+    bundle: PathBuf,
+    /// Write report.json, height-map.png, all-in-focus.png, mesh.ply, mesh.stl and mesh.glb here.
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Print the report as JSON instead of the summary.
+    #[arg(long)]
+    json: bool,
+    /// How the buttress 25% limit applies.
+    #[arg(long, value_enum, default_value_t = ArcRuleArg::PerThread)]
+    arc_rule: ArcRuleArg,
+    /// Report each 1° bin's height as the trimmed mean (the middle half or so) of the 2N + 1
+    /// bins centred on it along the helix (0: each bin's own fit, noisier; a dent of a degree
+    /// or two is trimmed away, one of a few degrees flattened).
+    #[arg(long, default_value_t = ProfileOptions::default().height_window_half_bins)]
+    height_window_half_bins: usize,
+    #[command(flatten)]
+    depth: DepthArgs,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum ArcRuleArg {
+    PerThread,
+    Combined,
+}
+
+impl InspectArgs {
+    pub fn run(self) -> Result<()> {
+        let Self { bundle, out, json, arc_rule, height_window_half_bins, depth } = self;
+        let b = open_bundle(&bundle, OpenOptions::default())?;
+        let options = PipelineOptions {
+            arc_rule: match arc_rule {
+                ArcRuleArg::PerThread => ArcRule::PerThread,
+                ArcRuleArg::Combined => ArcRule::Combined,
+            },
+            profile: ProfileOptions { height_window_half_bins },
+            depth: depth.into(),
+            ..Default::default()
+        };
+        let cancel = AtomicBool::new(false);
+        let inspection = pipeline::inspect(&b, &options, &|_, _| {}, &cancel)?.context("cancelled")?;
+        if let Some(dir) = &out {
+            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+            let report_path = dir.join("report.json");
+            std::fs::write(&report_path, serde_json::to_vec_pretty(&inspection.report)?)
+                .with_context(|| format!("writing {}", report_path.display()))?;
+            png::write_height_map(&inspection.map, &dir.join("height-map.png"))?;
+            png::write_mosaic(&inspection.map, &dir.join("all-in-focus.png"))?;
+            type Writer = fn(&Mesh, BufWriter<std::fs::File>) -> std::io::Result<()>;
+            for (name, write) in
+                [("mesh.ply", ply::write as Writer), ("mesh.stl", stl::write), ("mesh.glb", glb::write)]
+            {
+                let path = dir.join(name);
+                let file = std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?;
+                write(&inspection.mesh, BufWriter::new(file)).with_context(|| format!("writing {}", path.display()))?;
+            }
+        }
+        if json {
+            println!("{}", serde_json::to_string_pretty(&inspection.report)?);
+        } else {
+            println!("{}", inspection.report.summary());
+            if let Some(dir) = &out {
+                println!(
+                    "  wrote report.json, height-map.png, all-in-focus.png, mesh.ply, mesh.stl and mesh.glb ({} vertices, {} triangles) to {}",
+                    inspection.mesh.vertices.len(),
+                    inspection.mesh.triangles.len(),
+                    dir.display()
+                );
+            }
+        }
+        Ok(())
+    }
+}

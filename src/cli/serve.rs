@@ -1,0 +1,113 @@
+//! `crestscan serve` (the service; settings: flags > CRESTSCAN_* > config file > defaults) and
+//! `crestscan healthcheck` (exit 0 when a local service answers, for container health checks).
+
+use anyhow::{Context, Result, bail};
+use crestscan::service::config::Settings;
+use std::path::PathBuf;
+
+pub fn healthcheck(addr: Option<std::net::SocketAddr>) -> Result<()> {
+    use std::io::{Read, Write};
+    let addr = addr.unwrap_or_else(|| {
+        let port = std::env::var("CRESTSCAN_BIND")
+            .ok()
+            .and_then(|b| b.parse::<std::net::SocketAddr>().ok())
+            .map_or(8080, |a| a.port());
+        std::net::SocketAddr::from(([127, 0, 0, 1], port))
+    });
+    let timeout = std::time::Duration::from_secs(3);
+    let mut stream =
+        std::net::TcpStream::connect_timeout(&addr, timeout).with_context(|| format!("connecting to {addr}"))?;
+    stream.set_read_timeout(Some(timeout))?;
+    write!(stream, "GET /healthz HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n")?;
+    let mut head = [0u8; 12];
+    stream.read_exact(&mut head)?;
+    if &head[9..12] != b"200" {
+        bail!("{addr}/healthz answered {}", String::from_utf8_lossy(&head));
+    }
+    Ok(())
+}
+
+#[derive(clap::Args)]
+pub struct ServeArgs {
+    /// TOML file with any of the settings below (snake_case keys).
+    #[arg(long, env = "CRESTSCAN_CONFIG")]
+    config: Option<PathBuf>,
+    /// Listen address [default: 127.0.0.1:8080].
+    #[arg(long, env = "CRESTSCAN_BIND")]
+    bind: Option<std::net::SocketAddr>,
+    /// Database, uploads and temporaries [default: ./crestscan-data].
+    #[arg(long, env = "CRESTSCAN_DATA_DIR")]
+    data_dir: Option<PathBuf>,
+    /// Inspections run at once [default: 1; each uses every core].
+    #[arg(long, env = "CRESTSCAN_WORKERS")]
+    workers: Option<usize>,
+    /// Compute threads for the pipeline [default: 0 = one per core].
+    #[arg(long, env = "CRESTSCAN_COMPUTE_THREADS")]
+    compute_threads: Option<usize>,
+    /// Largest upload in MiB [default: 4096].
+    #[arg(long, env = "CRESTSCAN_MAX_UPLOAD_MB")]
+    max_upload_mb: Option<u64>,
+    /// Job lease in seconds [default: 30].
+    #[arg(long, env = "CRESTSCAN_LEASE_SECONDS")]
+    lease_seconds: Option<f64>,
+    /// Heartbeat interval in seconds [default: 2].
+    #[arg(long, env = "CRESTSCAN_HEARTBEAT_SECONDS")]
+    heartbeat_seconds: Option<f64>,
+    /// Claims before a job is failed [default: 3].
+    #[arg(long, env = "CRESTSCAN_MAX_ATTEMPTS")]
+    max_attempts: Option<u32>,
+    /// Seconds running jobs get to finish at shutdown [default: 30].
+    #[arg(long, env = "CRESTSCAN_SHUTDOWN_GRACE_SECONDS")]
+    shutdown_grace_seconds: Option<f64>,
+    /// Idle workers poll this often, in ms [default: 500].
+    #[arg(long, env = "CRESTSCAN_POLL_INTERVAL_MS")]
+    poll_interval_ms: Option<u64>,
+    /// Days uploads of finished inspections are kept; 0 keeps them [default: 30].
+    #[arg(long, env = "CRESTSCAN_UPLOAD_RETENTION_DAYS")]
+    upload_retention_days: Option<f64>,
+    /// Log filter [default: info].
+    #[arg(long, env = "CRESTSCAN_LOG")]
+    log: Option<String>,
+}
+
+impl ServeArgs {
+    fn settings(self) -> Result<Settings> {
+        let mut s = match &self.config {
+            Some(path) => Settings::from_file(path)?,
+            None => Settings::default(),
+        };
+        macro_rules! set {
+            ($($field:ident),*) => { $( if let Some(v) = self.$field { s.$field = v; } )* };
+        }
+        set!(
+            bind,
+            data_dir,
+            workers,
+            compute_threads,
+            max_upload_mb,
+            lease_seconds,
+            heartbeat_seconds,
+            max_attempts,
+            shutdown_grace_seconds,
+            poll_interval_ms,
+            upload_retention_days,
+            log
+        );
+        s.validate()?;
+        Ok(s)
+    }
+
+    pub fn run(self) -> Result<()> {
+        let settings = self.settings()?;
+        crestscan::service::telemetry::init_logging(&settings.log);
+        let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
+        runtime.block_on(async move {
+        let app = crestscan::service::startup::Application::build(settings.clone()).await?;
+        // One line on stdout that scripts (and the tests) read to find the port.
+        println!("crestscan listening on http://{}", app.address());
+        tracing::info!(address = %app.address(), data_dir = %settings.data_dir.display(), workers = settings.workers, "serving");
+        app.run_until(crestscan::service::startup::shutdown_signal()).await?;
+        Ok(())
+    })
+    }
+}

@@ -1,0 +1,236 @@
+//! Inspections: submit, validate, idempotency, cancel, list.
+
+use super::*;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_requests_get_their_problem_codes_and_store_nothing() {
+    // No workers: this is about the API alone.
+    let app = spawn_app_with(|s| s.workers = 0).await;
+    let post = |ct: &'static str, body: Vec<u8>| {
+        app.client.post(app.url("/v1/inspections")).header("content-type", ct).body(body).send()
+    };
+    problem(
+        post("application/json", b"{}".to_vec()).await.unwrap(),
+        StatusCode::UNSUPPORTED_MEDIA_TYPE,
+        "unsupported_media_type",
+    )
+    .await;
+    problem(post("application/zip", Vec::new()).await.unwrap(), StatusCode::UNPROCESSABLE_ENTITY, "invalid_archive")
+        .await;
+    problem(
+        post("application/zip", b"not a zip at all".to_vec()).await.unwrap(),
+        StatusCode::UNPROCESSABLE_ENTITY,
+        "invalid_archive",
+    )
+    .await;
+    // A frame missing from the archive: named.
+    let files: Vec<String> =
+        walk(ci_bundle()).iter().map(|p| p.strip_prefix(ci_bundle()).unwrap().to_string_lossy().into_owned()).collect();
+    let victim = files.iter().find(|f| f.ends_with(".png")).unwrap().clone();
+    let missing_victim = bundle_tar(ci_bundle(), &|rel| rel != victim);
+    let v = problem(
+        post("application/x-tar", missing_victim).await.unwrap(),
+        StatusCode::UNPROCESSABLE_ENTITY,
+        "missing_file",
+    )
+    .await;
+    assert_eq!(v["culprit"], victim.as_str());
+    assert_eq!(v["instance"], "/v1/inspections");
+    // A broken manifest: the JSON path is named.
+    let dir = tempfile::tempdir().unwrap();
+    crate::common::copy_tree(ci_bundle(), dir.path(), &|p| !p.starts_with("truth"));
+    let mut manifest: Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("manifest.json")).unwrap()).unwrap();
+    // The bundle with `manifest` in place of its own, posted as a tar.
+    let post_with = |manifest: &Value| {
+        std::fs::write(dir.path().join("manifest.json"), serde_json::to_vec(manifest).unwrap()).unwrap();
+        post("application/x-tar", bundle_tar(dir.path(), &|_| true))
+    };
+    manifest["optics"]["f_number"] = Value::from(-2.0);
+    let v = problem(post_with(&manifest).await.unwrap(), StatusCode::UNPROCESSABLE_ENTITY, "invalid_optics").await;
+    assert!(v["culprit"].as_str().unwrap().contains("optics."), "{v}");
+    // Well formed, but a pixel pitch typed in mm: refused at upload, before a worker could run
+    // out of memory on it.
+    manifest["optics"]["f_number"] = Value::from(1.4);
+    manifest["optics"]["pixel_pitch_um"] = Value::from(0.012);
+    let v =
+        problem(post_with(&manifest).await.unwrap(), StatusCode::UNPROCESSABLE_ENTITY, "inspection_too_large").await;
+    assert_eq!(v["culprit"], "manifest.json: optics.pixel_pitch_um", "{v}");
+    // Options: unknown pipeline option, bad arc rule, bad query.
+    let form = reqwest::multipart::Form::new()
+        .part("bundle", reqwest::multipart::Part::bytes(ci_tar()))
+        .text("options", r#"{"pipeline": {"depth": {"no_such_knob": 1}}}"#);
+    let v = problem(
+        app.client.post(app.url("/v1/inspections")).multipart(form).send().await.unwrap(),
+        StatusCode::UNPROCESSABLE_ENTITY,
+        "invalid_option",
+    )
+    .await;
+    assert_eq!(v["culprit"], "pipeline.depth.no_such_knob");
+    problem(app.submit(ci_tar(), "?arc_rule=sometimes").await, StatusCode::BAD_REQUEST, "invalid_query").await;
+    let bad_multipart = app
+        .client
+        .post(app.url("/v1/inspections"))
+        .header("content-type", "multipart/form-data; boundary=XYZ")
+        .body("--XYZ\r\nnot a part")
+        .send()
+        .await
+        .unwrap();
+    problem(bad_multipart, StatusCode::BAD_REQUEST, "invalid_multipart").await;
+    let traversal = reqwest::multipart::Form::new()
+        .part("manifest", reqwest::multipart::Part::bytes(std::fs::read(ci_bundle().join("manifest.json")).unwrap()))
+        .part("../etc/passwd", reqwest::multipart::Part::bytes(b"x".to_vec()))
+        // More after the refused part: the server reads the rest, so the client gets the answer.
+        .part("views/a000-z00/000.png", reqwest::multipart::Part::bytes(vec![0u8; 48 << 20]));
+    problem(
+        app.client.post(app.url("/v1/inspections")).multipart(traversal).send().await.unwrap(),
+        StatusCode::UNPROCESSABLE_ENTITY,
+        "unsafe_path",
+    )
+    .await;
+    // Too large for the configured limit.
+    let small = spawn_app_with(|s| {
+        s.workers = 0;
+        s.max_upload_mb = 1;
+    })
+    .await;
+    problem(small.submit(ci_tar(), "").await, StatusCode::PAYLOAD_TOO_LARGE, "body_too_large").await;
+    assert_eq!(small.uploads(), 0);
+    small.stop().await;
+
+    // Routing and ids.
+    problem(app.get("/v2/nothing").await, StatusCode::NOT_FOUND, "route_not_found").await;
+    problem(
+        app.client.delete(app.url("/v1/inspections")).send().await.unwrap(),
+        StatusCode::METHOD_NOT_ALLOWED,
+        "method_not_allowed",
+    )
+    .await;
+    problem(app.get("/v1/inspections/not-an-id").await, StatusCode::NOT_FOUND, "invalid_id").await;
+    problem(app.get("/v1/inspections/01890a5d-ac96-774b-bcce-b302099a8057").await, StatusCode::NOT_FOUND, "invalid_id")
+        .await;
+    problem(app.get("/v1/inspections?status=done").await, StatusCode::BAD_REQUEST, "invalid_query").await;
+    problem(app.get("/v1/inspections?limit=0").await, StatusCode::BAD_REQUEST, "invalid_query").await;
+    problem(app.get("/v1/inspections?created_after=yesterday").await, StatusCode::BAD_REQUEST, "invalid_query").await;
+    problem(app.get("/v1/connections/XYZ%2099").await, StatusCode::NOT_FOUND, "unknown_designation").await;
+
+    // Nothing was stored by any of it.
+    let page: Value = app.get("/v1/inspections").await.json().await.unwrap();
+    assert_eq!(page["items"].as_array().unwrap().len(), 0);
+    assert_eq!(app.uploads(), 0);
+
+    // Results of an inspection that has none yet, and bad CMM data, once one exists.
+    let id = app.submit(ci_tar(), "").await.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+    problem(app.get(&format!("/v1/inspections/{id}/report")).await, StatusCode::CONFLICT, "inspection_not_succeeded")
+        .await;
+    problem(app.get(&format!("/v1/inspections/{id}/cmm")).await, StatusCode::NOT_FOUND, "cmm_not_found").await;
+    let connection: Value = app.get("/v1/connections/BC%204-1%2F2").await.json().await.unwrap();
+    assert_eq!(connection["designation"], "BC 4-1/2");
+    app.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn idempotent_retry_and_cancel() {
+    let app = spawn_app_with(|s| s.workers = 0).await;
+    let send = |key: &'static str, query: &'static str| {
+        app.client
+            .post(app.url(&format!("/v1/inspections{query}")))
+            .header("content-type", "application/x-tar")
+            .header("idempotency-key", key)
+            .body(ci_tar())
+            .send()
+    };
+    let first = send("station-7-run-42", "").await.unwrap();
+    assert_eq!(first.status(), StatusCode::ACCEPTED);
+    let first: Value = first.json().await.unwrap();
+    let retry = send("station-7-run-42", "").await.unwrap();
+    assert_eq!(retry.status(), StatusCode::ACCEPTED);
+    assert_eq!(retry.headers()["idempotent-replayed"], "true");
+    let retry: Value = retry.json().await.unwrap();
+    assert_eq!(retry["id"], first["id"]);
+    let other = send("station-7-run-42", "?arc_rule=combined").await.unwrap();
+    let v = problem(other, StatusCode::UNPROCESSABLE_ENTITY, "idempotency_key_reused").await;
+    assert_eq!(v["culprit"], "Idempotency-Key");
+    let page: Value = app.get("/v1/inspections").await.json().await.unwrap();
+    assert_eq!(page["items"].as_array().unwrap().len(), 1);
+    assert_eq!(app.uploads(), 1, "one content-addressed upload");
+
+    // Cancel while queued: at once.
+    let id = first["id"].as_str().unwrap();
+    let canceled = app.client.post(app.url(&format!("/v1/inspections/{id}/cancel"))).send().await.unwrap();
+    assert_eq!(canceled.status(), StatusCode::OK);
+    assert_eq!(canceled.json::<Value>().await.unwrap()["status"], "canceled");
+
+    // Cancel while running: requested, seen by the lease holder at its heartbeat.
+    let second: Value = send("station-7-run-43", "").await.unwrap().json().await.unwrap();
+    let store = app.store().await;
+    let claimed = store.claim("test-worker", Duration::from_secs(30)).await.unwrap().expect("one queued");
+    assert_eq!(claimed.id, second["id"].as_str().unwrap());
+    let response = app.client.post(app.url(&format!("/v1/inspections/{}/cancel", claimed.id))).send().await.unwrap();
+    assert_eq!(response.status(), StatusCode::ACCEPTED);
+    let v: Value = response.json().await.unwrap();
+    assert_eq!((v["status"].as_str(), v["cancel_requested"].as_bool()), (Some("running"), Some(true)));
+    let beat = store.heartbeat(&claimed.id, "test-worker", Duration::from_secs(30), None).await.unwrap();
+    assert_eq!(beat, crestscan::service::store::Heartbeat::Held { cancel_requested: true });
+    assert_eq!(
+        store.heartbeat(&claimed.id, "someone-else", Duration::from_secs(30), None).await.unwrap(),
+        crestscan::service::store::Heartbeat::Lost
+    );
+    assert!(
+        store
+            .complete_without_results(&claimed.id, "test-worker", crestscan::service::store::Status::Canceled, None)
+            .await
+            .unwrap()
+    );
+    let v: Value = app.get(&format!("/v1/inspections/{}", claimed.id)).await.json().await.unwrap();
+    assert_eq!(v["status"], "canceled");
+    // A finished inspection cannot be canceled.
+    let response = app.client.post(app.url(&format!("/v1/inspections/{}/cancel", claimed.id))).send().await.unwrap();
+    assert_eq!(response.status(), StatusCode::OK, "canceling a canceled inspection is a no-op");
+
+    // Cancel requested while running, then the worker gives the job back (a retryable failure or
+    // a release at shutdown): it ends canceled, not queued (claims skip canceled-requested jobs,
+    // so a queued one would wait forever).
+    let third: Value = send("station-7-run-44", "").await.unwrap().json().await.unwrap();
+    let claimed = store.claim("test-worker", Duration::from_secs(30)).await.unwrap().expect("one queued");
+    assert_eq!(claimed.id, third["id"].as_str().unwrap());
+    let response = app.client.post(app.url(&format!("/v1/inspections/{}/cancel", claimed.id))).send().await.unwrap();
+    assert_eq!(response.status(), StatusCode::ACCEPTED);
+    assert!(store.requeue(&claimed.id, "test-worker", Duration::ZERO, None, true).await.unwrap());
+    let v: Value = app.get(&format!("/v1/inspections/{}", claimed.id)).await.json().await.unwrap();
+    assert_eq!(v["status"], "canceled");
+    assert!(v["finished_at"].is_string(), "{v}");
+    assert!(store.claim("test-worker", Duration::from_secs(30)).await.unwrap().is_none(), "nothing left queued");
+    app.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cursor_pagination_walks_every_inspection_once() {
+    let app = spawn_app_with(|s| s.workers = 0).await;
+    let mut ids = Vec::new();
+    for i in 0..5 {
+        let v: Value = app.submit(ci_tar(), &format!("?client_reference=batch-{}", i % 2)).await.json().await.unwrap();
+        ids.push(v["id"].as_str().unwrap().to_string());
+    }
+    let mut seen = Vec::new();
+    let mut cursor: Option<String> = None;
+    loop {
+        let path = match &cursor {
+            Some(c) => format!("/v1/inspections?limit=2&cursor={c}"),
+            None => "/v1/inspections?limit=2".to_string(),
+        };
+        let page: Value = app.get(&path).await.json().await.unwrap();
+        seen.extend(page["items"].as_array().unwrap().iter().map(|i| i["id"].as_str().unwrap().to_string()));
+        match page["next_cursor"].as_str() {
+            Some(c) => cursor = Some(c.to_string()),
+            None => break,
+        }
+    }
+    ids.reverse();
+    assert_eq!(seen, ids, "newest first, each once");
+    let batch0: Value = app.get("/v1/inspections?client_reference=batch-0").await.json().await.unwrap();
+    assert_eq!(batch0["items"].as_array().unwrap().len(), 3);
+    let none: Value = app.get("/v1/inspections?created_after=2100-01-01T00:00:00Z").await.json().await.unwrap();
+    assert_eq!(none["items"].as_array().unwrap().len(), 0);
+    app.stop().await;
+}

@@ -1,0 +1,166 @@
+//! The service over real HTTP: the real app on a loopback port with a fresh SQLite file, driven by
+//! reqwest; and the real binary, killed with SIGKILL and restarted.
+
+mod inspections;
+mod openapi;
+mod queue;
+mod results;
+
+use crate::common::{ci_bundle, walk};
+use crestscan::service::config::Settings;
+use crestscan::service::startup::Application;
+use crestscan::sim::Truth;
+use reqwest::StatusCode;
+use serde_json::Value;
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+pub struct TestApp {
+    pub base: String,
+    pub client: reqwest::Client,
+    pub data: std::path::PathBuf,
+    dir: Option<tempfile::TempDir>,
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    server: Option<tokio::task::JoinHandle<()>>,
+}
+
+impl TestApp {
+    pub fn url(&self, path: &str) -> String {
+        format!("{}{path}", self.base)
+    }
+
+    pub async fn get(&self, path: &str) -> reqwest::Response {
+        self.client.get(self.url(path)).send().await.unwrap()
+    }
+
+    pub async fn submit(&self, body: Vec<u8>, query: &str) -> reqwest::Response {
+        self.client
+            .post(self.url(&format!("/v1/inspections{query}")))
+            .header("content-type", "application/x-tar")
+            .body(body)
+            .send()
+            .await
+            .unwrap()
+    }
+
+    /// Polls until the inspection is terminal.
+    pub async fn wait(&self, id: &str, timeout: Duration) -> Value {
+        let start = Instant::now();
+        loop {
+            let v: Value = self.get(&format!("/v1/inspections/{id}")).await.json().await.unwrap();
+            if ["succeeded", "failed", "canceled"].contains(&v["status"].as_str().unwrap()) {
+                return v;
+            }
+            assert!(start.elapsed() < timeout, "inspection {id} still {} after {timeout:?}", v["status"]);
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+    }
+
+    /// Graceful shutdown; returns the data directory (still on disk while held).
+    pub async fn stop(mut self) -> Option<tempfile::TempDir> {
+        if let Some(s) = self.stop.take() {
+            let _ = s.send(());
+        }
+        if let Some(h) = self.server.take() {
+            h.await.unwrap();
+        }
+        self.dir.take()
+    }
+
+    pub async fn store(&self) -> crestscan::service::store::Store {
+        open_store(&self.data).await
+    }
+
+    pub fn uploads(&self) -> usize {
+        let dir = self.data.join("uploads");
+        if dir.exists() { walk(&dir).len() } else { 0 }
+    }
+}
+
+pub fn test_settings(data: &Path) -> Settings {
+    Settings {
+        bind: "127.0.0.1:0".parse().unwrap(),
+        data_dir: data.to_path_buf(),
+        lease_seconds: 2.0,
+        heartbeat_seconds: 0.2,
+        poll_interval_ms: 50,
+        shutdown_grace_seconds: 5.0,
+        log: "warn".into(),
+        ..Settings::default()
+    }
+}
+
+pub async fn open_store(data: &Path) -> crestscan::service::store::Store {
+    crestscan::service::store::Store::open(&data.join("crestscan.db"), &data.join("uploads"), &data.join("tmp"))
+        .await
+        .unwrap()
+}
+
+/// Starts the real application on port 0 with a fresh data directory.
+pub async fn spawn_app_with(edit: impl FnOnce(&mut Settings)) -> TestApp {
+    let dir = tempfile::tempdir().unwrap();
+    let mut app = spawn_app_in(dir.path(), edit).await;
+    app.dir = Some(dir);
+    app
+}
+
+/// Starts the real application on port 0 on an existing data directory.
+pub async fn spawn_app_in(data: &Path, edit: impl FnOnce(&mut Settings)) -> TestApp {
+    crestscan::service::telemetry::init_logging("warn");
+    let mut settings = test_settings(data);
+    edit(&mut settings);
+    let app = Application::build(settings).await.unwrap();
+    let base = format!("http://{}", app.address());
+    let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+    let server = tokio::spawn(async move {
+        app.run_until(async move {
+            let _ = rx.await;
+        })
+        .await
+        .unwrap();
+    });
+    TestApp {
+        base,
+        client: reqwest::Client::new(),
+        data: data.to_path_buf(),
+        dir: None,
+        stop: Some(tx),
+        server: Some(server),
+    }
+}
+
+pub async fn spawn_app() -> TestApp {
+    spawn_app_with(|_| {}).await
+}
+
+/// The ci bundle (without truth/) as a tar archive.
+pub fn ci_tar() -> Vec<u8> {
+    bundle_tar(ci_bundle(), &|_| true)
+}
+
+pub fn bundle_tar(dir: &Path, keep: &dyn Fn(&str) -> bool) -> Vec<u8> {
+    let mut builder = tar::Builder::new(Vec::new());
+    for file in walk(dir) {
+        let rel = file.strip_prefix(dir).unwrap().to_string_lossy().replace('\\', "/");
+        if rel.starts_with("truth") || !keep(&rel) {
+            continue;
+        }
+        builder.append_path_with_name(&file, &rel).unwrap();
+    }
+    builder.into_inner().unwrap()
+}
+
+fn truth() -> Truth {
+    serde_json::from_slice(&std::fs::read(ci_bundle().join("truth/truth.json")).unwrap()).unwrap()
+}
+
+async fn problem(response: reqwest::Response, status: StatusCode, code: &str) -> Value {
+    assert_eq!(response.status(), status, "expected {status} {code}");
+    assert_eq!(response.headers()["content-type"], "application/problem+json");
+    let v: Value = response.json().await.unwrap();
+    assert_eq!(v["code"], code, "{v}");
+    assert_eq!(v["status"], status.as_u16(), "{v}");
+    assert!(v["type"].as_str().unwrap().ends_with(code), "{v}");
+    assert!(!v["detail"].as_str().unwrap().is_empty(), "{v}");
+    v
+}

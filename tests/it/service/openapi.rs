@@ -1,0 +1,38 @@
+//! The OpenAPI document: served, and the same as the committed file.
+
+use super::*;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn openapi_is_served_and_matches_the_committed_file() {
+    let app = spawn_app_with(|s| s.workers = 0).await;
+    let served: Value = app.get("/openapi.json").await.json().await.unwrap();
+    let generated: Value = serde_json::from_str(&crestscan::service::api::openapi().to_pretty_json().unwrap()).unwrap();
+    assert_eq!(served, generated);
+    let committed: Value = serde_json::from_slice(
+        &std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("openapi/openapi.json"))
+            .expect("openapi/openapi.json committed"),
+    )
+    .unwrap();
+    assert!(committed == generated, "openapi/openapi.json is stale: run `cargo run -- openapi > openapi/openapi.json`");
+    // Every operation has an operationId and documents its errors.
+    for (path, item) in served["paths"].as_object().unwrap() {
+        for (method, op) in item.as_object().unwrap() {
+            assert!(op["operationId"].is_string(), "{method} {path}");
+            let codes: Vec<&String> = op["responses"].as_object().unwrap().keys().collect();
+            if !["/healthz", "/metrics"].contains(&path.as_str()) {
+                assert!(
+                    codes.iter().any(|c| c.starts_with('4') || c.starts_with('5')),
+                    "{method} {path} documents no error"
+                );
+            }
+        }
+    }
+    let docs = app.get("/docs/").await;
+    assert_eq!(docs.status(), StatusCode::OK);
+    let html = docs.text().await.unwrap();
+    assert!(html.contains("swagger-ui"), "the API browser is served");
+    assert!(!html.contains("https://"), "no CDN: the browser works offline");
+    let ready: Value = app.get("/readyz").await.json().await.unwrap();
+    assert_eq!(ready["status"], "ready");
+    app.stop().await;
+}

@@ -1,0 +1,168 @@
+//! The queue and its durability: kill -9, graceful shutdown, API and worker nodes, retention.
+
+use super::*;
+
+/// Uploaded bundles are deleted once every inspection that uses them finished before the cutoff;
+/// one still shared by an unfinished inspection is kept, and the records stay readable.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn finished_uploads_are_purged_and_shared_ones_kept() {
+    let app = spawn_app_with(|s| s.workers = 0).await;
+    let store = app.store().await;
+    let later_ms =
+        || (std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_millis() as i64) + 3_600_000;
+    let cancel = |id: String| {
+        let request = app.client.post(app.url(&format!("/v1/inspections/{id}/cancel")));
+        async move { assert_eq!(request.send().await.unwrap().status(), StatusCode::OK) }
+    };
+    let first: Value = app.submit(ci_tar(), "").await.json().await.unwrap();
+    let first = first["id"].as_str().unwrap().to_string();
+    cancel(first.clone()).await;
+    // The same bundle again: the same content-addressed upload, now in use by a queued inspection.
+    let second: Value = app.submit(ci_tar(), "").await.json().await.unwrap();
+    let second = second["id"].as_str().unwrap().to_string();
+    assert_eq!(app.uploads(), 1);
+    assert_eq!(store.purge_uploads(later_ms()).await.unwrap(), 0, "an unfinished inspection still needs it");
+    assert_eq!(app.uploads(), 1);
+    cancel(second.clone()).await;
+    // Finished, but after the cutoff: kept.
+    assert_eq!(store.purge_uploads(later_ms() - 7_200_000).await.unwrap(), 0);
+    assert_eq!(store.purge_uploads(later_ms()).await.unwrap(), 1);
+    assert_eq!(app.uploads(), 0);
+    assert_eq!(store.purge_uploads(later_ms()).await.unwrap(), 0, "purged once");
+    for id in [&first, &second] {
+        let v: Value = app.get(&format!("/v1/inspections/{id}")).await.json().await.unwrap();
+        assert_eq!(v["status"], "canceled", "{v}");
+    }
+    app.stop().await;
+}
+
+/// The real binary, SIGKILLed with jobs queued and running, then restarted on the same data
+/// directory: every accepted inspection finishes, exactly once.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn kill_9_loses_no_accepted_inspection() {
+    let data = tempfile::tempdir().unwrap();
+    let start = |data: &Path| {
+        let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_crestscan"))
+            .args([
+                "serve",
+                "--bind",
+                "127.0.0.1:0",
+                "--lease-seconds",
+                "1",
+                "--heartbeat-seconds",
+                "0.2",
+                "--poll-interval-ms",
+                "50",
+                "--log",
+                "warn",
+            ])
+            .arg("--data-dir")
+            .arg(data)
+            .stdout(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let mut line = String::new();
+        std::io::BufRead::read_line(&mut std::io::BufReader::new(child.stdout.take().unwrap()), &mut line).unwrap();
+        let address = line.trim().rsplit("http://").next().unwrap().to_string();
+        (child, format!("http://{address}"))
+    };
+    let client = reqwest::Client::new();
+    let (mut child, base) = start(data.path());
+    let mut ids = Vec::new();
+    for _ in 0..3 {
+        let r = client
+            .post(format!("{base}/v1/inspections"))
+            .header("content-type", "application/x-tar")
+            .body(ci_tar())
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), StatusCode::ACCEPTED);
+        ids.push(r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string());
+    }
+    // Kill it while the first is running.
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let v: Value =
+            client.get(format!("{base}/v1/inspections/{}", ids[0])).send().await.unwrap().json().await.unwrap();
+        if v["status"] == "running" {
+            break;
+        }
+        assert!(Instant::now() < deadline, "never started: {v}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+
+    let (mut child, base) = start(data.path());
+    let deadline = Instant::now() + Duration::from_secs(300);
+    for id in &ids {
+        loop {
+            let v: Value =
+                client.get(format!("{base}/v1/inspections/{id}")).send().await.unwrap().json().await.unwrap();
+            if v["status"] == "succeeded" {
+                break;
+            }
+            assert!(v["status"] == "queued" || v["status"] == "running", "{v}");
+            assert!(Instant::now() < deadline, "not finished: {v}");
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+    }
+    let first: Value =
+        client.get(format!("{base}/v1/inspections/{}", ids[0])).send().await.unwrap().json().await.unwrap();
+    assert_eq!(first["attempts"], 2, "the killed run and the one that finished");
+    child.kill().unwrap();
+    child.wait().unwrap();
+    // Exactly once: one report and one set of thread rows per inspection.
+    let store = open_store(data.path()).await;
+    let (reports,): (i64,) = sqlx::query_as("SELECT COUNT(*) FROM reports").fetch_one(&store.pool).await.unwrap();
+    assert_eq!(reports, 3);
+    let (dupes,): (i64,) = sqlx::query_as(
+        "SELECT COUNT(*) FROM (SELECT inspection_id, thread_index FROM threads GROUP BY 1, 2 HAVING COUNT(*) > 1)",
+    )
+    .fetch_one(&store.pool)
+    .await
+    .unwrap();
+    assert_eq!(dupes, 0);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn graceful_shutdown_lets_the_running_job_finish() {
+    // A grace period long enough for a starved CI machine (the compute pool runs at SCHED_IDLE).
+    let app = spawn_app_with(|s| s.shutdown_grace_seconds = 300.0).await;
+    let id = app.submit(ci_tar(), "").await.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let v: Value = app.get(&format!("/v1/inspections/{id}")).await.json().await.unwrap();
+        if v["status"] == "running" {
+            break;
+        }
+        assert_eq!(v["status"], "queued");
+        assert!(Instant::now() < deadline);
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    let data = app.data.clone();
+    let _dir = app.stop().await;
+    let row = open_store(&data).await.inspection(&id).await.unwrap();
+    assert_eq!(row.status, "succeeded", "the job finished within the grace period before the process stopped");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_api_node_and_a_worker_node_share_a_data_directory_and_failures_are_problems() {
+    // An API-only node accepts; the upload then vanishes (an operator's mistake).
+    let api = spawn_app_with(|s| s.workers = 0).await;
+    let created: Value = api.submit(ci_tar(), "").await.json().await.unwrap();
+    let id = created["id"].as_str().unwrap();
+    let sha = created["bundle"]["sha256"].as_str().unwrap();
+    api.store().await.files.remove(sha).unwrap();
+    // A worker node on the same directory claims it and fails it with a problem object.
+    let worker = spawn_app_in(&api.data, |_| {}).await;
+    let done = api.wait(id, Duration::from_secs(60)).await;
+    assert_eq!(done["status"], "failed");
+    assert_eq!(done["error"]["code"], "upload_missing");
+    assert_eq!(done["error"]["status"], 500);
+    assert!(done["error"]["detail"].as_str().unwrap().contains(sha));
+    assert_eq!(done["attempts"], 1, "a permanent failure is not retried");
+    worker.stop().await;
+    api.stop().await;
+}

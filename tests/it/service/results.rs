@@ -1,0 +1,168 @@
+//! Results: the whole round trip on the ci preset (report, threads, mesh, images, CMM comparison).
+
+use super::*;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn round_trip_on_the_ci_preset() {
+    let app = spawn_app().await;
+    let response = app.submit(ci_tar(), "?client_reference=MES-4711").await;
+    assert_eq!(response.status(), StatusCode::ACCEPTED);
+    let location = response.headers()["location"].to_str().unwrap().to_string();
+    let created: Value = response.json().await.unwrap();
+    let id = created["id"].as_str().unwrap().to_string();
+    assert_eq!(location, format!("/v1/inspections/{id}"));
+    assert_eq!(created["status"], "queued");
+    assert_eq!(created["client_reference"], "MES-4711");
+    assert_eq!(created["connection"], "BC 4-1/2");
+    assert_eq!(created["bundle"]["views"], 3);
+
+    let done = app.wait(&id, Duration::from_secs(300)).await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    assert_eq!(done["attempts"], 1);
+    let truth = truth();
+    assert_eq!(done["verdict"], truth.verdict.as_str());
+    for t in ["created_at", "started_at", "finished_at"] {
+        time::OffsetDateTime::parse(done[t].as_str().unwrap(), &time::format_description::well_known::Rfc3339).unwrap();
+    }
+
+    // Report, with a strong ETag and 304 on a match.
+    let response = app.get(&format!("{location}/report")).await;
+    assert_eq!(response.status(), StatusCode::OK);
+    let etag = response.headers()["etag"].to_str().unwrap().to_string();
+    assert!(etag.starts_with('"') && !etag.starts_with("W/"));
+    let report: crestscan::pipeline::report::Report = response.json().await.unwrap();
+    assert_eq!(report.verdict, truth.verdict);
+    let again =
+        app.client.get(app.url(&format!("{location}/report"))).header("if-none-match", &etag).send().await.unwrap();
+    assert_eq!(again.status(), StatusCode::NOT_MODIFIED);
+
+    // Per-thread table: JSON and CSV carry the same heights.
+    let table: Value = app.get(&format!("{location}/threads")).await.json().await.unwrap();
+    let threads = table["threads"].as_array().unwrap();
+    assert_eq!(threads.len(), report.threads.len());
+    let json_bins: usize = threads.iter().map(|t| t["heights"].as_array().unwrap().len()).sum();
+    let csv =
+        app.client.get(app.url(&format!("{location}/threads"))).header("accept", "text/csv").send().await.unwrap();
+    assert!(csv.headers()["content-type"].to_str().unwrap().starts_with("text/csv"));
+    let csv = csv.text().await.unwrap();
+    let mut lines = csv.lines();
+    assert_eq!(lines.next(), Some("thread,angle_deg,height_mm"));
+    assert_eq!(lines.count(), json_bins);
+    let first_measured = report.threads.iter().find_map(|t| {
+        t.height_mm.angles_deg.iter().zip(&t.height_mm.values).find_map(|(a, v)| v.map(|v| (t.index, *a, v)))
+    });
+    let (thread, angle, height) = first_measured.expect("some bin measured");
+    assert!(csv.contains(&format!("{thread},{angle},{height:.6}")), "CSV lacks {thread},{angle},{height:.6}");
+    // Weights decide, not the order the client lists them in.
+    let weighted = app
+        .client
+        .get(app.url(&format!("{location}/threads")))
+        .header("accept", "text/csv;q=0.5, application/json")
+        .send()
+        .await
+        .unwrap();
+    assert!(weighted.headers()["content-type"].to_str().unwrap().starts_with("application/json"));
+
+    // Mesh in all three formats, images as PNG.
+    let ply = app.get(&format!("{location}/mesh")).await;
+    assert_eq!(ply.headers()["content-type"], "application/x-ply");
+    let ply_etag = ply.headers()["etag"].clone();
+    let ply = ply.bytes().await.unwrap();
+    assert!(ply.starts_with(b"ply\n"));
+    let stl = app.client.get(app.url(&format!("{location}/mesh"))).header("accept", "model/stl").send().await.unwrap();
+    assert_eq!(stl.headers()["content-type"], "model/stl");
+    let stl = stl.bytes().await.unwrap();
+    let triangles = u32::from_le_bytes(stl[80..84].try_into().unwrap()) as usize;
+    assert_eq!(stl.len(), 84 + 50 * triangles);
+    // The GLB is made from the stored PLY: the same mesh, read back by a glTF reader.
+    let glb = app.get(&format!("{location}/mesh?format=glb")).await;
+    assert_eq!(glb.headers()["content-type"], "model/gltf-binary");
+    let glb_etag = glb.headers()["etag"].clone();
+    assert_ne!(glb_etag, ply_etag, "each representation has its own validator");
+    assert!(glb.headers()["content-disposition"].to_str().unwrap().ends_with(".glb\""));
+    let glb = gltf::Gltf::from_slice(&glb.bytes().await.unwrap()).unwrap();
+    let blob = glb.blob.clone().unwrap();
+    let primitive = glb.meshes().next().unwrap().primitives().next().unwrap();
+    let reader = primitive.reader(|_| Some(&blob));
+    let stored = crestscan::export::ply::read(&ply).unwrap();
+    assert_eq!(reader.read_positions().unwrap().collect::<Vec<_>>(), stored.vertices);
+    assert_eq!(reader.read_indices().unwrap().into_u32().count(), 3 * triangles);
+    let revalidated = app
+        .client
+        .get(app.url(&format!("{location}/mesh")))
+        .header("accept", "model/gltf-binary")
+        .header("if-none-match", glb_etag)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(revalidated.status(), StatusCode::NOT_MODIFIED);
+    for kind in ["height-map", "all-in-focus"] {
+        let png = app.get(&format!("{location}/images/{kind}")).await;
+        assert_eq!(png.headers()["content-type"], "image/png");
+        let bytes = png.bytes().await.unwrap();
+        let decoded = image::load_from_memory(&bytes).unwrap();
+        assert!(decoded.width() > 10 && decoded.height() > 10);
+    }
+    problem(app.get(&format!("{location}/mesh?format=obj")).await, StatusCode::NOT_ACCEPTABLE, "not_acceptable").await;
+
+    // CMM: the truth's heights, offset by +5 µm, at every bin crestscan measured, as the CMM's
+    // CSV. crestscan − CMM is then its own error minus 5 µm: the comparison's statistics must be
+    // exactly those of the listed deviations.
+    let mut cmm_csv = String::from("thread,angle_deg,height_mm\n");
+    for t in &report.threads {
+        let truth_thread = truth.threads.iter().find(|u| u.index == t.index).expect("same numbering");
+        for ((a, ours), theirs) in
+            t.height_mm.angles_deg.iter().zip(&t.height_mm.values).zip(&truth_thread.height_mm.values)
+        {
+            if let (Some(_), Some(v)) = (ours, theirs) {
+                cmm_csv.push_str(&format!("{},{a},{}\n", t.index, v + 0.005));
+            }
+        }
+    }
+    // One thread's mean, without an angle: compared with crestscan's mean of that thread.
+    let mean = report.threads.iter().find(|t| t.index == thread).unwrap().mean_height_mm.unwrap();
+    cmm_csv.push_str(&format!("{thread},,{}\n", mean + 0.005));
+    let put = app
+        .client
+        .put(app.url(&format!("{location}/cmm")))
+        .header("content-type", "text/csv")
+        .body(cmm_csv)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(put.status(), StatusCode::OK);
+    let cmp: Value = app.get(&format!("{location}/cmm-comparison")).await.json().await.unwrap();
+    let devs: Vec<f64> = cmp["points"].as_array().unwrap().iter().filter_map(|p| p["deviation_mm"].as_f64()).collect();
+    let agreement = &cmp["agreement"];
+    assert!(devs.len() >= 10, "{cmp}");
+    assert_eq!(agreement["unmatched"], 0);
+    let mean_point = cmp["points"].as_array().unwrap().iter().find(|p| p["angle_deg"].is_null()).unwrap();
+    assert!((mean_point["deviation_mm"].as_f64().unwrap() + 0.005).abs() < 1e-9);
+    assert_eq!(agreement["compared"], devs.len());
+    let bias = devs.iter().sum::<f64>() / devs.len() as f64;
+    let rms = (devs.iter().map(|d| d * d).sum::<f64>() / devs.len() as f64).sqrt();
+    assert!((agreement["bias_mm"].as_f64().unwrap() - bias).abs() < 1e-12);
+    assert!((agreement["rms_mm"].as_f64().unwrap() - rms).abs() < 1e-12);
+    assert!(bias < -0.005 + 0.015 && bias > -0.005 - 0.015, "bias {bias}: crestscan's own error is within 15 µm");
+    let [lo, hi] = [
+        agreement["limits_of_agreement_mm"][0].as_f64().unwrap(),
+        agreement["limits_of_agreement_mm"][1].as_f64().unwrap(),
+    ];
+    assert!(lo < bias && bias < hi);
+    // Default tolerance: a tenth of the ±tolerance band.
+    let tol = cmp["height_tolerance_mm"].as_f64().unwrap();
+    assert!((agreement["tolerance_mm"].as_f64().unwrap() - 2.0 * tol / 10.0).abs() < 1e-12);
+    let strict: Value =
+        app.get(&format!("{location}/cmm-comparison?tolerance_mm=0.000001")).await.json().await.unwrap();
+    assert_eq!(strict["agreement"]["within_tolerance"], false);
+    let loose: Value = app.get(&format!("{location}/cmm-comparison?tolerance_mm=1")).await.json().await.unwrap();
+    assert_eq!(loose["agreement"]["within_tolerance"], true);
+
+    // The list finds it by its client reference; metrics counted the polls by route.
+    let page: Value = app.get("/v1/inspections?client_reference=MES-4711&status=succeeded").await.json().await.unwrap();
+    assert_eq!(page["items"].as_array().unwrap().len(), 1);
+    let metrics = app.get("/metrics").await.text().await.unwrap();
+    assert!(metrics.contains(r#"route="/v1/inspections/{id}",status="200""#), "{metrics}");
+    assert!(metrics.contains("crestscan_jobs_finished_total{outcome=\"succeeded\"} 1"), "{metrics}");
+    app.stop().await;
+}
