@@ -14,7 +14,7 @@ pub(super) fn focus_measure(gray: &[f32], w: usize, h: usize, r: usize, scratch:
 /// Every pass runs along whole rows so that it vectorises: the Laplacian, a running sum of rows
 /// (the vertical box), then the horizontal box as 2r+1 shifted row additions (a running sum along
 /// a row is one long dependency chain).
-pub(super) fn focus_measures(
+pub fn focus_measures(
     gray: &[f32],
     w: usize,
     h: usize,

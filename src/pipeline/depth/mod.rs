@@ -15,7 +15,7 @@
 //! At a steep edge, where the box holds two surfaces and the curve peaks at both, a small box
 //! says which peak (and colour) is the pixel's own ([`DepthOptions::edge_window_radius_px`]).
 
-mod measure;
+pub mod measure;
 mod peak;
 mod phase;
 mod resample;
