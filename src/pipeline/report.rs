@@ -6,8 +6,7 @@ use crate::domain::rules::{Assessment, Verdict};
 use crate::domain::thread::Family;
 use crate::pipeline::crest::CrestCone;
 use crate::pipeline::profile::{Helix, ThreadMeasure};
-use crate::pipeline::register::EndFace;
-use crate::pipeline::register::Registration;
+use crate::pipeline::register::{EndFace, Registration};
 use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

@@ -11,9 +11,7 @@
 //! The chamfer at the pipe end is machined: bins flagged `chamfer` never count as geometric black
 //! crests.
 
-use crate::domain::arcs::arc_length_mm;
-use crate::domain::arcs::arcs_deg;
-use crate::domain::arcs::union_arcs;
+use crate::domain::arcs::{arc_length_mm, arcs_deg, union_arcs};
 use crate::domain::thread::Family;
 use serde::{Deserialize, Serialize};
 

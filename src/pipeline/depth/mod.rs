@@ -28,17 +28,10 @@ pub use silhouette::{FrameEdge, frame_edge};
 use crate::domain::frame::{Frame, FrameError, View};
 use crate::domain::optics::{Optics, Projection};
 use crate::domain::thread::{ProfileShape, ThreadForm};
-use crate::pipeline::depth::measure::focus_measures;
-use crate::pipeline::depth::peak::MedianNetwork;
-use crate::pipeline::depth::peak::Ties;
-use crate::pipeline::depth::peak::keep_sharpest;
-use crate::pipeline::depth::peak::own_peak;
-use crate::pipeline::depth::resample::HeldFrame;
-use crate::pipeline::depth::resample::Taps;
-use crate::pipeline::depth::resample::axis_taps;
-use crate::pipeline::depth::resample::resample_row;
-use crate::pipeline::depth::resample::tap_spans;
+use measure::focus_measures;
+use peak::{MedianNetwork, Ties, keep_sharpest, own_peak};
 use rayon::prelude::*;
+use resample::{HeldFrame, Taps, axis_taps, resample_row, tap_spans};
 use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

@@ -6,8 +6,7 @@
 /// `select_nth_unstable(n / 2)` finds) of `n` values at that index: Batcher's odd–even merge sort
 /// pruned to the comparators the median depends on. Applied to `n` rows of pixels at once, each
 /// comparator is a min and a max over whole rows, which vectorise; a selection per pixel does not.
-use crate::pipeline::depth::EDGE_MIN_SEPARATION_FRAMES;
-use crate::pipeline::depth::EDGE_PEAK_FRACTION;
+use crate::pipeline::depth::{EDGE_MIN_SEPARATION_FRAMES, EDGE_PEAK_FRACTION};
 #[derive(Clone, Debug)]
 pub(super) struct MedianNetwork {
     pairs: Vec<(usize, usize)>,

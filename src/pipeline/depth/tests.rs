@@ -1,8 +1,6 @@
 use super::*;
 use crate::domain::frame::Samples;
-use crate::pipeline::depth::measure::focus_measure;
-use crate::pipeline::depth::measure::focus_measures_avx2;
-use crate::pipeline::depth::measure::focus_measures_body;
+use crate::pipeline::depth::measure::{focus_measure, focus_measures_avx2, focus_measures_body};
 
 #[test]
 fn options_stored_before_the_flat_window_existed_still_load_with_its_default() {

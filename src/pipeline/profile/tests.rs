@@ -1,11 +1,7 @@
 use super::*;
 
-use crate::pipeline::profile::heights::Section;
-use crate::pipeline::profile::heights::fit_at_centre;
-use crate::pipeline::profile::heights::fit_curvature;
-use crate::pipeline::profile::heights::nominal_curvatures;
-use crate::pipeline::profile::helix::form_fundamental;
-use crate::pipeline::profile::helix::fundamental_beside_a_line;
+use crate::pipeline::profile::heights::{Section, fit_at_centre, fit_curvature, nominal_curvatures};
+use crate::pipeline::profile::helix::{form_fundamental, fundamental_beside_a_line};
 use crate::pipeline::surface::GridSpec;
 
 /// A synthetic fused map of an ideal buttress thread.
