@@ -2,8 +2,10 @@
 //! the same declarations), merged here with the docs, the fallback and the middleware that turns
 //! every error into problem+json and counts requests.
 
+pub mod cmm;
 pub mod connections;
 pub mod health;
+mod http;
 pub mod ingest;
 pub mod inspections;
 pub mod problem;
@@ -109,6 +111,7 @@ fn api_routes() -> OpenApiRouter<AppState> {
     OpenApiRouter::with_openapi(ApiDoc::openapi())
         .merge(inspections::router())
         .merge(results::router())
+        .merge(cmm::router())
         .merge(connections::router())
         .merge(health::router())
 }

@@ -1,0 +1,187 @@
+//! CMM measurements of an inspection (JSON or CSV per the contract) and their comparison with
+//! crestscan's heights.
+
+use super::problem::{ApiError, Problem};
+use super::results::succeeded;
+use super::{AppState, InspectionId, rfc3339};
+use crate::eval::cmm::{self, CmmMeasurements, CmmPoint, Comparison};
+use crate::pipeline::report::Report;
+use crate::problem::Code;
+use crate::service::store::StoreError;
+use axum::Json;
+use axum::body::Bytes;
+use axum::extract::{Path, Query, State};
+use axum::http::{HeaderMap, header};
+use serde::{Deserialize, Serialize};
+use utoipa::{IntoParams, ToSchema};
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
+
+pub fn router() -> OpenApiRouter<AppState> {
+    OpenApiRouter::new().routes(routes!(put_cmm, get_cmm)).routes(routes!(get_cmm_comparison))
+}
+
+const MAX_CMM_BYTES: usize = 16 << 20;
+
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
+pub struct StoredCmm {
+    pub inspection_id: String,
+    pub instrument: Option<String>,
+    pub measured_at: Option<String>,
+    pub uploaded_at: String,
+    pub points: Vec<CmmPoint>,
+}
+
+/// Upload (or replace) the CMM measurements of an inspection: JSON
+/// (`{"instrument", "measured_at", "points": [{"thread", "angle_deg", "height_mm"}]}`) or CSV
+/// (`thread,angle_deg,height_mm`; an empty angle is the thread's mean).
+#[utoipa::path(
+    put,
+    path = "/v1/inspections/{id}/cmm",
+    operation_id = "put_cmm",
+    tag = "cmm",
+    params(("id" = String, Path, description = "Inspection id")),
+    request_body(content(
+        (CmmMeasurements = "application/json"),
+        (String = "text/csv"),
+    )),
+    responses(
+        (status = 200, description = "Stored", body = StoredCmm),
+        (status = 404, description = "No such inspection", body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
+        (status = 415, description = "Neither JSON nor CSV", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Invalid measurements (the field or CSV line is named)", body = Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn put_cmm(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+    body: axum::body::Body,
+) -> Result<Json<StoredCmm>, ApiError> {
+    let id = succeeded(&state, &id).await?;
+    let body: Bytes = axum::body::to_bytes(body, MAX_CMM_BYTES).await.map_err(|e| {
+        if std::error::Error::source(&e).is_some_and(|s| s.is::<http_body_util::LengthLimitError>()) {
+            ApiError::new(Code::BodyTooLarge, format!("CMM uploads are limited to {} MiB", MAX_CMM_BYTES >> 20))
+        } else {
+            ApiError::new(Code::BadRequest, format!("reading the body: {e}"))
+        }
+    })?;
+    let content_type =
+        headers.get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_ascii_lowercase();
+    let essence = content_type.split(';').next().unwrap_or("").trim();
+    let parsed = match essence {
+        "application/json" => CmmMeasurements::from_json(&body),
+        "text/csv" => CmmMeasurements::from_csv(&body),
+        other => {
+            return Err(ApiError::new(
+                Code::UnsupportedMediaType,
+                format!("Content-Type {other:?}: send application/json or text/csv"),
+            )
+            .with_culprit("Content-Type"));
+        }
+    }
+    .map_err(|e| ApiError::new(Code::InvalidCmm, e.to_string()).with_culprit(e.field.clone()))?;
+    state.store.put_cmm(&id.0, &parsed).await?;
+    get_cmm(State(state), Path(id.0)).await
+}
+
+/// The stored CMM measurements.
+#[utoipa::path(
+    get,
+    path = "/v1/inspections/{id}/cmm",
+    operation_id = "get_cmm",
+    tag = "cmm",
+    params(("id" = String, Path, description = "Inspection id")),
+    responses(
+        (status = 200, description = "Stored measurements", body = StoredCmm),
+        (status = 404, description = "No such inspection, or no CMM data yet", body = Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn get_cmm(State(state): State<AppState>, Path(id): Path<String>) -> Result<Json<StoredCmm>, ApiError> {
+    let id = InspectionId::parse(&id)?;
+    state.store.inspection(&id.0).await.map_err(|e| super::missing_inspection(e, &id.0))?;
+    Ok(Json(stored_cmm(&state, id).await?))
+}
+
+/// The CMM measurements stored for an inspection known to exist.
+async fn stored_cmm(state: &AppState, id: InspectionId) -> Result<StoredCmm, ApiError> {
+    let row = state.store.cmm(&id.0).await.map_err(|e| match e {
+        StoreError::NotFound => {
+            ApiError::new(Code::CmmNotFound, format!("no CMM measurements for {}; PUT them first", id.0))
+        }
+        other => other.into(),
+    })?;
+    Ok(StoredCmm {
+        inspection_id: id.0,
+        instrument: row.instrument,
+        measured_at: row.measured_at,
+        uploaded_at: rfc3339(row.uploaded_at),
+        points: serde_json::from_str(&row.points_json).map_err(ApiError::internal)?,
+    })
+}
+
+#[derive(Clone, Debug, Default, Deserialize, IntoParams)]
+#[serde(deny_unknown_fields)]
+#[into_params(parameter_in = Query)]
+pub struct ComparisonQuery {
+    /// Agreement tolerance in mm (default: one tenth of the thread-height tolerance band).
+    pub tolerance_mm: Option<f64>,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
+pub struct CmmComparison {
+    pub inspection_id: String,
+    pub instrument: Option<String>,
+    pub measured_at: Option<String>,
+    /// The thread-height tolerance (±) of the part.
+    pub height_tolerance_mm: f64,
+    #[serde(flatten)]
+    pub comparison: Comparison,
+}
+
+/// crestscan against the CMM: per point (thread, angle) both heights and the deviation; bias, RMS,
+/// max |deviation|, Bland–Altman limits of agreement, and agreement within a tolerance.
+#[utoipa::path(
+    get,
+    path = "/v1/inspections/{id}/cmm-comparison",
+    operation_id = "get_cmm_comparison",
+    tag = "cmm",
+    params(("id" = String, Path, description = "Inspection id"), ComparisonQuery),
+    responses(
+        (status = 200, description = "The comparison", body = CmmComparison),
+        (status = 400, description = "Invalid tolerance", body = Problem, content_type = "application/problem+json"),
+        (status = 404, description = "No such inspection, or no CMM data yet", body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn get_cmm_comparison(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    query: Result<Query<ComparisonQuery>, axum::extract::rejection::QueryRejection>,
+) -> Result<Json<CmmComparison>, ApiError> {
+    let Query(q) = query.map_err(|e| ApiError::new(Code::InvalidQuery, e.body_text()))?;
+    if let Some(t) = q.tolerance_mm
+        && !(t.is_finite() && t > 0.0)
+    {
+        return Err(ApiError::new(Code::InvalidQuery, format!("tolerance_mm: {t} must be a positive number"))
+            .with_culprit("tolerance_mm"));
+    }
+    let id = succeeded(&state, &id).await?;
+    let stored = stored_cmm(&state, id.clone()).await?;
+    let (json, _) = state.store.report(&id.0).await?;
+    let report: Report = serde_json::from_str(&json).map_err(ApiError::internal)?;
+    let tolerance = q.tolerance_mm.unwrap_or_else(|| cmm::default_tolerance_mm(&report));
+    let measurements = CmmMeasurements {
+        instrument: stored.instrument.clone(),
+        measured_at: stored.measured_at.clone(),
+        points: stored.points,
+    };
+    Ok(Json(CmmComparison {
+        inspection_id: id.0,
+        instrument: stored.instrument,
+        measured_at: stored.measured_at,
+        height_tolerance_mm: report.height_tolerance_mm,
+        comparison: cmm::compare(&report, &measurements, tolerance),
+    }))
+}
