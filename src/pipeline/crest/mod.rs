@@ -146,8 +146,8 @@ pub fn observations(
     let grays: Vec<Option<f32>> = in_helix_order().map(|b| b.crest_gray).collect();
     let extent_below = reference - options.dark_extent_sigmas * gray_scatter;
     // Where the scale thins to a strip at a run's end, one bin can read just above the extent
-    // bar between darker ones (round seed 2 of the held-out suite: 0.519 between 0.486 and the
-    // run, against a bar at 0.513); a single such bin does not end the run.
+    // bar between darker ones; a single such bin does not end the run (docs/notebook/accuracy.md,
+    // False and short arcs on the round thread).
     let dark = grow_runs(&seeds, |i| grays[i].is_some_and(|g| g < extent_below), 1);
     let cover = dark_cover(&dark, &grays, reference);
     // A run's first and last bins count by how much of them the scale covers.

@@ -137,9 +137,9 @@ pub(super) fn overlap_sums_avx2(a: &TextureGrid, b: &TextureGrid, off_s: i64, of
 /// the cells where both have data; (−1, n) when fewer than `min_cells` meet. Returns (ncc, cells).
 ///
 /// The build targets baseline x86-64 (SSE2), so the binary runs anywhere; this loop, registration's
-/// largest, takes AVX2 where the processor has it (the same sums either way; standard preset:
-/// registration 0.79–0.80 → 0.59–0.69 s). Only loops measured faster that way have two copies (see
-/// also `depth::focus_measure`): the whole program built for x86-64-v3 was slower.
+/// largest, takes AVX2 where the processor has it (the same sums either way). Only loops measured
+/// faster that way have two copies (see also `depth::measure`): the whole program built for
+/// x86-64-v3 was slower (docs/notebook/accuracy.md, Speed).
 pub(super) fn ncc_grids(a: &TextureGrid, b: &TextureGrid, off_s: i64, off_z: i64, min_cells: usize) -> (f64, usize) {
     #[cfg(target_arch = "x86_64")]
     let total = if std::arch::is_x86_feature_detected!("avx2") {

@@ -65,8 +65,8 @@ pub(super) fn measure_pair(
     }
     // Along z the texture is the grain as imaged, whose correlation peak is close to a Gaussian;
     // along the arc it was high-passed (its mean over ±4 cells removed, `texture`), which narrows
-    // the peak and gives it negative side lobes, so the parabola stays there. (Gaussian along z:
-    // axial RMS 1.7–3.8 → 1.1–2.3 µm on the accuracy suite, better on 17 of the 18 held-out cases.)
+    // the peak and gives it negative side lobes, so the parabola stays there (docs/notebook/
+    // accuracy.md, Registration: the sub-cell step along z).
     let frac_s = sub_cell(ncc(ds - 1, dz).0, peak, ncc(ds + 1, dz).0);
     let frac_z = sub_cell_gaussian(ncc(ds, dz - 1).0, peak, ncc(ds, dz + 1).0);
     // Radial offset over the aligned overlap.
