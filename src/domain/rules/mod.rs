@@ -237,6 +237,33 @@ fn lengths_text(threads: &[&BlackThread]) -> String {
 
 /// Applies the acceptance rules.
 pub fn assess(input: &RuleInput, arc_rule: ArcRule) -> Assessment {
+    let black_threads = black_threads_within_lc(input);
+    let mut reasons: Vec<Reason> =
+        black_threads.iter().filter(|t| t.evidence == BlackCrestEvidence::Geometric).map(polished_reason).collect();
+    let all: Vec<&BlackThread> = black_threads.iter().collect();
+    let (verdict, arc_limit_mm) = match input.family {
+        Family::Round => (round_verdict(input.lc_mm, &all, &mut reasons), None),
+        Family::Buttress => {
+            let (verdict, limit) = buttress_verdict(input, arc_rule, &all, &mut reasons);
+            (verdict, Some(limit))
+        }
+    };
+    // Last, after the verdict's own reason: it qualifies the verdict, it does not decide it.
+    let seen_crest_arcs = partial_coverage(input, &mut reasons);
+    Assessment {
+        verdict,
+        reasons,
+        black_threads,
+        lc_mm: input.lc_mm,
+        circumference_mm: input.circumference_mm,
+        arc_rule,
+        arc_limit_mm,
+        seen_crest_arcs,
+    }
+}
+
+/// Every thread with a black crest within Lc, by the photometric arcs, the geometric ones or both.
+fn black_threads_within_lc(input: &RuleInput) -> Vec<BlackThread> {
     let mut black_threads = Vec::new();
     for thread in &input.threads {
         let photometric = union_arcs(thread.black_crest_arcs_deg.clone());
@@ -251,135 +278,145 @@ pub fn assess(input: &RuleInput, arc_rule: ArcRule) -> Assessment {
         let length_mm = arc_length_mm(&arcs, input.circumference_mm);
         black_threads.push(BlackThread { index: thread.index, arcs_deg: arcs, length_mm, evidence });
     }
+    black_threads
+}
 
-    let lc = input.lc_mm;
-    let circ = input.circumference_mm;
-    let mut reasons = Vec::new();
-    for t in black_threads.iter().filter(|t| t.evidence == BlackCrestEvidence::Geometric) {
+/// The reason a crest on the mill surface with a machined look gets: polished to look full.
+fn polished_reason(t: &BlackThread) -> Reason {
+    Reason {
+        code: ReasonCode::PolishedBlackCrest,
+        message: format!(
+            "thread {}: crest on the mill surface, below the machined crest cone, over {:.1} mm within Lc \
+             with a machined look: a black crest polished or finished to look full",
+            t.index, t.length_mm
+        ),
+        threads: vec![t.index],
+        value: Some(t.length_mm),
+        limit: None,
+        unit: Some("mm".into()),
+    }
+}
+
+/// Round threads: any black crest within Lc rejects.
+fn round_verdict(lc: f64, all: &[&BlackThread], reasons: &mut Vec<Reason>) -> Verdict {
+    if all.is_empty() {
         reasons.push(Reason {
-            code: ReasonCode::PolishedBlackCrest,
-            message: format!(
-                "thread {}: crest on the mill surface, below the machined crest cone, over {:.1} mm within Lc \
-                 with a machined look: a black crest polished or finished to look full",
-                t.index, t.length_mm
-            ),
-            threads: vec![t.index],
-            value: Some(t.length_mm),
-            limit: None,
+            code: ReasonCode::NoBlackCrestWithinLc,
+            message: format!("Lc {lc:.1} mm; no black-crested thread within Lc; accept"),
+            threads: vec![],
+            value: Some(0.0),
+            limit: Some(0.0),
             unit: Some("mm".into()),
         });
-    }
-    let all: Vec<&BlackThread> = black_threads.iter().collect();
-    let indices: Vec<u32> = all.iter().map(|t| t.index).collect();
-
-    let (verdict, arc_limit_mm) = match input.family {
-        Family::Round => {
-            if all.is_empty() {
-                reasons.push(Reason {
-                    code: ReasonCode::NoBlackCrestWithinLc,
-                    message: format!("Lc {lc:.1} mm; no black-crested thread within Lc; accept"),
-                    threads: vec![],
-                    value: Some(0.0),
-                    limit: Some(0.0),
-                    unit: Some("mm".into()),
-                });
-                (Verdict::Accept, None)
-            } else {
-                for t in &all {
-                    reasons.push(Reason {
-                        code: ReasonCode::RoundBlackCrestWithinLc,
-                        message: format!(
-                            "Lc {lc:.1} mm; round thread {} black-crested within Lc over {:.1} mm ({}); \
-                             round threads allow none; reject",
-                            t.index,
-                            t.length_mm,
-                            arcs_text(&t.arcs_deg)
-                        ),
-                        threads: vec![t.index],
-                        value: Some(t.length_mm),
-                        limit: Some(0.0),
-                        unit: Some("mm".into()),
-                    });
-                }
-                (Verdict::Reject, None)
-            }
+        Verdict::Accept
+    } else {
+        for t in all {
+            reasons.push(Reason {
+                code: ReasonCode::RoundBlackCrestWithinLc,
+                message: format!(
+                    "Lc {lc:.1} mm; round thread {} black-crested within Lc over {:.1} mm ({}); \
+                     round threads allow none; reject",
+                    t.index,
+                    t.length_mm,
+                    arcs_text(&t.arcs_deg)
+                ),
+                threads: vec![t.index],
+                value: Some(t.length_mm),
+                limit: Some(0.0),
+                unit: Some("mm".into()),
+            });
         }
-        Family::Buttress => {
-            let limit = BUTTRESS_ARC_LIMIT * circ;
-            let head = format!(
-                "Lc {lc:.1} mm; {} black-crested thread{} within Lc{}{}; circumference {circ:.1} mm, 25% = {limit:.1} mm",
-                count_word(all.len()),
-                if all.len() == 1 { "" } else { "s" },
-                if all.is_empty() { "" } else { ", " },
-                lengths_text(&all)
-            );
-            let mut failed = false;
-            if all.len() > BUTTRESS_MAX_BLACK_THREADS {
+        Verdict::Reject
+    }
+}
+
+/// Buttress threads: at most two black-crested threads within Lc, each (or together) at most 25%
+/// of the circumference. The verdict and the arc limit in mm.
+fn buttress_verdict(
+    input: &RuleInput,
+    arc_rule: ArcRule,
+    all: &[&BlackThread],
+    reasons: &mut Vec<Reason>,
+) -> (Verdict, f64) {
+    let (lc, circ) = (input.lc_mm, input.circumference_mm);
+    let indices: Vec<u32> = all.iter().map(|t| t.index).collect();
+    let limit = BUTTRESS_ARC_LIMIT * circ;
+    let head = format!(
+        "Lc {lc:.1} mm; {} black-crested thread{} within Lc{}{}; circumference {circ:.1} mm, 25% = {limit:.1} mm",
+        count_word(all.len()),
+        if all.len() == 1 { "" } else { "s" },
+        if all.is_empty() { "" } else { ", " },
+        lengths_text(&all)
+    );
+    let mut failed = false;
+    if all.len() > BUTTRESS_MAX_BLACK_THREADS {
+        failed = true;
+        reasons.push(Reason {
+            code: ReasonCode::ButtressTooManyBlackThreads,
+            message: format!("{head}; more than {BUTTRESS_MAX_BLACK_THREADS} threads; reject"),
+            threads: indices.clone(),
+            value: Some(all.len() as f64),
+            limit: Some(BUTTRESS_MAX_BLACK_THREADS as f64),
+            unit: Some("threads".into()),
+        });
+    }
+    match arc_rule {
+        ArcRule::PerThread => {
+            for t in all.iter().filter(|t| t.length_mm > limit) {
                 failed = true;
                 reasons.push(Reason {
-                    code: ReasonCode::ButtressTooManyBlackThreads,
-                    message: format!("{head}; more than {BUTTRESS_MAX_BLACK_THREADS} threads; reject"),
-                    threads: indices.clone(),
-                    value: Some(all.len() as f64),
-                    limit: Some(BUTTRESS_MAX_BLACK_THREADS as f64),
-                    unit: Some("threads".into()),
-                });
-            }
-            match arc_rule {
-                ArcRule::PerThread => {
-                    for t in all.iter().filter(|t| t.length_mm > limit) {
-                        failed = true;
-                        reasons.push(Reason {
-                            code: ReasonCode::ButtressArcOverLimit,
-                            message: format!(
-                                "{head}; thread {} black crest {:.1} mm exceeds 25% of the circumference; reject",
-                                t.index, t.length_mm
-                            ),
-                            threads: vec![t.index],
-                            value: Some(t.length_mm),
-                            limit: Some(limit),
-                            unit: Some("mm".into()),
-                        });
-                    }
-                }
-                ArcRule::Combined => {
-                    let total: f64 = all.iter().map(|t| t.length_mm).sum();
-                    if total > limit {
-                        failed = true;
-                        reasons.push(Reason {
-                            code: ReasonCode::ButtressCombinedArcOverLimit,
-                            message: format!(
-                                "{head}; combined black crest {total:.1} mm exceeds 25% of the circumference; reject"
-                            ),
-                            threads: indices.clone(),
-                            value: Some(total),
-                            limit: Some(limit),
-                            unit: Some("mm".into()),
-                        });
-                    }
-                }
-            }
-            if !failed {
-                let longest = all.iter().map(|t| t.length_mm).fold(0.0, f64::max);
-                let total: f64 = all.iter().map(|t| t.length_mm).sum();
-                reasons.push(Reason {
-                    code: if all.is_empty() {
-                        ReasonCode::NoBlackCrestWithinLc
-                    } else {
-                        ReasonCode::ButtressBlackCrestsWithinLimits
-                    },
-                    message: format!("{head}; accept"),
-                    threads: indices,
-                    value: Some(if arc_rule == ArcRule::Combined { total } else { longest }),
+                    code: ReasonCode::ButtressArcOverLimit,
+                    message: format!(
+                        "{head}; thread {} black crest {:.1} mm exceeds 25% of the circumference; reject",
+                        t.index, t.length_mm
+                    ),
+                    threads: vec![t.index],
+                    value: Some(t.length_mm),
                     limit: Some(limit),
                     unit: Some("mm".into()),
                 });
             }
-            (if failed { Verdict::Reject } else { Verdict::Accept }, Some(limit))
         }
-    };
+        ArcRule::Combined => {
+            let total: f64 = all.iter().map(|t| t.length_mm).sum();
+            if total > limit {
+                failed = true;
+                reasons.push(Reason {
+                    code: ReasonCode::ButtressCombinedArcOverLimit,
+                    message: format!(
+                        "{head}; combined black crest {total:.1} mm exceeds 25% of the circumference; reject"
+                    ),
+                    threads: indices.clone(),
+                    value: Some(total),
+                    limit: Some(limit),
+                    unit: Some("mm".into()),
+                });
+            }
+        }
+    }
+    if !failed {
+        let longest = all.iter().map(|t| t.length_mm).fold(0.0, f64::max);
+        let total: f64 = all.iter().map(|t| t.length_mm).sum();
+        reasons.push(Reason {
+            code: if all.is_empty() {
+                ReasonCode::NoBlackCrestWithinLc
+            } else {
+                ReasonCode::ButtressBlackCrestsWithinLimits
+            },
+            message: format!("{head}; accept"),
+            threads: indices,
+            value: Some(if arc_rule == ArcRule::Combined { total } else { longest }),
+            limit: Some(limit),
+            unit: Some("mm".into()),
+        });
+    }
+    (if failed { Verdict::Reject } else { Verdict::Accept }, limit)
+}
 
-    // Last, after the verdict's own reason: it qualifies the verdict, it does not decide it.
+/// Where the views did not show every crest within Lc: the reason saying what was seen, and the
+/// seen arcs per thread (None when everything within Lc was seen).
+fn partial_coverage(input: &RuleInput, reasons: &mut Vec<Reason>) -> Option<Vec<ThreadArcs>> {
+    let lc = input.lc_mm;
     let crests: Vec<(ThreadArcs, f64)> = input
         .threads
         .iter()
@@ -418,16 +455,7 @@ pub fn assess(input: &RuleInput, arc_rule: ArcRule) -> Assessment {
             unit: Some("deg".into()),
         });
     }
-    Assessment {
-        verdict,
-        reasons,
-        black_threads,
-        lc_mm: lc,
-        circumference_mm: circ,
-        arc_rule,
-        arc_limit_mm,
-        seen_crest_arcs: partial.then(|| crests.into_iter().map(|(t, _)| t).collect()),
-    }
+    partial.then(|| crests.into_iter().map(|(t, _)| t).collect())
 }
 
 fn arcs_text(arcs: &[[f64; 2]]) -> String {
