@@ -177,31 +177,97 @@ pub fn run_case(
     options: &crate::pipeline::PipelineOptions,
 ) -> Result<CaseResult, BenchError> {
     use crate::bundle::{Bundle, OpenOptions};
-    use rayon::prelude::*;
     let spec = crate::sim::preset(case.preset).ok_or_else(|| BenchError::Preset(case.preset.into()))?;
     let dir = work.join(case.name());
-    // A finished rendering leaves its summary (render time, size) beside the bundle.
-    let done = dir.join("render-summary.json");
-    let rendered: crate::sim::SimSummary = match std::fs::read(&done).ok().and_then(|b| serde_json::from_slice(&b).ok())
-    {
-        Some(summary) => summary,
-        None => {
-            let _ = std::fs::remove_dir_all(&dir);
-            let summary = crate::sim::simulate(&spec, case.seed, &dir)?;
-            std::fs::write(&done, serde_json::to_vec(&summary).expect("serialises"))
-                .map_err(|e| BenchError::Other(e.to_string()))?;
-            summary
-        }
-    };
+    let rendered = render_once(&spec, case.seed, &dir)?;
     // Truth is rewritten every run (it is cheap, the frames are not): a cached rendering keeps its
     // pixels, but the verdict and black-crest arcs must follow the current rule engine.
     let truth: Truth = crate::sim::write_truth(&spec, case.seed, &dir)?;
     let table = crate::domain::thread::ConnectionTable::api5b();
     let bundle = Bundle::open(&dir, &table, OpenOptions::default())?;
+    let timed = timed_runs(&bundle, options, repeat)?;
+    let inspection = &timed.inspection;
+    let accuracy = compare(&inspection.report, &truth);
+    let depth = depth_error(&bundle, &dir, &inspection.depth_maps)?;
+    let truth_poses = bundle
+        .views
+        .iter()
+        .map(|v| {
+            truth
+                .true_poses
+                .get(&v.id)
+                .copied()
+                .ok_or_else(|| BenchError::Other(format!("truth lacks the pose of {}", v.id)))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let encoder: Vec<_> = bundle.views.iter().map(|v| v.pose).collect();
+    let table1 = if case.preset == "seed-table1" { table1_rows(&inspection.report, &truth) } else { Vec::new() };
+    Ok(CaseResult {
+        black_crests: black_crests(&inspection.report, &truth),
+        preset: case.preset.into(),
+        seed: case.seed,
+        accuracy,
+        depth_rms_um: depth.rms_um,
+        depth_median_um: depth.median_um,
+        depth_coverage: depth.coverage,
+        registration: registration_error(
+            &encoder,
+            &inspection.poses,
+            &truth_poses,
+            &inspection.report.registration.pairs,
+            inspection.report.pipe_od_mm / 2.0,
+        ),
+        decode_seconds: timed.decode_seconds,
+        inspect_seconds: timed.inspect_seconds,
+        render: rendered,
+        stage_seconds: timed.stage_seconds,
+        table1,
+        helix_z_error_um: {
+            let (pitch, dz) = (inspection.report.helix.pitch_mm, inspection.report.helix.z_h_mm - truth.helix_z_h_mm);
+            1e3 * (dz - pitch * (dz / pitch).round())
+        },
+        encoder_mean_axial_offset_um: 1e3
+            * encoder.iter().zip(&truth_poses).map(|(e, t)| e.axial_mm - t.axial_mm).sum::<f64>()
+            / encoder.len().max(1) as f64,
+    })
+}
 
-    // Yardstick: decode every frame once, with the pipeline's parallelism (views across cores).
-    // Decode and inspection alternate `repeat` times and each time is the median of its runs: on a
-    // shared 2-core machine one run of either can be 30% off.
+/// Renders the case into `dir` unless a finished rendering is there: it leaves its summary
+/// (render time, size) beside the bundle.
+fn render_once(
+    spec: &crate::sim::SimSpec,
+    seed: u64,
+    dir: &std::path::Path,
+) -> Result<crate::sim::SimSummary, BenchError> {
+    let done = dir.join("render-summary.json");
+    if let Some(summary) = std::fs::read(&done).ok().and_then(|b| serde_json::from_slice(&b).ok()) {
+        return Ok(summary);
+    }
+    let _ = std::fs::remove_dir_all(dir);
+    let summary = crate::sim::simulate(spec, seed, dir)?;
+    std::fs::write(&done, serde_json::to_vec(&summary).expect("serialises"))
+        .map_err(|e| BenchError::Other(e.to_string()))?;
+    Ok(summary)
+}
+
+/// The last inspection of `repeat` runs, and the medians of the runs' decode and inspection times.
+struct TimedRuns {
+    inspection: crate::pipeline::Inspection,
+    decode_seconds: f64,
+    inspect_seconds: f64,
+    /// Stage times of the run whose inspection time is the median.
+    stage_seconds: Vec<(String, f64)>,
+}
+
+/// Yardstick: decode every frame once, with the pipeline's parallelism (views across cores).
+/// Decode and inspection alternate `repeat` times and each time is the median of its runs: on a
+/// shared 2-core machine one run of either can be 30% off.
+fn timed_runs(
+    bundle: &crate::bundle::Bundle,
+    options: &crate::pipeline::PipelineOptions,
+    repeat: usize,
+) -> Result<TimedRuns, BenchError> {
+    use rayon::prelude::*;
     let decode = || -> Result<f64, BenchError> {
         let started = std::time::Instant::now();
         bundle.views.par_iter().enumerate().try_for_each(|(v, view)| {
@@ -221,7 +287,7 @@ pub fn run_case(
         let decode_seconds = decode()?;
         drop(last.take()); // the previous run's maps are not held while this one runs
         let started = std::time::Instant::now();
-        let inspection = crate::pipeline::inspect(&bundle, options, &|_, _| {}, &cancel)?
+        let inspection = crate::pipeline::inspect(bundle, options, &|_, _| {}, &cancel)?
             .ok_or_else(|| BenchError::Other("cancelled".into()))?;
         let stages: Vec<(String, f64)> =
             inspection.report.timings.iter().map(|t| (t.stage.clone(), t.seconds)).collect();
@@ -232,16 +298,29 @@ pub fn run_case(
     let median_of = |mut v: Vec<f64>| crate::numeric::stats::median(&mut v).expect("at least one run");
     let decode_seconds = median_of(runs.iter().map(|r| r.0).collect());
     let inspect_seconds = median_of(runs.iter().map(|r| r.1).collect());
-    // Stage times of the run whose inspection time is the median.
     let stage_seconds = runs
         .into_iter()
         .min_by(|a, b| (a.1 - inspect_seconds).abs().total_cmp(&(b.1 - inspect_seconds).abs()))
         .expect("at least one run")
         .2;
+    Ok(TimedRuns { inspection, decode_seconds, inspect_seconds, stage_seconds })
+}
 
-    let accuracy = compare(&inspection.report, &truth);
+/// Depth error over every pixel truth has a depth for: RMS and median of the trusted ones (µm),
+/// and the share trusted.
+struct DepthError {
+    rms_um: f64,
+    median_um: f64,
+    coverage: f64,
+}
+
+fn depth_error(
+    bundle: &crate::bundle::Bundle,
+    dir: &std::path::Path,
+    depth_maps: &[crate::pipeline::depth::DepthMap],
+) -> Result<DepthError, BenchError> {
     let (mut sq, mut errors, mut seen, mut total) = (0.0, Vec::new(), 0usize, 0usize);
-    for (view, depth) in bundle.views.iter().zip(&inspection.depth_maps) {
+    for (view, depth) in bundle.views.iter().zip(depth_maps) {
         let bytes = std::fs::read(dir.join(format!("truth/{}.depth.pfm", view.id)))
             .map_err(|e| BenchError::Other(e.to_string()))?;
         let (_, _, t) = crate::sim::pfm::read(&bytes).map_err(BenchError::Other)?;
@@ -260,60 +339,25 @@ pub fn run_case(
         }
     }
     errors.sort_by(f64::total_cmp);
-    let truth_poses = bundle
-        .views
-        .iter()
-        .map(|v| {
-            truth
-                .true_poses
-                .get(&v.id)
-                .copied()
-                .ok_or_else(|| BenchError::Other(format!("truth lacks the pose of {}", v.id)))
-        })
-        .collect::<Result<Vec<_>, _>>()?;
-    let encoder: Vec<_> = bundle.views.iter().map(|v| v.pose).collect();
-    let table1 = if case.preset == "seed-table1" {
-        (1..=10u32)
-            .filter_map(|i| {
-                let r = inspection.report.threads.iter().find(|t| t.index == i)?;
-                let t = truth.threads.iter().find(|t| t.index == i)?;
-                let bins: Vec<(f64, f64)> =
-                    (0..5).filter_map(|k| Some((r.height_mm.values[k]?, t.height_mm.values[k]?))).collect();
-                (!bins.is_empty()).then(|| {
-                    let n = bins.len() as f64;
-                    (i, bins.iter().map(|b| b.0).sum::<f64>() / n, bins.iter().map(|b| b.1).sum::<f64>() / n)
-                })
-            })
-            .collect()
-    } else {
-        Vec::new()
-    };
-    Ok(CaseResult {
-        black_crests: black_crests(&inspection.report, &truth),
-        preset: case.preset.into(),
-        seed: case.seed,
-        accuracy,
-        depth_rms_um: (sq / seen.max(1) as f64).sqrt(),
-        depth_median_um: errors.get(errors.len() / 2).copied().unwrap_or(f64::NAN),
-        depth_coverage: seen as f64 / total.max(1) as f64,
-        registration: registration_error(
-            &encoder,
-            &inspection.poses,
-            &truth_poses,
-            &inspection.report.registration.pairs,
-            inspection.report.pipe_od_mm / 2.0,
-        ),
-        decode_seconds,
-        inspect_seconds,
-        render: rendered,
-        stage_seconds,
-        table1,
-        helix_z_error_um: {
-            let (pitch, dz) = (inspection.report.helix.pitch_mm, inspection.report.helix.z_h_mm - truth.helix_z_h_mm);
-            1e3 * (dz - pitch * (dz / pitch).round())
-        },
-        encoder_mean_axial_offset_um: 1e3
-            * encoder.iter().zip(&truth_poses).map(|(e, t)| e.axial_mm - t.axial_mm).sum::<f64>()
-            / encoder.len().max(1) as f64,
+    Ok(DepthError {
+        rms_um: (sq / seen.max(1) as f64).sqrt(),
+        median_um: errors.get(errors.len() / 2).copied().unwrap_or(f64::NAN),
+        coverage: seen as f64 / total.max(1) as f64,
     })
+}
+
+/// The seed's Table 1: each thread's mean height over bins 0–4°, measured and true.
+fn table1_rows(report: &crate::pipeline::report::Report, truth: &Truth) -> Vec<(u32, f64, f64)> {
+    (1..=10u32)
+        .filter_map(|i| {
+            let r = report.threads.iter().find(|t| t.index == i)?;
+            let t = truth.threads.iter().find(|t| t.index == i)?;
+            let bins: Vec<(f64, f64)> =
+                (0..5).filter_map(|k| Some((r.height_mm.values[k]?, t.height_mm.values[k]?))).collect();
+            (!bins.is_empty()).then(|| {
+                let n = bins.len() as f64;
+                (i, bins.iter().map(|b| b.0).sum::<f64>() / n, bins.iter().map(|b| b.1).sum::<f64>() / n)
+            })
+        })
+        .collect()
 }
