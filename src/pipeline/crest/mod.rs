@@ -116,6 +116,37 @@ pub fn observations(
     crest_window_half_mm: f64,
     options: &CrestOptions,
 ) -> CrestFindings {
+    let darkness = darkness(threads, options);
+    // The chamfer zone's bins come first along the helix (z rises along it).
+    let chamfer_zone_mm = 1.5 * pitch_mm;
+    let zone_end = threads
+        .iter()
+        .flat_map(|t| t.bins.iter())
+        .position(|b| b.crest_z_mm >= chamfer_zone_mm)
+        .unwrap_or(darkness.dark.len());
+    let geometry = mill_surface(threads, &darkness.dark, zone_end, nominal_slope, crest_window_half_mm, options);
+    // Bins at one angle are a turn apart in helix order where every thread has a bin per degree
+    // (as the profile stage measures them); otherwise the whole zone is the chamfer.
+    let per_turn = threads.first().map_or(0, |t| t.bins.len());
+    let mill_in_zone = if per_turn > 0 && threads.iter().all(|t| t.bins.len() == per_turn) {
+        mill_surface_in_chamfer_zone(&geometry.on_mill, &darkness.dark, zone_end, per_turn)
+    } else {
+        vec![false; zone_end]
+    };
+    let observations = thread_observations(threads, lc_mm, pitch_mm, zone_end, &darkness, &geometry, &mill_in_zone);
+    CrestFindings { observations, machined_crest_gray: darkness.reference, cone: geometry.cone }
+}
+
+/// Photometric evidence, per bin in helix order: the machined crests' reference brightness, which
+/// bins are dark, how much of each the scale covers, and which bins start or end a dark run.
+struct Darkness {
+    reference: f32,
+    dark: Vec<bool>,
+    cover: Vec<f32>,
+    run_end: Vec<(bool, bool)>,
+}
+
+fn darkness(threads: &[ThreadMeasure], options: &CrestOptions) -> Darkness {
     let mut grays: Vec<f32> = threads.iter().flat_map(|t| t.bins.iter().filter_map(|b| b.crest_gray)).collect();
     grays.sort_by(f32::total_cmp);
     let reference = grays.get(grays.len() / 2).copied().unwrap_or(0.0);
@@ -137,7 +168,6 @@ pub fn observations(
         &threads.iter().flat_map(|t| t.bins.iter().map(|b| b.crest_gray.map(f64::from))).collect::<Vec<_>>(),
         2,
     );
-    let chamfer_zone_mm = 1.5 * pitch_mm;
     let in_helix_order = || threads.iter().flat_map(|t| t.bins.iter());
     let seeds: Vec<bool> = in_helix_order()
         .zip(&run_gray)
@@ -154,13 +184,30 @@ pub fn observations(
     let run_end: Vec<(bool, bool)> = (0..dark.len())
         .map(|i| (dark[i] && (i == 0 || !dark[i - 1]), dark[i] && (i + 1 == dark.len() || !dark[i + 1])))
         .collect();
+    Darkness { reference, dark, cover, run_end }
+}
 
-    // The chamfer zone's bins come first along the helix (z rises along it).
-    let zone_end = in_helix_order().position(|b| b.crest_z_mm >= chamfer_zone_mm).unwrap_or(dark.len());
+/// Geometric evidence, per bin in helix order: which crests stand on the mill surface below the
+/// machined crest cone, the part of each bin a polished run's fitted ends cover, and the cone.
+struct MillSurface {
+    on_mill: Vec<bool>,
+    mill_part: Vec<Option<[f64; 2]>>,
+    cone: Option<CrestCone>,
+}
+
+fn mill_surface(
+    threads: &[ThreadMeasure],
+    dark: &[bool],
+    zone_end: usize,
+    nominal_slope: f64,
+    crest_window_half_mm: f64,
+    options: &CrestOptions,
+) -> MillSurface {
+    let in_helix_order = || threads.iter().flat_map(|t| t.bins.iter());
     // Geometric: the crests' deficits below the cone fitted to the crests beyond the zone, in
     // helix order.
     let crests: Vec<(f64, f64, f64)> = in_helix_order()
-        .zip(&dark)
+        .zip(dark)
         .skip(zone_end)
         .filter(|(_, dark)| !**dark)
         .filter_map(|(b, _)| Some((b.crest_z_mm, b.angle_deg, b.crest_radius_mm?)))
@@ -194,17 +241,24 @@ pub fn observations(
             (runs, part, Some(cone))
         }
     };
+    MillSurface { on_mill, mill_part, cone }
+}
 
-    // Bins at one angle are a turn apart in helix order where every thread has a bin per degree
-    // (as the profile stage measures them); otherwise the whole zone is the chamfer.
-    let per_turn = threads.first().map_or(0, |t| t.bins.len());
-    let mill_in_zone = if per_turn > 0 && threads.iter().all(|t| t.bins.len() == per_turn) {
-        mill_surface_in_chamfer_zone(&on_mill, &dark, zone_end, per_turn)
-    } else {
-        vec![false; zone_end]
-    };
+/// Each thread's bins for the rule engine (chamfer, mill surface, seen) and its dark arcs within
+/// Lc, the partly covered end bins of a run counted by their cover.
+fn thread_observations(
+    threads: &[ThreadMeasure],
+    lc_mm: f64,
+    pitch_mm: f64,
+    zone_end: usize,
+    darkness: &Darkness,
+    geometry: &MillSurface,
+    mill_in_zone: &[bool],
+) -> Vec<ThreadObservation> {
+    let Darkness { dark, cover, run_end, .. } = darkness;
+    let MillSurface { on_mill, mill_part, .. } = geometry;
     let mut helix_index = 0..;
-    let observations = threads
+    threads
         .iter()
         .map(|t| {
             let dz_per_deg = pitch_mm / 360.0;
@@ -246,8 +300,7 @@ pub fn observations(
             }
             ThreadObservation { index: t.index, black_crest_arcs_deg: crate::domain::arcs::union_arcs(arcs), bins }
         })
-        .collect();
-    CrestFindings { observations, machined_crest_gray: reference, cone }
+        .collect()
 }
 
 #[cfg(test)]
