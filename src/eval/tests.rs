@@ -124,6 +124,7 @@ fn pair_errors_are_read_against_the_true_corrections_difference() {
             + axial_error_mm,
         shift_radius_mm: 0.0,
         peak_ncc: 0.5,
+        rival_ratio: 0.0,
         overlap_cells: 5000,
         residual_angle_deg: 0.0,
         residual_axial_um: 0.0,

@@ -11,7 +11,7 @@
 //! | [`profile`] | the unrolled surface and the thread form | the helix, per-thread heights per 1° bin |
 //! | [`crest`] | the per-thread measures | black-crest observations, the crest cone |
 //! | rules ([`crate::domain::rules`]) | the observations | the API 5B verdict and reasons |
-//! | [`report`] | all of the above | the report |
+//! | [`report`] | all of the above | the report, with its [`quality`]: what was not measured |
 //!
 //! Stages never open a file: frames come through [`Recording`]. Progress, cancellation (checked
 //! between frames and stages) and timings belong to a small run context ([`run`]).
@@ -23,6 +23,7 @@ pub mod fuse;
 pub mod mesh;
 pub mod options;
 pub mod profile;
+pub mod quality;
 pub mod register;
 pub mod report;
 pub mod run;
@@ -111,6 +112,7 @@ fn run_stages(recording: &dyn Recording, options: &PipelineOptions, mut run: Run
     let (assessment, crest) = crest_and_rules(recording, options, &helix, &threads, &mut run);
     let report = Report::assemble(report::Findings {
         part: recording.part(),
+        views: recording.views(),
         helix,
         threads: &threads,
         assessment,

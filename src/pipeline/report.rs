@@ -1,11 +1,13 @@
 //! The inspection report: the truth file's fields with the same names and meanings
 //! (docs/bundle.md, "Result shape"), plus measures, timings and diagnostics.
 
+use crate::domain::frame::View;
 use crate::domain::part::Part;
 use crate::domain::rules::{Assessment, Verdict};
 use crate::domain::thread::Family;
 use crate::pipeline::crest::CrestCone;
 use crate::pipeline::profile::{Helix, ThreadMeasure};
+use crate::pipeline::quality::{self, Quality};
 use crate::pipeline::register::{EndFace, Registration};
 use serde::{Deserialize, Serialize};
 
@@ -48,6 +50,12 @@ pub struct Report {
     pub threads: Vec<ThreadReport>,
     pub verdict: Verdict,
     pub reasons: Vec<String>,
+    /// How far the result can be trusted: what was not measured, or measured poorly.
+    #[serde(default = "Quality::not_assessed")]
+    pub quality: Quality,
+    /// True when the quality is not ok: a person should look before the verdict is acted on.
+    #[serde(default = "yes")]
+    pub review_required: bool,
     // Extras.
     pub serial: Option<String>,
     pub height_tolerance_mm: f64,
@@ -87,6 +95,24 @@ impl Report {
         );
         for r in &self.reasons {
             out.push_str(&format!("  {r}\n"));
+        }
+        if self.review_required {
+            out.push_str("  REVIEW REQUIRED: this result needs a person's review before its verdict is acted on:\n");
+            for r in &self.quality.reasons {
+                out.push_str(&format!("    - {}\n", r.message));
+            }
+        }
+        let registration = &self.registration;
+        if registration.pairs_expected > 0 {
+            out.push_str(&format!(
+                "  registration: {} of {} overlaps measured{}\n",
+                registration.pairs_measured,
+                registration.pairs_expected,
+                registration.closure.map_or(String::new(), |c| format!(
+                    "; ring closure {:.4}° / {:.1} µm over {} views",
+                    c.angle_deg, c.axial_um, c.views
+                ))
+            ));
         }
         out.push_str(&format!(
             "  {} threads, {} height bins; full crests {:.4} mm mean (nominal {:.4} ± {:.4}); helix z_h {:.3} mm\n",
@@ -131,9 +157,14 @@ impl Report {
     }
 }
 
+fn yes() -> bool {
+    true
+}
+
 /// What the stages found, from which the report is assembled.
 pub struct Findings<'a> {
     pub part: &'a Part,
+    pub views: &'a [View],
     pub helix: Helix,
     pub threads: &'a [ThreadMeasure],
     pub assessment: Assessment,
@@ -176,6 +207,7 @@ impl Report {
                 }
             })
             .collect();
+        let quality = quality::assess(&f.registration, f.views, &f.assessment);
         Report {
             connection: part.connection.clone(),
             family: part.family(),
@@ -187,6 +219,8 @@ impl Report {
             threads,
             verdict: f.assessment.verdict,
             reasons: f.assessment.messages(),
+            review_required: quality.needs_review(),
+            quality,
             serial: part.serial.clone(),
             height_tolerance_mm: form.height_tolerance_mm,
             assessment: f.assessment,

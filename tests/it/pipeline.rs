@@ -205,3 +205,67 @@ fn seed_table1_threads_are_recovered_within_10_um() {
     assert!(result.registration.angle_max_deg <= 0.02, "{:?}", result.registration);
     assert!(result.registration.axial_max_um <= 5.0, "{:?}", result.registration);
 }
+
+/// Registration that cannot measure an overlap says so, names the overlaps and the views left at
+/// their encoder poses, and asks for review: the ci preset rendered without albedo grain on any
+/// surface leaves the correlation only sensor noise to hold on to (the chaser marks, which depth
+/// from focus still sees, run along the helix, and registration high-passes them away along the
+/// arc). The same preset with its grain registers every overlap.
+#[test]
+fn registration_that_fails_on_weak_texture_is_reported_and_needs_review() {
+    use crestscan::pipeline::quality::QualityCode;
+    use crestscan::pipeline::register::PairStatus;
+    let inspect = |dir: &std::path::Path| {
+        let bundle = Bundle::open(dir, &ConnectionTable::api5b(), OpenOptions::default()).unwrap();
+        pipeline::inspect(&bundle, &PipelineOptions::default(), &|_, _| {}, &AtomicBool::new(false))
+            .unwrap()
+            .expect("not cancelled")
+            .report
+    };
+    let textured = inspect(ci_bundle());
+    let registration = &textured.registration;
+    assert!(registration.pairs_expected >= 2, "{registration:?}");
+    assert_eq!(registration.pairs_measured, registration.pairs_expected, "{:?}", registration.candidates);
+    assert!(registration.unregistered_views.is_empty());
+    assert!(!textured.quality.reasons.iter().any(|r| r.code == QualityCode::RegistrationIncomplete));
+
+    let mut spec = crestscan::sim::preset("ci").unwrap();
+    for look in [&mut spec.appearance.machined, &mut spec.appearance.mill_scale, &mut spec.appearance.polished] {
+        look.albedo_variation = 0.0;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    crestscan::sim::simulate(&spec, crate::common::CI_SEED, dir.path()).unwrap();
+    let bare = inspect(dir.path());
+    let registration = &bare.registration;
+    assert_eq!(registration.pairs_expected, textured.registration.pairs_expected);
+    assert!(registration.pairs_measured < registration.pairs_expected, "{:?}", registration.candidates);
+    // Each refusal carries the figure that refused it.
+    let options = PipelineOptions::default().register;
+    let refused: Vec<_> = registration.candidates.iter().filter(|c| c.status != PairStatus::Measured).collect();
+    assert!(!refused.is_empty(), "{:?}", registration.candidates);
+    for c in &refused {
+        let (ncc, rival) = (c.peak_ncc.unwrap(), c.rival_ratio.unwrap());
+        match c.status {
+            PairStatus::TooWeak => assert!(ncc < options.min_ncc, "{c:?}"),
+            PairStatus::Ambiguous => assert!(ncc >= options.min_ncc && rival > options.max_rival_ratio, "{c:?}"),
+            other => panic!("{other:?}: {c:?}"),
+        }
+    }
+    assert!(bare.review_required);
+    let incomplete = bare.quality.reasons.iter().find(|r| r.code == QualityCode::RegistrationIncomplete).unwrap();
+    assert!(
+        incomplete.message.contains("too weak") || incomplete.message.contains("ambiguous"),
+        "{}",
+        incomplete.message
+    );
+    let summary = bare.summary();
+    assert!(summary.contains("REVIEW REQUIRED") && summary.contains("overlaps measured"), "{summary}");
+    // Every view whose overlaps all failed is named, and keeps its encoder pose.
+    assert!(!registration.unregistered_views.is_empty(), "{:?}", registration.candidates);
+    let bundle = Bundle::open(dir.path(), &ConnectionTable::api5b(), OpenOptions::default()).unwrap();
+    let unplaced = bare.quality.reasons.iter().find(|r| r.code == QualityCode::ViewsUnregistered).unwrap();
+    for &v in &registration.unregistered_views {
+        assert_eq!(registration.corrections[v], Default::default());
+        assert!(unplaced.message.contains(&bundle.views[v].id), "{}", unplaced.message);
+    }
+}

@@ -2,6 +2,27 @@
 
 use super::*;
 
+/// Why a candidate overlap was not measured, with what its correlation found.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(super) struct Refusal {
+    pub(super) status: PairStatus,
+    pub(super) peak_ncc: Option<f64>,
+    pub(super) rival_ratio: Option<f64>,
+    pub(super) overlap_cells: Option<usize>,
+}
+
+/// The strongest correlation of the coarse search away from its peak (more than two coarse cells
+/// from it along either axis, beyond the peak's own width), as a fraction of the peak's: a second
+/// alignment nearly as good as the best one means the texture does not decide between them.
+fn rival_ratio(surface: &[(f64, i64, i64)], best: (f64, i64, i64)) -> f64 {
+    let rival = surface
+        .iter()
+        .filter(|&&(_, ds, dz)| (ds - best.1).abs() > 2 || (dz - best.2).abs() > 2)
+        .map(|&(c, _, _)| c)
+        .fold(-1.0, f64::max);
+    if best.0 > 0.0 { rival / best.0 } else { 1.0 }
+}
+
 /// Measures one pair of overlapping views. `fine` holds the two views' full-resolution
 /// correlation grids (buffers reused from pair to pair).
 pub(super) fn measure_pair(
@@ -11,11 +32,11 @@ pub(super) fn measure_pair(
     lattice: &Lattice,
     options: &RegisterOptions,
     fine: &mut (TextureGrid, TextureGrid),
-) -> Option<PairMeasure> {
+) -> Result<PairMeasure, Refusal> {
     let (va, vb) = (&views[a], &views[b]);
     let (pa, pb) = (&va.patch, &vb.patch);
     if pa.gray.is_empty() || pb.gray.is_empty() {
-        return None;
+        return Err(Refusal { status: PairStatus::NoData, peak_ncc: None, rival_ratio: None, overlap_cells: None });
     }
     // b's arc indices in a's turn.
     let turn = lattice.turn_cells(va.angle_rad, vb.angle_rad);
@@ -29,6 +50,7 @@ pub(super) fn measure_pair(
     let rs = (lattice.radius_ref_mm * options.max_angle_deg.to_radians() / lattice.cell_arc_mm / 2.0).ceil() as i64;
     let rz = (options.max_axial_mm / lattice.cell_z_mm / 2.0).ceil() as i64;
     let mut best = (f64::MIN, 0i64, 0i64);
+    let mut surface = Vec::with_capacity(((2 * rs + 1) * (2 * rz + 1)) as usize);
     for dz in -rz..=rz {
         for ds in -rs..=rs {
             // Every other cell of the overlap is plenty to find the peak at this level.
@@ -39,11 +61,13 @@ pub(super) fn measure_pair(
                 a_coarse_z0 - dz - b_coarse_z0,
                 70,
             );
+            surface.push((c, ds, dz));
             if c > best.0 {
                 best = (c, ds, dz);
             }
         }
     }
+    let rival_ratio = rival_ratio(&surface, best);
     fine.0.sample(&pa.gray, pa.ns, pa.nz, 1, 0, 0);
     fine.1.sample(&pb.gray, pb.ns, pb.nz, 1, 0, 0);
     let (fine_a, fine_b) = (&fine.0, &fine.1);
@@ -60,8 +84,21 @@ pub(super) fn measure_pair(
     }
     let (peak, ds, dz) = fine;
     let (_, cells) = ncc(ds, dz);
-    if peak < options.min_ncc || cells < options.min_overlap_cells {
-        return None;
+    if cells < options.min_overlap_cells {
+        return Err(Refusal {
+            status: PairStatus::TooSmall,
+            peak_ncc: Some(peak),
+            rival_ratio: Some(rival_ratio),
+            overlap_cells: Some(cells),
+        });
+    }
+    if peak < options.min_ncc || rival_ratio > options.max_rival_ratio {
+        return Err(Refusal {
+            status: if peak < options.min_ncc { PairStatus::TooWeak } else { PairStatus::Ambiguous },
+            peak_ncc: Some(peak),
+            rival_ratio: Some(rival_ratio),
+            overlap_cells: Some(cells),
+        });
     }
     // Along z the texture is the grain as imaged, whose correlation peak is close to a Gaussian;
     // along the arc it was high-passed (its mean over ±4 cells removed, `texture`), which narrows
@@ -81,17 +118,23 @@ pub(super) fn measure_pair(
         }
     }
     if dr.is_empty() {
-        return None;
+        return Err(Refusal {
+            status: PairStatus::NoData,
+            peak_ncc: Some(peak),
+            rival_ratio: Some(rival_ratio),
+            overlap_cells: Some(cells),
+        });
     }
     let median = dr.len() / 2;
     let shift_radius_mm = *dr.select_nth_unstable_by(median, f64::total_cmp).1;
-    Some(PairMeasure {
+    Ok(PairMeasure {
         a,
         b,
         shift_angle_deg: ((ds as f64 + frac_s) * lattice.cell_arc_mm / lattice.radius_ref_mm).to_degrees(),
         shift_axial_mm: (dz as f64 + frac_z) * lattice.cell_z_mm,
         shift_radius_mm,
         peak_ncc: peak,
+        rival_ratio,
         overlap_cells: cells,
         residual_angle_deg: 0.0,
         residual_axial_um: 0.0,

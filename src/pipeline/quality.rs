@@ -1,0 +1,257 @@
+//! How far a result can be trusted: a status and the reasons for it, each with a code and a
+//! message that names its figures. A result whose quality is not `ok` needs review: the verdict is
+//! the rule applied to what was measured, and something was not measured as it should have been.
+//!
+//! The reasons assessed so far are the ones with no threshold to choose: overlaps that registration
+//! did not measure (so some views keep their encoder poses), measured overlaps the solve
+//! down-weighted as outliers, and crests within Lc the views did not show.
+
+use crate::domain::frame::View;
+use crate::domain::rules::{Assessment, ReasonCode};
+use crate::pipeline::register::{PairStatus, Registration};
+use serde::{Deserialize, Serialize};
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum QualityStatus {
+    /// Everything the verdict rests on was measured.
+    Ok,
+    /// Part of it was not measured, or measured poorly: the result is still useful, with care.
+    Degraded,
+    /// Too little was measured for the verdict to mean much.
+    Insufficient,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum QualityCode {
+    /// Some candidate overlaps were not measured.
+    RegistrationIncomplete,
+    /// Some views had no overlap measured: they keep their encoder poses.
+    ViewsUnregistered,
+    /// Several views and no overlap between them: every view keeps its encoder pose.
+    NoOverlaps,
+    /// Some measured overlaps disagree with the solved ring by more than the robust kernel allows.
+    RegistrationOutliers,
+    /// The views did not show every crest within Lc.
+    PartialCoverage,
+    /// The report was stored before quality was assessed.
+    NotAssessed,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct QualityReason {
+    pub code: QualityCode,
+    pub message: String,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Quality {
+    pub status: QualityStatus,
+    pub reasons: Vec<QualityReason>,
+}
+
+impl Quality {
+    /// What a report stored before quality was assessed reads as: not known to be ok.
+    pub fn not_assessed() -> Self {
+        Self {
+            status: QualityStatus::Degraded,
+            reasons: vec![QualityReason {
+                code: QualityCode::NotAssessed,
+                message: "stored before the quality of a result was assessed".into(),
+            }],
+        }
+    }
+
+    pub fn needs_review(&self) -> bool {
+        self.status != QualityStatus::Ok
+    }
+}
+
+/// The quality of a result from its registration and the rule engine's coverage.
+pub fn assess(registration: &Registration, views: &[View], assessment: &Assessment) -> Quality {
+    let mut reasons = Vec::new();
+    let mut status = QualityStatus::Ok;
+    let mut flag = |at: QualityStatus, code: QualityCode, message: String| {
+        status = status.max(at);
+        reasons.push(QualityReason { code, message });
+    };
+    let name = |v: usize| views.get(v).map_or_else(|| format!("#{v}"), |view| view.id.clone());
+    let unmeasured: Vec<String> = registration
+        .candidates
+        .iter()
+        .filter(|c| !matches!(c.status, PairStatus::Measured | PairStatus::Outlier))
+        .map(|c| {
+            let figures = match (c.peak_ncc, c.rival_ratio, c.overlap_cells) {
+                (Some(ncc), Some(rival), Some(cells)) => {
+                    format!(" (peak NCC {ncc:.3}, rival at {:.0}% of it, {cells} cells)", 100.0 * rival)
+                }
+                _ => String::new(),
+            };
+            format!("{}–{}: {}{figures}", name(c.a), name(c.b), status_word(c.status))
+        })
+        .collect();
+    if !unmeasured.is_empty() {
+        flag(
+            QualityStatus::Degraded,
+            QualityCode::RegistrationIncomplete,
+            format!(
+                "registration measured {} of {} overlaps; not measured: {}",
+                registration.pairs_measured,
+                registration.pairs_expected,
+                unmeasured.join("; ")
+            ),
+        );
+    }
+    if views.len() > 1 && registration.pairs_expected == 0 {
+        flag(
+            QualityStatus::Degraded,
+            QualityCode::NoOverlaps,
+            format!("the {} views do not overlap: every view keeps its encoder pose", views.len()),
+        );
+    } else if views.len() > 1 && !registration.unregistered_views.is_empty() {
+        let names: Vec<String> = registration.unregistered_views.iter().map(|&v| name(v)).collect();
+        // With half the views or more unplaced, the surface is mostly where the encoders put it.
+        let at = if 2 * names.len() >= views.len() { QualityStatus::Insufficient } else { QualityStatus::Degraded };
+        flag(
+            at,
+            QualityCode::ViewsUnregistered,
+            format!(
+                "{} of {} views have no measured overlap and keep their encoder poses: {}",
+                names.len(),
+                views.len(),
+                names.join(", ")
+            ),
+        );
+    }
+    let outliers: Vec<String> = registration
+        .candidates
+        .iter()
+        .filter(|c| c.status == PairStatus::Outlier)
+        .map(|c| format!("{}–{}", name(c.a), name(c.b)))
+        .collect();
+    if !outliers.is_empty() {
+        flag(
+            QualityStatus::Degraded,
+            QualityCode::RegistrationOutliers,
+            format!(
+                "{} measured overlap(s) disagree with the solved ring by over three times the robust kernel's bound: {}",
+                outliers.len(),
+                outliers.join(", ")
+            ),
+        );
+    }
+    if let Some(partial) = assessment.reasons.iter().find(|r| r.code == ReasonCode::PartialCoverage) {
+        let (seen_deg, within_deg) = (partial.value.unwrap_or(0.0), partial.limit.unwrap_or(0.0));
+        let at = if seen_deg <= 0.0 { QualityStatus::Insufficient } else { QualityStatus::Degraded };
+        flag(
+            at,
+            QualityCode::PartialCoverage,
+            format!(
+                "the views showed {seen_deg:.0}° of the {within_deg:.0}° of thread crest within Lc \
+                 ({:.0}%): the verdict holds for the crests seen",
+                100.0 * seen_deg / within_deg.max(1e-9)
+            ),
+        );
+    }
+    Quality { status, reasons }
+}
+
+fn status_word(status: PairStatus) -> &'static str {
+    match status {
+        PairStatus::Measured => "measured",
+        PairStatus::Outlier => "outlier",
+        PairStatus::TooWeak => "too weak (too little texture to trust the correlation)",
+        PairStatus::Ambiguous => "ambiguous (a second alignment correlates nearly as well)",
+        PairStatus::TooSmall => "too small (the aligned overlap is under the minimum)",
+        PairStatus::NoData => "no data (a view has no trusted point in the overlap)",
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::domain::frame::{FrameEntry, FrameFormat};
+    use crate::domain::optics::ViewPose;
+    use crate::domain::rules::{ArcRule, RuleInput, assess as assess_rules};
+    use crate::domain::thread::Family;
+    use crate::pipeline::register::PairCandidate;
+
+    fn views(n: usize) -> Vec<View> {
+        (0..n)
+            .map(|v| View {
+                id: format!("v{v:02}"),
+                pose: ViewPose { angle_deg: 8.0 * v as f64, axial_mm: 0.0, lens_radius_mm: 250.0 },
+                frames: vec![FrameEntry { file: "0.png".into(), offset_mm: 0.0 }],
+                format: FrameFormat { width: 4, height: 4, channels: 1, bit_depth: 8 },
+            })
+            .collect()
+    }
+
+    fn covered() -> Assessment {
+        let input = RuleInput {
+            family: Family::Buttress,
+            lc_mm: 50.0,
+            circumference_mm: 359.0,
+            nominal_height_mm: 1.575,
+            height_tolerance_mm: 0.05,
+            threads: vec![],
+        };
+        assess_rules(&input, ArcRule::PerThread)
+    }
+
+    fn registration(statuses: &[(usize, usize, PairStatus)], views: usize) -> Registration {
+        let candidates: Vec<PairCandidate> = statuses
+            .iter()
+            .map(|&(a, b, status)| PairCandidate {
+                a,
+                b,
+                status,
+                peak_ncc: Some(0.04),
+                rival_ratio: Some(0.03),
+                overlap_cells: Some(9000),
+            })
+            .collect();
+        let measured: Vec<&PairCandidate> =
+            candidates.iter().filter(|c| matches!(c.status, PairStatus::Measured | PairStatus::Outlier)).collect();
+        Registration {
+            corrections: vec![Default::default(); views],
+            pairs: vec![],
+            pairs_expected: candidates.len(),
+            pairs_measured: measured.len(),
+            unregistered_views: (0..views).filter(|&v| !measured.iter().any(|c| c.a == v || c.b == v)).collect(),
+            closure: None,
+            candidates,
+        }
+    }
+
+    #[test]
+    fn a_fully_measured_ring_is_ok_and_every_unmeasured_overlap_is_named() {
+        use PairStatus::*;
+        let all = registration(&[(0, 1, Measured), (1, 2, Measured), (2, 3, Measured)], 4);
+        assert_eq!(assess(&all, &views(4), &covered()).status, QualityStatus::Ok);
+
+        let weak = registration(&[(0, 1, Measured), (1, 2, TooWeak), (2, 3, TooWeak)], 4);
+        let q = assess(&weak, &views(4), &covered());
+        assert!(q.needs_review());
+        let incomplete = q.reasons.iter().find(|r| r.code == QualityCode::RegistrationIncomplete).unwrap();
+        assert!(incomplete.message.contains("1 of 3 overlaps"), "{}", incomplete.message);
+        assert!(incomplete.message.contains("v01–v02: too weak") && incomplete.message.contains("peak NCC 0.040"));
+        // Views v02 and v03 had nothing measured: half the views, so the result is insufficient.
+        let unplaced = q.reasons.iter().find(|r| r.code == QualityCode::ViewsUnregistered).unwrap();
+        assert!(unplaced.message.contains("v02, v03"), "{}", unplaced.message);
+        assert_eq!(q.status, QualityStatus::Insufficient);
+    }
+
+    #[test]
+    fn outliers_and_views_that_do_not_overlap_are_reported() {
+        let outlier = registration(&[(0, 1, PairStatus::Measured), (1, 2, PairStatus::Outlier)], 3);
+        let q = assess(&outlier, &views(3), &covered());
+        assert_eq!(q.status, QualityStatus::Degraded);
+        assert_eq!(q.reasons.iter().map(|r| r.code).collect::<Vec<_>>(), [QualityCode::RegistrationOutliers]);
+        let apart = registration(&[], 3);
+        assert_eq!(assess(&apart, &views(3), &covered()).reasons[0].code, QualityCode::NoOverlaps);
+        // One view alone has nothing to register.
+        assert_eq!(assess(&registration(&[], 1), &views(1), &covered()).status, QualityStatus::Ok);
+    }
+}
