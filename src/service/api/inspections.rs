@@ -64,6 +64,10 @@ pub struct Inspection {
     /// While running: the pipeline stage and how far it is.
     pub progress: Option<Progress>,
     pub verdict: Option<String>,
+    /// Once succeeded: whether the result needs a person's review before its verdict is acted on
+    /// (the report's `quality` says why). Null before, and for inspections that succeeded before
+    /// quality was assessed.
+    pub review_required: Option<bool>,
     pub serial: Option<String>,
     pub connection: Option<String>,
     pub client_reference: Option<String>,
@@ -94,6 +98,7 @@ impl From<InspectionRow> for Inspection {
             },
             status,
             verdict: r.verdict,
+            review_required: r.review_required,
             serial: r.serial,
             connection: r.connection,
             client_reference: r.client_reference,
@@ -368,6 +373,8 @@ pub struct ListQuery {
     pub status: Option<String>,
     /// accept or reject.
     pub verdict: Option<String>,
+    /// true or false: only succeeded inspections whose result does (or does not) need review.
+    pub review_required: Option<String>,
     pub serial: Option<String>,
     pub connection: Option<String>,
     pub client_reference: Option<String>,
@@ -416,6 +423,12 @@ pub async fn list_inspections(
     {
         return Err(invalid("verdict", format!("{v:?} is neither accept nor reject")));
     }
+    let review_required = match q.review_required.as_deref() {
+        None => None,
+        Some("true") => Some(true),
+        Some("false") => Some(false),
+        Some(v) => return Err(invalid("review_required", format!("{v:?} is neither true nor false"))),
+    };
     let time = |field: &str, v: &Option<String>| {
         v.as_deref().map(|t| parse_rfc3339(t).map_err(|e| invalid(field, e))).transpose()
     };
@@ -430,6 +443,7 @@ pub async fn list_inspections(
     let filter = ListFilter {
         status,
         verdict: q.verdict,
+        review_required,
         serial: q.serial,
         connection: q.connection,
         client_reference: q.client_reference,

@@ -14,6 +14,8 @@ pub struct InspectionRow {
     pub client_reference: Option<String>,
     pub options_json: String,
     pub verdict: Option<String>,
+    /// Whether the result needs review; set when the inspection succeeds.
+    pub review_required: Option<bool>,
     pub created_at: i64,
     pub updated_at: i64,
     pub started_at: Option<i64>,
@@ -37,7 +39,7 @@ impl InspectionRow {
 }
 
 const SELECT_INSPECTION: &str = "SELECT i.id, i.status, i.upload_sha256, i.serial, i.connection, i.client_reference, \
-     i.options_json, i.verdict, i.created_at, i.updated_at, i.started_at, i.finished_at, i.progress_stage, \
+     i.options_json, i.verdict, i.review_required, i.created_at, i.updated_at, i.started_at, i.finished_at, i.progress_stage, \
      i.progress_fraction, i.attempts, i.max_attempts, i.cancel_requested, i.error_json, i.request_sha256, \
      u.size_bytes, u.views, u.frames FROM inspections i JOIN uploads u ON u.sha256 = i.upload_sha256";
 
@@ -73,6 +75,7 @@ pub enum Inserted {
 pub struct ListFilter {
     pub status: Option<Status>,
     pub verdict: Option<String>,
+    pub review_required: Option<bool>,
     pub serial: Option<String>,
     pub connection: Option<String>,
     pub client_reference: Option<String>,
@@ -173,6 +176,9 @@ impl Store {
         }
         if let Some(v) = &filter.verdict {
             q.push(" AND i.verdict = ").push_bind(v.clone());
+        }
+        if let Some(v) = filter.review_required {
+            q.push(" AND i.review_required = ").push_bind(v);
         }
         if let Some(v) = &filter.serial {
             q.push(" AND i.serial = ").push_bind(v.clone());

@@ -111,11 +111,12 @@ impl Store {
         let now = now_ms();
         let mut tx = self.pool.begin().await?;
         let updated = sqlx::query(
-            "UPDATE inspections SET status = 'succeeded', verdict = ?, finished_at = ?, updated_at = ?, \
-             lease_owner = NULL, lease_expires_at = NULL, progress_fraction = 1.0, error_json = NULL \
+            "UPDATE inspections SET status = 'succeeded', verdict = ?, review_required = ?, finished_at = ?, \
+             updated_at = ?, lease_owner = NULL, lease_expires_at = NULL, progress_fraction = 1.0, error_json = NULL \
              WHERE id = ? AND lease_owner = ? AND status = 'running'",
         )
         .bind(results.verdict)
+        .bind(results.report.review_required)
         .bind(now)
         .bind(now)
         .bind(id)

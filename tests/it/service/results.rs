@@ -32,6 +32,11 @@ async fn round_trip_on_the_ci_preset() {
     assert!(etag.starts_with('"') && !etag.starts_with("W/"));
     let report: crestscan::pipeline::report::Report = response.json().await.unwrap();
     assert_eq!(report.verdict, truth.verdict);
+    // The ci bundle's three views show a sliver of the crest within Lc: the result needs review,
+    // on the inspection and in its report, with the coverage among the reasons.
+    assert!(report.review_required);
+    assert_eq!(done["review_required"], true, "{done}");
+    assert!(report.quality.reasons.iter().any(|r| r.message.contains("of thread crest within Lc")), "{:?}", report.quality);
     let again =
         app.client.get(app.url(&format!("{location}/report"))).header("if-none-match", &etag).send().await.unwrap();
     assert_eq!(again.status(), StatusCode::NOT_MODIFIED);
@@ -161,6 +166,12 @@ async fn round_trip_on_the_ci_preset() {
     // The list finds it by its client reference; metrics counted the polls by route.
     let page: Value = app.get("/v1/inspections?client_reference=MES-4711&status=succeeded").await.json().await.unwrap();
     assert_eq!(page["items"].as_array().unwrap().len(), 1);
+    // And by whether it needs review.
+    let page: Value = app.get("/v1/inspections?review_required=true").await.json().await.unwrap();
+    assert_eq!(page["items"].as_array().unwrap().len(), 1);
+    assert_eq!(page["items"][0]["id"], id.as_str());
+    let page: Value = app.get("/v1/inspections?review_required=false").await.json().await.unwrap();
+    assert_eq!(page["items"].as_array().unwrap().len(), 0, "{page}");
     let metrics = app.get("/metrics").await.text().await.unwrap();
     assert!(metrics.contains(r#"route="/v1/inspections/{id}",status="200""#), "{metrics}");
     assert!(metrics.contains("crestscan_jobs_finished_total{outcome=\"succeeded\"} 1"), "{metrics}");
