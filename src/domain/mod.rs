@@ -6,4 +6,5 @@ pub mod frame;
 pub mod optics;
 pub mod part;
 pub mod rules;
+pub mod station;
 pub mod thread;

@@ -2,12 +2,14 @@
 //! message that names its figures. A result whose quality is not `ok` needs review: the verdict is
 //! the rule applied to what was measured, and something was not measured as it should have been.
 //!
-//! The reasons assessed so far are the ones with no threshold to choose: overlaps that registration
-//! did not measure (so some views keep their encoder poses), measured overlaps the solve
-//! down-weighted as outliers, and crests within Lc the views did not show.
+//! The reasons assessed so far: a station outside the envelope the accuracy figures were measured
+//! in, overlaps that registration did not measure (so some views keep their encoder poses),
+//! measured overlaps the solve down-weighted as outliers, and crests within Lc the views did not
+//! show.
 
 use crate::domain::frame::View;
 use crate::domain::rules::{Assessment, ReasonCode};
+use crate::domain::station::{self, Station};
 use crate::pipeline::register::{PairStatus, Registration};
 use serde::{Deserialize, Serialize};
 
@@ -35,6 +37,8 @@ pub enum QualityCode {
     RegistrationOutliers,
     /// The views did not show every crest within Lc.
     PartialCoverage,
+    /// The station lies outside the envelope the accuracy figures were measured in.
+    StationUnmeasured,
     /// The report was stored before quality was assessed.
     NotAssessed,
 }
@@ -68,14 +72,25 @@ impl Quality {
     }
 }
 
-/// The quality of a result from its registration and the rule engine's coverage.
-pub fn assess(registration: &Registration, views: &[View], assessment: &Assessment) -> Quality {
+/// The quality of a result from its station, its registration and the rule engine's coverage.
+pub fn assess(station: &Station, registration: &Registration, views: &[View], assessment: &Assessment) -> Quality {
     let mut reasons = Vec::new();
     let mut status = QualityStatus::Ok;
     let mut flag = |at: QualityStatus, code: QualityCode, message: String| {
         status = status.max(at);
         reasons.push(QualityReason { code, message });
     };
+    let outside = station.outside(&station::MEASURED);
+    if !outside.is_empty() {
+        flag(
+            QualityStatus::Degraded,
+            QualityCode::StationUnmeasured,
+            format!(
+                "the station lies outside the envelope the accuracy figures were measured in: {}",
+                outside.join("; ")
+            ),
+        );
+    }
     let name = |v: usize| views.get(v).map_or_else(|| format!("#{v}"), |view| view.id.clone());
     let unmeasured: Vec<String> = registration
         .candidates
@@ -188,6 +203,22 @@ mod tests {
             .collect()
     }
 
+    /// The suites' station: inside the measured envelope.
+    fn standard() -> Station {
+        Station {
+            projection: crate::domain::optics::Projection::Perspective,
+            object_pixel_mm: 0.0408,
+            depth_of_field_mm: 0.503,
+            frame_step_mm: 0.25,
+            frame_step_dof: 0.497,
+            frames_per_view: 20,
+            views: 45,
+            axial_rows: 1,
+            view_spacing_deg: Some(8.0),
+            overlap_deg: Some(5.09),
+        }
+    }
+
     fn covered() -> Assessment {
         let input = RuleInput {
             family: Family::Buttress,
@@ -229,10 +260,10 @@ mod tests {
     fn a_fully_measured_ring_is_ok_and_every_unmeasured_overlap_is_named() {
         use PairStatus::*;
         let all = registration(&[(0, 1, Measured), (1, 2, Measured), (2, 3, Measured)], 4);
-        assert_eq!(assess(&all, &views(4), &covered()).status, QualityStatus::Ok);
+        assert_eq!(assess(&standard(), &all, &views(4), &covered()).status, QualityStatus::Ok);
 
         let weak = registration(&[(0, 1, Measured), (1, 2, TooWeak), (2, 3, TooWeak)], 4);
-        let q = assess(&weak, &views(4), &covered());
+        let q = assess(&standard(), &weak, &views(4), &covered());
         assert!(q.needs_review());
         let incomplete = q.reasons.iter().find(|r| r.code == QualityCode::RegistrationIncomplete).unwrap();
         assert!(incomplete.message.contains("1 of 3 overlaps"), "{}", incomplete.message);
@@ -246,12 +277,29 @@ mod tests {
     #[test]
     fn outliers_and_views_that_do_not_overlap_are_reported() {
         let outlier = registration(&[(0, 1, PairStatus::Measured), (1, 2, PairStatus::Outlier)], 3);
-        let q = assess(&outlier, &views(3), &covered());
+        let q = assess(&standard(), &outlier, &views(3), &covered());
         assert_eq!(q.status, QualityStatus::Degraded);
         assert_eq!(q.reasons.iter().map(|r| r.code).collect::<Vec<_>>(), [QualityCode::RegistrationOutliers]);
         let apart = registration(&[], 3);
-        assert_eq!(assess(&apart, &views(3), &covered()).reasons[0].code, QualityCode::NoOverlaps);
+        assert_eq!(assess(&standard(), &apart, &views(3), &covered()).reasons[0].code, QualityCode::NoOverlaps);
         // One view alone has nothing to register.
-        assert_eq!(assess(&registration(&[], 1), &views(1), &covered()).status, QualityStatus::Ok);
+        assert_eq!(assess(&standard(), &registration(&[], 1), &views(1), &covered()).status, QualityStatus::Ok);
+    }
+
+    #[test]
+    fn a_station_outside_the_measured_envelope_is_named_and_needs_review() {
+        use PairStatus::*;
+        let all = registration(&[(0, 1, Measured), (1, 2, Measured), (2, 3, Measured)], 4);
+        let coarse = Station { object_pixel_mm: 0.12, depth_of_field_mm: 0.48, ..standard() };
+        let q = assess(&coarse, &all, &views(4), &covered());
+        assert_eq!(q.status, QualityStatus::Degraded);
+        assert_eq!(q.reasons.len(), 1);
+        assert_eq!(q.reasons[0].code, QualityCode::StationUnmeasured);
+        assert!(
+            q.reasons[0].message.contains("object pixel 0.120 mm (measured: 0.037–0.045 mm)"),
+            "{}",
+            q.reasons[0].message
+        );
+        assert!(!q.reasons[0].message.contains("depth of field"), "{}", q.reasons[0].message);
     }
 }

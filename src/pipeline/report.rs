@@ -2,8 +2,10 @@
 //! (docs/bundle.md, "Result shape"), plus measures, timings and diagnostics.
 
 use crate::domain::frame::View;
+use crate::domain::optics::Optics;
 use crate::domain::part::Part;
 use crate::domain::rules::{Assessment, Verdict};
+use crate::domain::station::Station;
 use crate::domain::thread::Family;
 use crate::pipeline::crest::CrestCone;
 use crate::pipeline::profile::{Helix, ThreadMeasure};
@@ -56,6 +58,10 @@ pub struct Report {
     /// True when the quality is not ok: a person should look before the verdict is acted on.
     #[serde(default = "yes")]
     pub review_required: bool,
+    /// The station the bundle was recorded at, from its optics and views (absent in reports
+    /// stored before it was recorded).
+    #[serde(default)]
+    pub station: Option<Station>,
     // Extras.
     pub serial: Option<String>,
     pub height_tolerance_mm: f64,
@@ -164,6 +170,7 @@ fn yes() -> bool {
 /// What the stages found, from which the report is assembled.
 pub struct Findings<'a> {
     pub part: &'a Part,
+    pub optics: &'a Optics,
     pub views: &'a [View],
     pub helix: Helix,
     pub threads: &'a [ThreadMeasure],
@@ -207,7 +214,8 @@ impl Report {
                 }
             })
             .collect();
-        let quality = quality::assess(&f.registration, f.views, &f.assessment);
+        let station = Station::of(f.optics, f.views, part.pipe_od_mm / 2.0);
+        let quality = quality::assess(&station, &f.registration, f.views, &f.assessment);
         Report {
             connection: part.connection.clone(),
             family: part.family(),
@@ -221,6 +229,7 @@ impl Report {
             reasons: f.assessment.messages(),
             review_required: quality.needs_review(),
             quality,
+            station: Some(station),
             serial: part.serial.clone(),
             height_tolerance_mm: form.height_tolerance_mm,
             assessment: f.assessment,

@@ -2,6 +2,7 @@
 //! the same declarations), merged here with the docs, the fallback and the middleware that turns
 //! every error into problem+json and counts requests.
 
+pub mod capabilities;
 pub mod cmm;
 pub mod connections;
 pub mod health;
@@ -101,7 +102,7 @@ impl utoipa::ToSchema for Binary {}
         (name = "results", description = "Reports, per-thread tables, meshes and images of succeeded inspections"),
         (name = "cmm", description = "CMM measurements and the comparison with crestscan"),
         (name = "connections", description = "The API 5B connection table"),
-        (name = "operations", description = "Health, readiness, metrics"),
+        (name = "operations", description = "Health, readiness, metrics, capabilities"),
     ),
     components(schemas(problem::Problem))
 )]
@@ -114,6 +115,7 @@ fn api_routes() -> OpenApiRouter<AppState> {
         .merge(cmm::router())
         .merge(connections::router())
         .merge(health::router())
+        .merge(capabilities::router())
 }
 
 /// The OpenAPI document (what `/openapi.json` serves and `crestscan openapi` prints).

@@ -110,7 +110,8 @@ async fn bad_requests_get_their_problem_codes_and_store_nothing() {
     problem(app.get("/v1/inspections/01890a5d-ac96-774b-bcce-b302099a8057").await, StatusCode::NOT_FOUND, "invalid_id")
         .await;
     problem(app.get("/v1/inspections?status=done").await, StatusCode::BAD_REQUEST, "invalid_query").await;
-    let p = problem(app.get("/v1/inspections?review_required=yes").await, StatusCode::BAD_REQUEST, "invalid_query").await;
+    let p =
+        problem(app.get("/v1/inspections?review_required=yes").await, StatusCode::BAD_REQUEST, "invalid_query").await;
     assert_eq!(p["culprit"], "review_required", "{p}");
     problem(app.get("/v1/inspections?limit=0").await, StatusCode::BAD_REQUEST, "invalid_query").await;
     problem(app.get("/v1/inspections?created_after=yesterday").await, StatusCode::BAD_REQUEST, "invalid_query").await;

@@ -36,3 +36,22 @@ async fn openapi_is_served_and_matches_the_committed_file() {
     assert_eq!(ready["status"], "ready");
     app.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn capabilities_state_the_envelope_the_figures_were_measured_in() {
+    let app = spawn_app_with(|s| s.workers = 0).await;
+    let response = app.get("/v1/capabilities").await;
+    assert_eq!(response.status(), StatusCode::OK);
+    let caps: Value = response.json().await.unwrap();
+    let envelope = &caps["measured_envelope"];
+    let pixel = &envelope["object_pixel"];
+    assert_eq!(
+        (pixel["min"].as_f64(), pixel["max"].as_f64(), pixel["unit"].as_str()),
+        (Some(0.037), Some(0.045), Some("mm"))
+    );
+    for parameter in ["depth_of_field", "frame_step", "overlap"] {
+        let (min, max) = (envelope[parameter]["min"].as_f64().unwrap(), envelope[parameter]["max"].as_f64().unwrap());
+        assert!(min < max, "{parameter}: {envelope}");
+    }
+    app.stop().await;
+}

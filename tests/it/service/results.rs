@@ -1,6 +1,7 @@
 //! Results: the whole round trip on the ci preset (report, threads, mesh, images, CMM comparison).
 
 use super::*;
+use crestscan::pipeline::quality::QualityCode;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn round_trip_on_the_ci_preset() {
@@ -36,7 +37,15 @@ async fn round_trip_on_the_ci_preset() {
     // on the inspection and in its report, with the coverage among the reasons.
     assert!(report.review_required);
     assert_eq!(done["review_required"], true, "{done}");
-    assert!(report.quality.reasons.iter().any(|r| r.message.contains("of thread crest within Lc")), "{:?}", report.quality);
+    assert!(
+        report.quality.reasons.iter().any(|r| r.message.contains("of thread crest within Lc")),
+        "{:?}",
+        report.quality
+    );
+    // Its three views overlap by 1.5°, outside the envelope the accuracy figures were measured in.
+    let station = report.quality.reasons.iter().find(|r| r.code == QualityCode::StationUnmeasured).unwrap();
+    assert!(station.message.contains("overlap between neighbouring views 1.5"), "{}", station.message);
+    assert_eq!(report.station.as_ref().unwrap().views, 3);
     let again =
         app.client.get(app.url(&format!("{location}/report"))).header("if-none-match", &etag).send().await.unwrap();
     assert_eq!(again.status(), StatusCode::NOT_MODIFIED);

@@ -1,0 +1,195 @@
+//! The station a bundle was recorded at, as the bundle's own optics and view layout give it: the
+//! object-space pixel, the depth of field, the frame step, the views and how far neighbours
+//! overlap. Reports carry it as their provenance, and the quality of a result compares it with
+//! the envelope the accuracy figures were measured in.
+
+use crate::domain::frame::View;
+use crate::domain::optics::{Optics, Projection};
+use crate::numeric::stats::median;
+use serde::{Deserialize, Serialize};
+
+/// The blur circle, in pixels, within which a point counts as in focus for the depth of field.
+pub const IN_FOCUS_BLUR_PX: f64 = 1.0;
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Station {
+    pub projection: Projection,
+    /// One pixel on the part at the focus distance, mm.
+    pub object_pixel_mm: f64,
+    /// The depth range over which the blur circle stays within one pixel, mm.
+    pub depth_of_field_mm: f64,
+    /// The median spacing of the frames' offsets, mm, and as a fraction of the depth of field.
+    pub frame_step_mm: f64,
+    pub frame_step_dof: f64,
+    /// The fewest frames of any view.
+    pub frames_per_view: usize,
+    pub views: usize,
+    /// Distinct axial positions of the views.
+    pub axial_rows: usize,
+    /// The median angle between neighbouring views of a row, and how far their footprints
+    /// overlap along the arc at the pipe's radius (negative: a gap), degrees. None for one view
+    /// per row.
+    pub view_spacing_deg: Option<f64>,
+    pub overlap_deg: Option<f64>,
+}
+
+impl Station {
+    /// The station of a recording: its optics, its views and the pipe's radius.
+    pub fn of(optics: &Optics, views: &[View], pipe_radius_mm: f64) -> Self {
+        let object_pixel_mm = optics.object_pixel_mm(optics.focus_distance_mm);
+        let depth_of_field_mm = optics.depth_of_field_mm(IN_FOCUS_BLUR_PX);
+        let mut steps: Vec<f64> = views
+            .iter()
+            .flat_map(|v| {
+                let mut offsets: Vec<f64> = v.frames.iter().map(|f| f.offset_mm).collect();
+                offsets.sort_by(f64::total_cmp);
+                offsets.windows(2).map(|w| w[1] - w[0]).collect::<Vec<_>>()
+            })
+            .collect();
+        let frame_step_mm = median(&mut steps).unwrap_or(0.0);
+        let mut rows: Vec<f64> = views.iter().map(|v| v.pose.axial_mm).collect();
+        rows.sort_by(f64::total_cmp);
+        // Views within a pixel of each other axially stand in one row.
+        rows.dedup_by(|a, b| (*a - *b).abs() < object_pixel_mm);
+        let mut spacings = Vec::new();
+        for &row in &rows {
+            let mut angles: Vec<f64> = views
+                .iter()
+                .filter(|v| (v.pose.axial_mm - row).abs() < object_pixel_mm)
+                .map(|v| v.pose.angle_deg.rem_euclid(360.0))
+                .collect();
+            angles.sort_by(f64::total_cmp);
+            spacings.extend(angles.windows(2).map(|w| w[1] - w[0]));
+            // Around the turn only where the row closes on itself within a view's reach.
+            if angles.len() > 2 {
+                let wrap = angles[0] + 360.0 - angles[angles.len() - 1];
+                if wrap < 2.0 * angles.windows(2).map(|w| w[1] - w[0]).fold(0.0, f64::max) {
+                    spacings.push(wrap);
+                }
+            }
+        }
+        let view_spacing_deg = median(&mut spacings);
+        // The footprint along the arc: the image's rows span the arc (docs/bundle.md, camera frame).
+        let footprint_deg =
+            views.first().map(|v| (v.format.height as f64 * object_pixel_mm / pipe_radius_mm).to_degrees());
+        Self {
+            projection: optics.projection,
+            object_pixel_mm,
+            depth_of_field_mm,
+            frame_step_mm,
+            frame_step_dof: frame_step_mm / depth_of_field_mm.max(f64::MIN_POSITIVE),
+            frames_per_view: views.iter().map(|v| v.frames.len()).min().unwrap_or(0),
+            views: views.len(),
+            axial_rows: rows.len(),
+            overlap_deg: view_spacing_deg.zip(footprint_deg).map(|(s, f)| f - s),
+            view_spacing_deg,
+        }
+    }
+
+    /// The parameters of this station outside `envelope`, each as (name, value, range) text.
+    pub fn outside(&self, envelope: &Envelope) -> Vec<String> {
+        let mut out = Vec::new();
+        let mut check = |name: &str, value: f64, (lo, hi): (f64, f64), unit: &str| {
+            if !(lo..=hi).contains(&value) {
+                out.push(format!("{name} {value:.3}{unit} (measured: {lo}–{hi}{unit})"));
+            }
+        };
+        check("object pixel", self.object_pixel_mm, envelope.object_pixel_mm, " mm");
+        check("depth of field", self.depth_of_field_mm, envelope.depth_of_field_mm, " mm");
+        check("frame step", self.frame_step_dof, envelope.frame_step_dof, " depths of field");
+        if let Some(overlap) = self.overlap_deg {
+            check("overlap between neighbouring views", overlap, envelope.overlap_deg, "°");
+        }
+        out
+    }
+}
+
+/// A range of stations, per parameter, inclusive.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Envelope {
+    pub object_pixel_mm: (f64, f64),
+    pub depth_of_field_mm: (f64, f64),
+    pub frame_step_dof: (f64, f64),
+    pub overlap_deg: (f64, f64),
+}
+
+/// Where the accuracy figures were measured: every case of the accuracy and held-out suites shares
+/// one station design (object pixel 0.041 mm, depth of field 0.50 mm, frames every 0.50 depths of
+/// field, neighbours overlapping by 5.1°), and this envelope is that station ±10% on each. A bundle
+/// outside it is inspected, and its result's quality says which parameter lies outside: nothing
+/// has measured how well crestscan does there.
+pub const MEASURED: Envelope = Envelope {
+    object_pixel_mm: (0.037, 0.045),
+    depth_of_field_mm: (0.45, 0.55),
+    frame_step_dof: (0.45, 0.55),
+    overlap_deg: (4.6, 5.6),
+};
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::domain::frame::{FrameEntry, FrameFormat};
+    use crate::domain::optics::ViewPose;
+
+    fn ring(views: usize, height_px: u32, step_mm: f64) -> Vec<View> {
+        (0..views)
+            .map(|v| View {
+                id: format!("v{v}"),
+                pose: ViewPose { angle_deg: 360.0 * v as f64 / views as f64, axial_mm: 0.0, lens_radius_mm: 250.0 },
+                frames: (0..20)
+                    .map(|k| FrameEntry { file: format!("{k}.png"), offset_mm: step_mm * k as f64 })
+                    .collect(),
+                format: FrameFormat { width: 864, height: height_px, channels: 3, bit_depth: 8 },
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_ring_reads_as_its_pixel_spacing_and_overlap() {
+        let optics = Optics {
+            projection: Projection::Telecentric,
+            focal_length_mm: None,
+            f_number: 8.0,
+            focus_distance_mm: 100.0,
+            pixel_pitch_um: 10.0,
+            principal_point_px: None,
+            magnification: Some(0.25),
+        };
+        // 40 µm pixels; 45 views 8° apart, 320 rows: 12.8 mm of arc at 57.15 mm is 12.83°.
+        let s = Station::of(&optics, &ring(45, 320, 0.25), 57.15);
+        assert!((s.object_pixel_mm - 0.04).abs() < 1e-12);
+        assert_eq!((s.views, s.axial_rows, s.frames_per_view), (45, 1, 20));
+        assert!((s.view_spacing_deg.unwrap() - 8.0).abs() < 1e-9);
+        assert!((s.overlap_deg.unwrap() - 4.833).abs() < 1e-3, "{s:?}");
+        assert!((s.frame_step_mm - 0.25).abs() < 1e-12);
+        // The telecentric depth of field: blur m²·|Δ|/N within one 10 µm pixel on each side.
+        assert!((s.depth_of_field_mm - 2.0 * 8.0 * 0.010 / 0.0625).abs() < 1e-6, "{}", s.depth_of_field_mm);
+    }
+
+    #[test]
+    fn each_parameter_outside_the_envelope_is_named_with_its_range() {
+        let envelope = Envelope {
+            object_pixel_mm: (0.03, 0.05),
+            depth_of_field_mm: (0.1, 3.0),
+            frame_step_dof: (0.05, 1.0),
+            overlap_deg: (3.0, 12.0),
+        };
+        let optics = Optics {
+            projection: Projection::Telecentric,
+            focal_length_mm: None,
+            f_number: 8.0,
+            focus_distance_mm: 100.0,
+            pixel_pitch_um: 10.0,
+            principal_point_px: None,
+            magnification: Some(0.25),
+        };
+        assert!(Station::of(&optics, &ring(45, 320, 0.25), 57.15).outside(&envelope).is_empty());
+        // 12 views 30° apart overlap by −17°.
+        let sparse = Station::of(&optics, &ring(12, 320, 0.25), 57.15).outside(&envelope);
+        assert_eq!(sparse.len(), 1);
+        assert!(sparse[0].starts_with("overlap between neighbouring views -17."), "{sparse:?}");
+        let coarse = Optics { magnification: Some(0.08), ..optics };
+        let names: Vec<String> = Station::of(&coarse, &ring(45, 320, 0.25), 57.15).outside(&envelope);
+        assert!(names.iter().any(|n| n.starts_with("object pixel 0.125 mm")), "{names:?}");
+    }
+}
