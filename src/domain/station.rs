@@ -144,9 +144,9 @@ mod tests {
             .collect()
     }
 
-    #[test]
-    fn a_ring_reads_as_its_pixel_spacing_and_overlap() {
-        let optics = Optics {
+    /// A telecentric lens of magnification 0.25 on 10 µm pixels: 40 µm on the part.
+    fn telecentric() -> Optics {
+        Optics {
             projection: Projection::Telecentric,
             focal_length_mm: None,
             f_number: 8.0,
@@ -154,7 +154,12 @@ mod tests {
             pixel_pitch_um: 10.0,
             principal_point_px: None,
             magnification: Some(0.25),
-        };
+        }
+    }
+
+    #[test]
+    fn a_ring_reads_as_its_pixel_spacing_and_overlap() {
+        let optics = telecentric();
         // 40 µm pixels; 45 views 8° apart, 320 rows: 12.8 mm of arc at 57.15 mm is 12.83°.
         let s = Station::of(&optics, &ring(45, 320, 0.25), 57.15);
         assert!((s.object_pixel_mm - 0.04).abs() < 1e-12);
@@ -174,15 +179,7 @@ mod tests {
             frame_step_dof: (0.05, 1.0),
             overlap_deg: (3.0, 12.0),
         };
-        let optics = Optics {
-            projection: Projection::Telecentric,
-            focal_length_mm: None,
-            f_number: 8.0,
-            focus_distance_mm: 100.0,
-            pixel_pitch_um: 10.0,
-            principal_point_px: None,
-            magnification: Some(0.25),
-        };
+        let optics = telecentric();
         assert!(Station::of(&optics, &ring(45, 320, 0.25), 57.15).outside(&envelope).is_empty());
         // 12 views 30° apart overlap by −17°.
         let sparse = Station::of(&optics, &ring(12, 320, 0.25), 57.15).outside(&envelope);
