@@ -63,12 +63,10 @@ impl From<BundleError> for ApiError {
 
 impl From<StoreError> for ApiError {
     fn from(e: StoreError) -> Self {
-        match e {
-            StoreError::NotFound => Self::new(Code::NotFound, "not found"),
-            StoreError::IdempotencyConflict { .. } => {
-                Self::new(Code::IdempotencyKeyReused, e.to_string()).with_culprit("Idempotency-Key")
-            }
-            other => Self::internal(other),
+        match e.code() {
+            // The database's and the file store's own failures are the operator's (logged).
+            Code::InternalError => Self::internal(e),
+            _ => Self::of(&e),
         }
     }
 }

@@ -13,7 +13,7 @@ pub use inspections::{Inserted, InspectionRow, ListFilter, NewInspection, Upload
 pub use queue::{Claimed, Heartbeat};
 pub use results::{Artifact, HeightRow, JobResults, StoredArtifact, ThreadRow};
 
-use crate::problem::{Code, Problem};
+use crate::problem::{Code, ErrorCode, Problem};
 use files::FileStore;
 use serde::Serialize;
 use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, SqliteSynchronous};
@@ -36,6 +36,20 @@ pub enum StoreError {
     Migrate(#[from] sqlx::migrate::MigrateError),
     #[error("file store: {0}")]
     Io(#[from] std::io::Error),
+}
+
+impl ErrorCode for StoreError {
+    fn code(&self) -> Code {
+        match self {
+            StoreError::NotFound => Code::NotFound,
+            StoreError::IdempotencyConflict { .. } => Code::IdempotencyKeyReused,
+            StoreError::Db(_) | StoreError::Migrate(_) | StoreError::Io(_) => Code::InternalError,
+        }
+    }
+
+    fn culprit(&self) -> Option<String> {
+        matches!(self, StoreError::IdempotencyConflict { .. }).then(|| "Idempotency-Key".into())
+    }
 }
 
 pub fn now_ms() -> i64 {
