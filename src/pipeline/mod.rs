@@ -16,18 +16,30 @@
 //! Stages never open a file: frames come through [`Recording`]. Progress, cancellation (checked
 //! between frames and stages) and timings belong to a small run context ([`run`]).
 
-pub mod cloud;
-pub mod crest;
+// The stages in data-flow order (blank lines keep rustfmt from sorting them), then the run's
+// context and options.
 pub mod depth;
-pub mod fuse;
-pub mod mesh;
-pub mod options;
-pub mod profile;
-pub mod quality;
+
+pub mod cloud;
+
 pub mod register;
-pub mod report;
-pub mod run;
+
 pub mod surface;
+
+pub mod fuse;
+
+pub mod mesh;
+
+pub mod profile;
+
+pub mod crest;
+
+pub mod quality;
+
+pub mod report;
+
+pub mod options;
+pub mod run;
 
 pub use crate::domain::frame::Recording;
 pub use options::PipelineOptions;
