@@ -73,6 +73,7 @@ codes! {
     BundleTooLarge = ("bundle_too_large", 413, "Bundle too large"),
     InspectionTooLarge = ("inspection_too_large", 422, "Inspection too large"),
     InvalidArchive = ("invalid_archive", 422, "Invalid archive"),
+    StationOutOfRange = ("station_out_of_range", 422, "Station out of range"),
     // Job failures (in a failed inspection's `error`).
     NoDepth = ("no_depth", 422, "No depth recovered"),
     NoThread = ("no_thread", 422, "No thread found"),

@@ -15,7 +15,7 @@ pub use source::{Limits, Source, check_relative_path};
 pub use validate::resolve_part;
 
 use decode::probe;
-use validate::{check_work, validate_views};
+use validate::{check_station, check_work, validate_views};
 
 use crate::domain::frame::{Frame, FrameError, FrameFormat, FrameSource, Recording, Samples, View};
 use crate::domain::optics::Optics;
@@ -59,6 +59,10 @@ pub enum BundleError {
     /// ([`Limits::max_stack_samples`] and the two after it); `field` is what makes it large.
     #[error("manifest.json: {field}: {message}")]
     InspectionTooLarge { field: String, message: String },
+    /// A station the method cannot measure at (its pixel too coarse for the thread, its focal
+    /// stack too sparse or too short); `field` is the manifest parameter that puts it there.
+    #[error("manifest.json: {field}: {message}")]
+    StationOutOfRange { field: String, message: String },
     #[error("{message}")]
     Archive { message: String },
     #[error("{path}: {message}")]
@@ -81,6 +85,7 @@ impl ErrorCode for BundleError {
             BundleError::UnsafePath { .. } => Code::UnsafePath,
             BundleError::Limit { .. } => Code::BundleTooLarge,
             BundleError::InspectionTooLarge { .. } => Code::InspectionTooLarge,
+            BundleError::StationOutOfRange { .. } => Code::StationOutOfRange,
             BundleError::Archive { .. } => Code::InvalidArchive,
             BundleError::Io { .. } => Code::IoError,
         }
@@ -93,7 +98,8 @@ impl ErrorCode for BundleError {
             BundleError::Manifest { field, .. }
             | BundleError::TooFewFrames { field, .. }
             | BundleError::Offsets { field, .. }
-            | BundleError::InspectionTooLarge { field, .. } => Some(format!("manifest.json: {field}")),
+            | BundleError::InspectionTooLarge { field, .. }
+            | BundleError::StationOutOfRange { field, .. } => Some(format!("manifest.json: {field}")),
             BundleError::Optics { field, .. } => Some(format!("manifest.json: optics.{field}")),
             BundleError::Thread { field, .. } => Some(format!("manifest.json: part.thread.{field}")),
             BundleError::UnknownConnection { .. } => Some("manifest.json: part.connection".into()),
@@ -150,6 +156,7 @@ impl Bundle {
         manifest.optics.validate().map_err(|(field, message)| BundleError::Optics { field: field.into(), message })?;
         let views = validate_views(&manifest, &source, options.frame_check)?;
         check_work(&part, &manifest.optics, &views, options.limits)?;
+        check_station(&part, &manifest.optics, &views)?;
         let optics = manifest.optics.clone();
         Ok(Self { manifest, part, optics, views, source })
     }

@@ -3,6 +3,7 @@
 //! against the caps.
 
 use super::*;
+use crate::domain::station::Station;
 
 pub(super) fn thread_err(field: &str, message: impl Into<String>) -> BundleError {
     BundleError::Thread { field: field.into(), message: message.into() }
@@ -319,4 +320,60 @@ pub(super) fn check_work(part: &Part, optics: &Optics, views: &[View], limits: L
 
 pub(super) fn channels_name(channels: u8) -> &'static str {
     if channels == 1 { "gray" } else { "RGB" }
+}
+
+/// The fewest object pixels a pitch may span: the profile stage fits crest and root over windows
+/// a fraction of a pitch wide.
+const MIN_PIXELS_PER_PITCH: f64 = 10.0;
+/// The widest frame step, in depths of field, at which a pixel's focus curve still has frames on
+/// both shoulders of its peak (the depth stage locates the peak between them).
+const MAX_FRAME_STEP_DOF: f64 = 2.0;
+
+/// Refuses a station the method cannot measure at, whatever its accuracy elsewhere: a pixel too
+/// coarse to resolve the thread's pitch, frames too far apart to sample a focus curve, or a stack
+/// too short to bring the thread's roots and crests both into focus. Stations inside these limits
+/// but outside the measured envelope are inspected and flagged (`domain::station`).
+pub(super) fn check_station(part: &Part, optics: &Optics, views: &[View]) -> Result<(), BundleError> {
+    let out = |field: String, message: String| BundleError::StationOutOfRange { field, message };
+    let station = Station::of(optics, views, part.pipe_od_mm / 2.0);
+    let pitch_mm = part.form.pitch_mm;
+    if station.object_pixel_mm * MIN_PIXELS_PER_PITCH > pitch_mm {
+        return Err(out(
+            "optics.pixel_pitch_um".into(),
+            format!(
+                "one pixel covers {:.3} mm of the part; the thread's {pitch_mm} mm pitch needs at least \
+                 {MIN_PIXELS_PER_PITCH} pixels (each at most {:.3} mm)",
+                station.object_pixel_mm,
+                pitch_mm / MIN_PIXELS_PER_PITCH
+            ),
+        ));
+    }
+    for (i, view) in views.iter().enumerate() {
+        let mut offsets: Vec<f64> = view.frames.iter().map(|f| f.offset_mm).collect();
+        offsets.sort_by(f64::total_cmp);
+        let widest = offsets.windows(2).map(|w| w[1] - w[0]).fold(0.0, f64::max);
+        if widest > MAX_FRAME_STEP_DOF * station.depth_of_field_mm {
+            return Err(out(
+                format!("views[{i}].frames"),
+                format!(
+                    "frames {widest:.3} mm apart, {:.1} depths of field ({:.3} mm at a blur of one pixel); a \
+                     focus curve needs frames at most {MAX_FRAME_STEP_DOF} depths of field apart",
+                    widest / station.depth_of_field_mm,
+                    station.depth_of_field_mm
+                ),
+            ));
+        }
+        let span = offsets.last().copied().unwrap_or(0.0) - offsets.first().copied().unwrap_or(0.0);
+        if span < part.form.height_mm {
+            return Err(out(
+                format!("views[{i}].frames"),
+                format!(
+                    "the focal stack spans {span:.3} mm of offset; the thread is {:.3} mm deep, so its roots and \
+                     crests cannot both come into focus",
+                    part.form.height_mm
+                ),
+            ));
+        }
+    }
+    Ok(())
 }

@@ -456,3 +456,40 @@ fn damaged_archive_entries_are_the_clients_error() {
     // Indexing skips over the cut frame's data and runs out: the message names that frame.
     expect_error(open(&short), "invalid_archive", &[&file, "damaged", "ends inside"]);
 }
+
+/// A station the method cannot measure at is refused before any work, naming the parameter: a
+/// pixel too coarse for the pitch, frames too far apart for a focus curve, a stack too short for
+/// the thread's depth. (The ci bundle: 41 µm pixels, frames every 0.25 mm, 18 of them; BC 4-1/2,
+/// 5.08 mm pitch, 1.575 mm deep.)
+#[test]
+fn a_station_the_method_cannot_measure_at_is_refused_naming_its_parameter() {
+    let bundle_error = |s: &Scratch| {
+        let err = open(s.path()).expect_err("the station should be refused");
+        assert_eq!(err.code().name(), "station_out_of_range", "{err}");
+        (err.culprit().unwrap(), err.to_string())
+    };
+    // Pixels 14 times as large on the sensor: 0.57 mm on the part, fewer than 10 a pitch.
+    let coarse = Scratch::new();
+    coarse.edit(|m| m["optics"]["pixel_pitch_um"] = json!(12.0 * 14.0));
+    let (culprit, message) = bundle_error(&coarse);
+    assert_eq!(culprit, "manifest.json: optics.pixel_pitch_um");
+    assert!(message.contains("5.08 mm pitch needs at least 10 pixels"), "{message}");
+    // Frames ten times as far apart: 2.5 mm, five depths of field.
+    let sparse = Scratch::new();
+    sparse.edit(|m| {
+        for frame in m["views"][1]["frames"].as_array_mut().unwrap() {
+            frame["offset_mm"] = json!(10.0 * frame["offset_mm"].as_f64().unwrap());
+        }
+    });
+    let (culprit, message) = bundle_error(&sparse);
+    assert_eq!(culprit, "manifest.json: views[1].frames");
+    assert!(message.contains("depths of field") && message.contains("at most 2"), "{message}");
+    // Four frames 0.25 mm apart span 0.75 mm of a 1.575 mm deep thread.
+    let short = Scratch::new();
+    short.edit(|m| m["views"][2]["frames"].as_array_mut().unwrap().truncate(4));
+    let (culprit, message) = bundle_error(&short);
+    assert_eq!(culprit, "manifest.json: views[2].frames");
+    assert!(message.contains("spans 0.750 mm") && message.contains("1.575 mm deep"), "{message}");
+    // The same bundle as it is opens.
+    assert!(open(Scratch::new().path()).is_ok());
+}
