@@ -187,6 +187,23 @@ impl ViewPose {
     }
 }
 
+/// The standard preset's camera for unit tests below the simulator, which they may not import: a
+/// 50 mm f/1.4 lens focused at 220 mm on 12 µm pixels (`sim::presets` defines the preset itself).
+#[cfg(test)]
+impl Optics {
+    pub(crate) fn standard_camera() -> Self {
+        Optics {
+            projection: Projection::Perspective,
+            focal_length_mm: Some(50.0),
+            f_number: 1.4,
+            focus_distance_mm: 220.0,
+            pixel_pitch_um: 12.0,
+            principal_point_px: None,
+            magnification: None,
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -129,15 +129,7 @@ mod tests {
 
     #[test]
     fn a_pixel_on_the_axis_lands_on_the_view_line() {
-        let optics = Optics {
-            projection: Projection::Perspective,
-            focal_length_mm: Some(50.0),
-            f_number: 1.4,
-            focus_distance_mm: 220.0,
-            pixel_pitch_um: 12.0,
-            principal_point_px: Some([1.5, 1.5]),
-            magnification: None,
-        };
+        let optics = Optics { principal_point_px: Some([1.5, 1.5]), ..Optics::standard_camera() };
         let depth = DepthMap {
             width: 3,
             height: 3,

@@ -125,16 +125,7 @@ mod tests {
     fn a_rings_common_axial_offset_is_found_on_the_corner() {
         // Eight views whose poses all sit 0.03 mm too low in z (what registration cannot see); the
         // corner circle (r 54.07 mm) is in focus at offset −1.55 mm in each stack.
-        // The standard preset's optics: a 50 mm f/1.4 lens at 220 mm, 12 µm pixels.
-        let optics = Optics {
-            projection: Projection::Perspective,
-            focal_length_mm: Some(50.0),
-            f_number: 1.4,
-            focus_distance_mm: 220.0,
-            pixel_pitch_um: 12.0,
-            principal_point_px: None,
-            magnification: None,
-        };
+        let optics = Optics::standard_camera();
         let (w, h, r) = (864u32, 320u32, 54.07);
         let truth: Vec<ViewPose> =
             (0..8).map(|i| ViewPose { angle_deg: 45.0 * i as f64, axial_mm: 17.3, lens_radius_mm: 275.6 }).collect();
