@@ -124,6 +124,7 @@ fn run_stages(recording: &dyn Recording, options: &PipelineOptions, mut run: Run
     let (assessment, crest) = crest_and_rules(recording, options, &helix, &threads, &mut run);
     let report = Report::assemble(report::Findings {
         part: recording.part(),
+        options,
         optics: recording.optics(),
         views: recording.views(),
         helix,

@@ -7,6 +7,7 @@ use crate::domain::part::Part;
 use crate::domain::rules::{Assessment, Verdict};
 use crate::domain::station::Station;
 use crate::domain::thread::Family;
+use crate::pipeline::PipelineOptions;
 use crate::pipeline::crest::CrestCone;
 use crate::pipeline::profile::{Helix, ThreadMeasure};
 use crate::pipeline::quality::{self, Quality};
@@ -62,6 +63,10 @@ pub struct Report {
     /// stored before it was recorded).
     #[serde(default)]
     pub station: Option<Station>,
+    /// What made this report: the software, the settings, and (in the service) the inspection and
+    /// its bundle (absent in reports stored before it was recorded).
+    #[serde(default)]
+    pub provenance: Option<Provenance>,
     // Extras.
     pub serial: Option<String>,
     pub height_tolerance_mm: f64,
@@ -167,9 +172,21 @@ fn yes() -> bool {
     true
 }
 
+/// What made a report.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Provenance {
+    pub software_version: String,
+    /// Every option the pipeline ran with, defaults filled in.
+    pub settings: PipelineOptions,
+    /// Set by the service: the inspection's id and the sha256 of its uploaded bundle.
+    pub inspection_id: Option<String>,
+    pub bundle_sha256: Option<String>,
+}
+
 /// What the stages found, from which the report is assembled.
 pub struct Findings<'a> {
     pub part: &'a Part,
+    pub options: &'a PipelineOptions,
     pub optics: &'a Optics,
     pub views: &'a [View],
     pub helix: Helix,
@@ -230,6 +247,12 @@ impl Report {
             review_required: quality.needs_review(),
             quality,
             station: Some(station),
+            provenance: Some(Provenance {
+                software_version: env!("CARGO_PKG_VERSION").into(),
+                settings: f.options.clone(),
+                inspection_id: None,
+                bundle_sha256: None,
+            }),
             serial: part.serial.clone(),
             height_tolerance_mm: form.height_tolerance_mm,
             assessment: f.assessment,

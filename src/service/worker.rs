@@ -241,11 +241,15 @@ fn run_job(ctx: &WorkerContext, job: &Claimed, cancel: &AtomicBool, progress: &M
     let report_progress = |stage: Stage, fraction: f64| {
         *progress.lock().expect("progress lock") = Some((stage, fraction));
     };
-    let inspection = match pipeline::inspect(&bundle, &options.pipeline, &report_progress, cancel) {
+    let mut inspection = match pipeline::inspect(&bundle, &options.pipeline, &report_progress, cancel) {
         Ok(Some(i)) => i,
         Ok(None) => return Outcome::Canceled,
         Err(e) => return failure(&e),
     };
+    if let Some(provenance) = inspection.report.provenance.as_mut() {
+        provenance.inspection_id = Some(job.id.clone());
+        provenance.bundle_sha256 = Some(job.upload_sha256.clone());
+    }
     match encode_results(&inspection) {
         Ok(r) => Outcome::Succeeded(Box::new(r)),
         Err(e) => Outcome::Retry(problem(Code::IoError, e.to_string())),

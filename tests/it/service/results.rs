@@ -46,6 +46,12 @@ async fn round_trip_on_the_ci_preset() {
     let station = report.quality.reasons.iter().find(|r| r.code == QualityCode::StationUnmeasured).unwrap();
     assert!(station.message.contains("overlap between neighbouring views 1.5"), "{}", station.message);
     assert_eq!(report.station.as_ref().unwrap().views, 3);
+    // Its provenance: this inspection, its bundle's hash, the software and the settings it ran with.
+    let provenance = report.provenance.as_ref().unwrap();
+    assert_eq!(provenance.inspection_id.as_deref(), Some(id.as_str()));
+    assert_eq!(provenance.bundle_sha256.as_deref(), created["bundle"]["sha256"].as_str());
+    assert_eq!(provenance.software_version, env!("CARGO_PKG_VERSION"));
+    assert_eq!(provenance.settings, crestscan::pipeline::PipelineOptions::default());
     let again =
         app.client.get(app.url(&format!("{location}/report"))).header("if-none-match", &etag).send().await.unwrap();
     assert_eq!(again.status(), StatusCode::NOT_MODIFIED);
