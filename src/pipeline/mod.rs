@@ -116,7 +116,7 @@ pub fn inspect(
 type Step<T> = Result<T, Halt<PipelineError>>;
 
 fn run_stages(recording: &dyn Recording, options: &PipelineOptions, mut run: Run) -> Step<Inspection> {
-    let depth_maps = measure_depth(recording, options, &mut run)?;
+    let (depth_maps, depth_coverage) = measure_depth(recording, options, &mut run)?;
     let registered = register_views(recording, options, &depth_maps, &mut run)?;
     let map =
         fuse_views(recording, options, &depth_maps, &registered.poses, &registered.encoder_z_ranges_mm, &mut run)?;
@@ -134,15 +134,16 @@ fn run_stages(recording: &dyn Recording, options: &PipelineOptions, mut run: Run
         crest_cone: crest.cone,
         registration: registered.registration,
         end_face: registered.end_face,
-        depth_coverage: depth_maps.iter().map(|d| d.coverage()).sum::<f64>() / depth_maps.len().max(1) as f64,
+        depth_coverage,
         map_coverage: map.coverage(),
         timings: run.into_timings(),
     });
     Ok(Inspection { report, map, depth_maps, poses: registered.poses, mesh })
 }
 
-/// Depth from focus per view, in parallel, then the views' sub-frame phases equalised.
-fn measure_depth(recording: &dyn Recording, options: &PipelineOptions, run: &mut Run) -> Step<Vec<DepthMap>> {
+/// Depth from focus per view, in parallel, then the views' sub-frame phases equalised; the maps
+/// and their mean coverage.
+fn measure_depth(recording: &dyn Recording, options: &PipelineOptions, run: &mut Run) -> Step<(Vec<DepthMap>, f64)> {
     let views = recording.views();
     run.progress(Stage::Depth, 0.0);
     let done = AtomicUsize::new(0);
@@ -189,7 +190,7 @@ fn measure_depth(recording: &dyn Recording, options: &PipelineOptions, run: &mut
         return Err(PipelineError::NoDepth.into());
     }
     run.lap(Stage::Depth);
-    Ok(depth_maps)
+    Ok((depth_maps, depth_coverage))
 }
 
 /// What registration hands on: the refined poses, what it measured, and the views' z ranges at

@@ -272,17 +272,17 @@ pub fn register(
 /// between neighbours was measured: the measured shifts summed once around.
 fn ring_closure(poses: &[ViewPose], pairs: &[PairMeasure], half_angle_deg: f64) -> Option<RingClosure> {
     let n = poses.len();
-    if n < 3 {
+    let one_row = poses.iter().all(|p| (p.axial_mm - poses[0].axial_mm).abs() < 1e-9);
+    if n < 3 || !one_row {
         return None;
     }
-    let one_row = poses.iter().all(|p| (p.axial_mm - poses[0].axial_mm).abs() < 1e-9);
     let mut order: Vec<usize> = (0..n).collect();
     order.sort_by(|&a, &b| poses[a].angle_deg.rem_euclid(360.0).total_cmp(&poses[b].angle_deg.rem_euclid(360.0)));
     let (mut angle_deg, mut axial_mm) = (0.0, 0.0);
     for k in 0..n {
         let (from, to) = (order[k], order[(k + 1) % n]);
         let gap_deg = (poses[to].angle_deg - poses[from].angle_deg).rem_euclid(360.0);
-        if !one_row || gap_deg >= 1.7 * half_angle_deg {
+        if gap_deg >= NEIGHBOUR_REACH * half_angle_deg {
             return None;
         }
         // Each pair measures c_b − c_a; walking from `from` to `to` adds it, or takes it off.

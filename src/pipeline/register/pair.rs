@@ -142,6 +142,9 @@ pub(super) fn measure_pair(
     })
 }
 
+/// How far apart, in footprint half-widths, two views may stand and still be taken to overlap.
+pub(super) const NEIGHBOUR_REACH: f64 = 1.7;
+
 /// Pairs of views whose footprints overlap: same axial row and adjacent in angle, or same angle and
 /// adjacent in z, judged from the encoder poses and the footprint sizes.
 pub fn overlapping_pairs(poses: &[ViewPose], half_angle_deg: f64, half_axial_mm: f64) -> Vec<(usize, usize)> {
@@ -150,8 +153,8 @@ pub fn overlapping_pairs(poses: &[ViewPose], half_angle_deg: f64, half_axial_mm:
         for b in a + 1..poses.len() {
             let dang = wrap_pi((poses[b].angle_deg - poses[a].angle_deg).to_radians()).to_degrees().abs();
             let dz = (poses[b].axial_mm - poses[a].axial_mm).abs();
-            let angular = dang < 1.7 * half_angle_deg && dz < 0.5 * half_axial_mm;
-            let axial = dang < 0.5 * half_angle_deg && dz < 1.7 * half_axial_mm;
+            let angular = dang < NEIGHBOUR_REACH * half_angle_deg && dz < 0.5 * half_axial_mm;
+            let axial = dang < 0.5 * half_angle_deg && dz < NEIGHBOUR_REACH * half_axial_mm;
             if angular || axial {
                 pairs.push((a, b));
             }
