@@ -34,6 +34,10 @@ pub struct BenchArgs {
 enum SuiteArg {
     Accuracy,
     Holdout,
+    /// The defect presets at 48 random stations (seeds no setting was chosen on).
+    Stations,
+    /// The same at the 12 tuning stations settings are chosen on.
+    StationsTuning,
 }
 
 impl From<SuiteArg> for Suite {
@@ -41,6 +45,8 @@ impl From<SuiteArg> for Suite {
         match s {
             SuiteArg::Accuracy => Self::Accuracy,
             SuiteArg::Holdout => Self::Holdout,
+            SuiteArg::Stations => Self::Stations,
+            SuiteArg::StationsTuning => Self::StationsTuning,
         }
     }
 }

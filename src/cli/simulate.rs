@@ -20,14 +20,27 @@ pub struct SimulateArgs {
     /// Write only truth/truth.json (no rendering).
     #[arg(long)]
     truth_only: bool,
+    /// Record the preset's part at another station: `random` (drawn by --station-seed from the
+    /// ranges in docs/simulator.md) or a named one (see --list).
+    #[arg(long)]
+    station: Option<String>,
+    /// The seed a random station is drawn by [default: --seed].
+    #[arg(long)]
+    station_seed: Option<u64>,
 }
 
 impl SimulateArgs {
     pub fn run(self) -> Result<()> {
-        let Self { preset, seed, out, list, truth_only } = self;
+        let Self { preset, seed, out, list, truth_only, station, station_seed } = self;
         if list {
             for p in sim::PRESETS {
                 println!("{}\t{}", p.name, p.description);
+            }
+            println!(
+                "\nstations (--station NAME):\nrandom\tdrawn by --station-seed from the ranges in docs/simulator.md"
+            );
+            for (name, description) in sim::station::NAMED {
+                println!("{name}\t{description}");
             }
             return Ok(());
         }
@@ -35,6 +48,20 @@ impl SimulateArgs {
         let Some(spec) = sim::preset(&name) else {
             let names: Vec<_> = sim::PRESETS.iter().map(|p| p.name).collect();
             bail!("unknown preset {name:?}; presets: {}", names.join(", "));
+        };
+        let spec = match station {
+            None => spec,
+            Some(station) => {
+                let radius = spec.part.pipe_od_mm / 2.0;
+                let span = sim::station::z_span_mm(&spec);
+                let Some(s) = sim::station::station(&station, station_seed.unwrap_or(seed), radius, span) else {
+                    let names: Vec<_> = sim::station::NAMED.iter().map(|n| n.0).collect();
+                    bail!("unknown station {station:?}; stations: random, {}", names.join(", "));
+                };
+                let spec = sim::station::at_station(&spec, &s);
+                eprintln!("{}", spec.station.as_ref().expect("at a station").summary());
+                spec
+            }
         };
         if truth_only {
             let truth = sim::write_truth(&spec, seed, &out)?;

@@ -5,22 +5,31 @@ use crate::eval::truth::{Accuracy, BlackCrest, RegistrationError, black_crests, 
 use crate::sim::Truth;
 use serde::Serialize;
 
-/// A benchmark case: a preset rendered with one seed.
+/// A benchmark case: a preset rendered with one seed, at its own station or at a random one.
 #[derive(Clone, Copy, Debug)]
 pub struct Case {
     pub preset: &'static str,
     pub seed: u64,
+    /// The seed of the random station the preset's part is recorded at
+    /// ([`crate::sim::station::random`]); None: the preset's own station.
+    pub station_seed: Option<u64>,
+}
+
+impl Case {
+    pub const fn at(preset: &'static str, seed: u64) -> Self {
+        Self { preset, seed, station_seed: None }
+    }
 }
 
 /// The accuracy suite: the standard preset, the defects that decide verdicts, and the seed's
 /// Table 1, each with a seed of its own that no test or tuning uses.
 pub const ACCURACY_SUITE: &[Case] = &[
-    Case { preset: "standard", seed: 9001 },
-    Case { preset: "bc-black-2", seed: 9002 },
-    Case { preset: "bc-arc-over-25", seed: 9003 },
-    Case { preset: "lc-round-black", seed: 9004 },
-    Case { preset: "bc-polished", seed: 9005 },
-    Case { preset: "seed-table1", seed: 9006 },
+    Case::at("standard", 9001),
+    Case::at("bc-black-2", 9002),
+    Case::at("bc-arc-over-25", 9003),
+    Case::at("lc-round-black", 9004),
+    Case::at("bc-polished", 9005),
+    Case::at("seed-table1", 9006),
 ];
 
 /// The held-out suite: the defect presets rendered again with other seeds. The black-crest
@@ -35,56 +44,91 @@ pub const ACCURACY_SUITE: &[Case] = &[
 /// bc-black-3 and lc-accept (seed 1), the presets no suite had, joined in the same round, seen by
 /// nothing before, and bc-black-1 seed 2 after seed 1's 1.77 mm.
 pub const HOLDOUT_SUITE: &[Case] = &[
-    Case { preset: "lc-round-black", seed: 1 },
-    Case { preset: "lc-round-black", seed: 2 },
-    Case { preset: "lc-round-black", seed: 3 },
-    Case { preset: "lc-round-black", seed: 4 },
-    Case { preset: "lc-round-black", seed: 5 },
-    Case { preset: "lc-round-black", seed: 6 },
-    Case { preset: "lc-accept", seed: 1 },
-    Case { preset: "bc-black-1", seed: 1 },
-    Case { preset: "bc-black-1", seed: 2 },
-    Case { preset: "bc-black-2", seed: 1 },
-    Case { preset: "bc-black-2", seed: 2 },
-    Case { preset: "bc-black-3", seed: 1 },
-    Case { preset: "bc-arc-over-25", seed: 1 },
-    Case { preset: "bc-arc-over-25", seed: 2 },
-    Case { preset: "bc-arc-over-25", seed: 3 },
-    Case { preset: "bc-polished", seed: 1 },
-    Case { preset: "bc-polished", seed: 2 },
-    Case { preset: "bc-polished", seed: 3 },
-    Case { preset: "bc-polished", seed: 4 },
-    Case { preset: "bc-polished", seed: 5 },
-    Case { preset: "bc-polished", seed: 6 },
-    Case { preset: "bc-polished", seed: 7 },
-    Case { preset: "bc-polished", seed: 8 },
-    Case { preset: "bc-polished", seed: 9 },
-    Case { preset: "bc-polished", seed: 10 },
-    Case { preset: "bc-polished", seed: 11 },
-    Case { preset: "bc-polished", seed: 12 },
-    Case { preset: "bc-polished", seed: 13 },
-    Case { preset: "bc-polished", seed: 14 },
-    Case { preset: "bc-polished", seed: 15 },
-    Case { preset: "bc-polished", seed: 16 },
-    Case { preset: "bc-polished-long", seed: 1 },
-    Case { preset: "bc-polished-long", seed: 2 },
-    Case { preset: "bc-polished-long", seed: 3 },
-    Case { preset: "bc-polished-long", seed: 4 },
-    Case { preset: "bc-polished-end", seed: 1 },
-    Case { preset: "bc-polished-end", seed: 2 },
-    Case { preset: "bc-polished-end", seed: 3 },
-    Case { preset: "lc-round-black", seed: 7 },
-    Case { preset: "bc-polished-long", seed: 5 },
-    Case { preset: "bc-polished-long", seed: 6 },
-    Case { preset: "bc-polished-end", seed: 4 },
-    Case { preset: "bc-polished-end", seed: 5 },
+    Case::at("lc-round-black", 1),
+    Case::at("lc-round-black", 2),
+    Case::at("lc-round-black", 3),
+    Case::at("lc-round-black", 4),
+    Case::at("lc-round-black", 5),
+    Case::at("lc-round-black", 6),
+    Case::at("lc-accept", 1),
+    Case::at("bc-black-1", 1),
+    Case::at("bc-black-1", 2),
+    Case::at("bc-black-2", 1),
+    Case::at("bc-black-2", 2),
+    Case::at("bc-black-3", 1),
+    Case::at("bc-arc-over-25", 1),
+    Case::at("bc-arc-over-25", 2),
+    Case::at("bc-arc-over-25", 3),
+    Case::at("bc-polished", 1),
+    Case::at("bc-polished", 2),
+    Case::at("bc-polished", 3),
+    Case::at("bc-polished", 4),
+    Case::at("bc-polished", 5),
+    Case::at("bc-polished", 6),
+    Case::at("bc-polished", 7),
+    Case::at("bc-polished", 8),
+    Case::at("bc-polished", 9),
+    Case::at("bc-polished", 10),
+    Case::at("bc-polished", 11),
+    Case::at("bc-polished", 12),
+    Case::at("bc-polished", 13),
+    Case::at("bc-polished", 14),
+    Case::at("bc-polished", 15),
+    Case::at("bc-polished", 16),
+    Case::at("bc-polished-long", 1),
+    Case::at("bc-polished-long", 2),
+    Case::at("bc-polished-long", 3),
+    Case::at("bc-polished-long", 4),
+    Case::at("bc-polished-end", 1),
+    Case::at("bc-polished-end", 2),
+    Case::at("bc-polished-end", 3),
+    Case::at("lc-round-black", 7),
+    Case::at("bc-polished-long", 5),
+    Case::at("bc-polished-long", 6),
+    Case::at("bc-polished-end", 4),
+    Case::at("bc-polished-end", 5),
 ];
+
+/// The defect presets a random station records, in turn: every thread family and defect kind.
+pub const STATION_PRESETS: &[&str] = &[
+    "standard",
+    "bc-black-1",
+    "bc-black-2",
+    "bc-black-3",
+    "bc-arc-over-25",
+    "lc-round-black",
+    "lc-accept",
+    "bc-polished",
+    "bc-polished-long",
+    "bc-polished-end",
+    "seed-table1",
+];
+
+/// Station seeds of the tuning stations: settings are chosen on these.
+pub const STATION_TUNING_SEEDS: std::ops::Range<u64> = 1..13;
+/// Station seeds of the station benchmark: rendered after every setting was chosen, used to
+/// choose none.
+pub const STATION_BENCH_SEEDS: std::ops::Range<u64> = 101..149;
+
+fn station_cases(seeds: std::ops::Range<u64>) -> Vec<Case> {
+    seeds
+        .map(|seed| Case {
+            preset: STATION_PRESETS[(seed as usize) % STATION_PRESETS.len()],
+            seed,
+            station_seed: Some(seed),
+        })
+        .collect()
+}
 
 /// A named benchmark suite.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Suite {
     Accuracy,
     Holdout,
+    /// The defect presets at random stations ([`STATION_BENCH_SEEDS`]).
+    Stations,
+    /// The same at the tuning stations ([`STATION_TUNING_SEEDS`]).
+    StationsTuning,
 }
 
 impl Suite {
@@ -92,13 +136,17 @@ impl Suite {
         match self {
             Suite::Accuracy => "accuracy",
             Suite::Holdout => "holdout",
+            Suite::Stations => "stations",
+            Suite::StationsTuning => "stations-tuning",
         }
     }
 
-    pub fn cases(self) -> &'static [Case] {
+    pub fn cases(self) -> Vec<Case> {
         match self {
-            Suite::Accuracy => ACCURACY_SUITE,
-            Suite::Holdout => HOLDOUT_SUITE,
+            Suite::Accuracy => ACCURACY_SUITE.to_vec(),
+            Suite::Holdout => HOLDOUT_SUITE.to_vec(),
+            Suite::Stations => station_cases(STATION_BENCH_SEEDS),
+            Suite::StationsTuning => station_cases(STATION_TUNING_SEEDS),
         }
     }
 
@@ -107,6 +155,7 @@ impl Suite {
         match self {
             Suite::Accuracy => "out/bench",
             Suite::Holdout => "out/holdout",
+            Suite::Stations | Suite::StationsTuning => "out/stations",
         }
     }
 }
@@ -114,7 +163,23 @@ impl Suite {
 impl Case {
     /// The case's folder under the work directory, and its name for `--only`.
     pub fn name(&self) -> String {
-        format!("{}-{}", self.preset, self.seed)
+        match self.station_seed {
+            None => format!("{}-{}", self.preset, self.seed),
+            Some(station) => format!("{}@station{}-{}", self.preset, station, self.seed),
+        }
+    }
+
+    /// The case's simulation: the preset, moved to its random station when it has one.
+    pub fn spec(&self) -> Option<crate::sim::SimSpec> {
+        let spec = crate::sim::preset(self.preset)?;
+        Some(match self.station_seed {
+            None => spec,
+            Some(seed) => {
+                use crate::sim::station;
+                let s = station::random(seed, spec.part.pipe_od_mm / 2.0, station::z_span_mm(&spec));
+                station::at_station(&spec, &s)
+            }
+        })
     }
 
     /// `--only` picks a case by its preset (every seed) or by `preset-seed`.
@@ -127,6 +192,9 @@ impl Case {
 pub struct CaseResult {
     pub preset: String,
     pub seed: u64,
+    /// The random station's seed, when the case is at one, and the station as the report read it.
+    pub station_seed: Option<u64>,
+    pub station: Option<crate::domain::station::Station>,
     pub accuracy: Accuracy,
     pub depth_rms_um: f64,
     pub depth_median_um: f64,
@@ -149,7 +217,10 @@ pub struct CaseResult {
 impl CaseResult {
     /// How the benchmark's blocks name the case: "preset seed N".
     pub fn label(&self) -> String {
-        format!("{} seed {}", self.preset, self.seed)
+        match self.station_seed {
+            None => format!("{} seed {}", self.preset, self.seed),
+            Some(station) => format!("{} at station {} (seed {})", self.preset, station, self.seed),
+        }
     }
 }
 
@@ -177,7 +248,7 @@ pub fn run_case(
     options: &crate::pipeline::PipelineOptions,
 ) -> Result<CaseResult, BenchError> {
     use crate::bundle::{Bundle, OpenOptions};
-    let spec = crate::sim::preset(case.preset).ok_or_else(|| BenchError::Preset(case.preset.into()))?;
+    let spec = case.spec().ok_or_else(|| BenchError::Preset(case.preset.into()))?;
     let dir = work.join(case.name());
     let rendered = render_once(&spec, case.seed, &dir)?;
     // Truth is rewritten every run (it is cheap, the frames are not): a cached rendering keeps its
@@ -206,6 +277,8 @@ pub fn run_case(
         black_crests: black_crests(&inspection.report, &truth),
         preset: case.preset.into(),
         seed: case.seed,
+        station_seed: case.station_seed,
+        station: inspection.report.station.clone(),
         accuracy,
         depth_rms_um: depth.rms_um,
         depth_median_um: depth.median_um,

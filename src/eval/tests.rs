@@ -21,6 +21,8 @@ fn result(preset: &str, height_max_um: f64, inspect_over_decode: f64) -> CaseRes
     CaseResult {
         preset: preset.into(),
         seed: 1,
+        station_seed: None,
+        station: None,
         accuracy: Accuracy {
             bins_compared: 100,
             bins_missing: 0,
@@ -147,10 +149,10 @@ fn pair_errors_are_read_against_the_true_corrections_difference() {
 
 #[test]
 fn only_picks_a_preset_or_one_seed_of_it() {
-    let case = Case { preset: "bc-polished", seed: 3 };
+    let case = Case::at("bc-polished", 3);
     assert!(case.matches("bc-polished"));
     assert!(case.matches("bc-polished-3"));
     assert!(!case.matches("bc-polished-30"));
     assert!(!case.matches("bc-black-2"));
-    assert!(!Case { preset: "bc-black-2", seed: 1 }.matches("bc-black"));
+    assert!(!Case::at("bc-black-2", 1).matches("bc-black"));
 }

@@ -9,6 +9,7 @@ pub mod part;
 pub mod pfm;
 pub(crate) mod presets;
 pub mod render;
+pub mod station;
 
 pub use presets::{PRESETS, PresetInfo, SEED_TABLE1_HEIGHTS_MM, preset};
 
@@ -60,6 +61,9 @@ pub struct SimSpec {
     pub truth_z_end_mm: f64,
     pub appearance: Appearance,
     pub sensor: Sensor,
+    /// The station the preset was moved to, when it was ([`station::at_station`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub station: Option<station::StationSpec>,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -179,7 +183,10 @@ impl SimSpec {
                     self.offsets_mm.get(1).map_or(0.0, |o| o - self.offsets_mm[0])
                 ),
                 "depth maps: camera at offset 0, true pose; heights per the bundle contract".into(),
-            ],
+            ]
+            .into_iter()
+            .chain(self.station.as_ref().map(|s| s.summary()))
+            .collect(),
         }
     }
 

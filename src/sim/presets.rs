@@ -136,20 +136,25 @@ fn eccentric(undersize_mm: f64, eccentricity_mm: f64, low_side_deg: f64) -> impl
     }
 }
 
-struct Layout {
-    width: u32,
-    height: u32,
-    first_angle_deg: f64,
-    angle_step_deg: f64,
-    angles: usize,
-    axials_mm: Vec<f64>,
-    frame_step_mm: f64,
+pub(crate) struct Layout {
+    pub width: u32,
+    pub height: u32,
+    pub first_angle_deg: f64,
+    pub angle_step_deg: f64,
+    pub angles: usize,
+    pub axials_mm: Vec<f64>,
+    pub frame_step_mm: f64,
 }
 
 /// Views and frame offsets: each view's lens radius puts the middle of its expected depth range in
 /// focus at offset 0; the offsets cover the deepest root to the highest crest in any view, plus the
 /// encoder error and a margin of one depth of field.
-fn plan(part: &PartModel, optics: &Optics, layout: &Layout, jitter: &PoseJitter) -> (Vec<ViewPlan>, Vec<f64>) {
+pub(crate) fn plan(
+    part: &PartModel,
+    optics: &Optics,
+    layout: &Layout,
+    jitter: &PoseJitter,
+) -> (Vec<ViewPlan>, Vec<f64>) {
     let pixel = optics.object_pixel_mm(optics.focus_distance_mm);
     let half_axial = layout.width as f64 * pixel / 2.0;
     let half_arc = layout.height as f64 * pixel / 2.0;
@@ -225,6 +230,7 @@ fn spec_with_jitter(
         truth_z_end_mm,
         appearance: Appearance::default(),
         sensor,
+        station: None,
     }
 }
 

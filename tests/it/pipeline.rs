@@ -187,7 +187,7 @@ fn cli_inspect_writes_the_report_in_the_contract_shape() {
 #[test]
 fn seed_table1_threads_are_recovered_within_10_um() {
     let work = tempfile::tempdir().unwrap();
-    let case = eval::Case { preset: "seed-table1", seed: crate::common::CI_SEED };
+    let case = eval::Case::at("seed-table1", crate::common::CI_SEED);
     let result = eval::run_case(&case, work.path(), 1, &PipelineOptions::default()).unwrap();
     eprintln!("seed-table1 seed {}: {:?} {:?} {:?}", case.seed, result.accuracy, result.table1, result.registration);
     assert!(result.accuracy.verdict_agrees);
