@@ -66,7 +66,10 @@ impl BenchArgs {
             eprintln!("bench: {} (seed {})", case.preset, case.seed);
             results.push(eval::run_case(case, &work, repeat, &options)?);
         }
-        println!("{}", eval::table(&results));
+        match suite {
+            Suite::Stations | Suite::StationsTuning => println!("{}", eval::table::station_table(&results)),
+            _ => println!("{}", eval::table(&results)),
+        }
         if let Some(path) = json {
             std::fs::write(&path, serde_json::to_vec_pretty(&results)?)?;
         }

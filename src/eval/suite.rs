@@ -195,6 +195,14 @@ pub struct CaseResult {
     /// The random station's seed, when the case is at one, and the station as the report read it.
     pub station_seed: Option<u64>,
     pub station: Option<crate::domain::station::Station>,
+    /// The arc a random station's views cover when it is a sector of the ring, degrees.
+    pub sector_deg: Option<f64>,
+    pub verdict: crate::domain::rules::Verdict,
+    pub truth_verdict: crate::domain::rules::Verdict,
+    pub quality: crate::pipeline::quality::QualityStatus,
+    pub quality_codes: Vec<crate::pipeline::quality::QualityCode>,
+    pub pairs_expected: usize,
+    pub pairs_measured: usize,
     pub accuracy: Accuracy,
     pub depth_rms_um: f64,
     pub depth_median_um: f64,
@@ -279,6 +287,17 @@ pub fn run_case(
         seed: case.seed,
         station_seed: case.station_seed,
         station: inspection.report.station.clone(),
+        sector_deg: spec
+            .station
+            .as_ref()
+            .filter(|s| s.views_rendered < s.views_around)
+            .map(|s| s.views_rendered as f64 * 360.0 / s.views_around as f64),
+        verdict: inspection.report.verdict,
+        truth_verdict: truth.verdict,
+        quality: inspection.report.quality.status,
+        quality_codes: inspection.report.quality.reasons.iter().map(|r| r.code).collect(),
+        pairs_expected: inspection.report.registration.pairs_expected,
+        pairs_measured: inspection.report.registration.pairs_measured,
         accuracy,
         depth_rms_um: depth.rms_um,
         depth_median_um: depth.median_um,

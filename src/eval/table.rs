@@ -186,3 +186,107 @@ pub fn table(results: &[CaseResult]) -> String {
     }
     out
 }
+
+/// A station's class: fine (object pixel ≤ 0.06 mm), medium (≤ 0.10 mm) or coarse.
+pub fn station_class(object_pixel_mm: f64) -> &'static str {
+    if object_pixel_mm <= 0.06 {
+        "fine"
+    } else if object_pixel_mm <= 0.10 {
+        "medium"
+    } else {
+        "coarse"
+    }
+}
+
+/// The station benchmark's table: one row per case (its station, heights, coverage,
+/// registration, black-crest length, verdict and decision, the uncertainty's coverage), then a
+/// summary per station class.
+pub fn station_table(results: &[CaseResult]) -> String {
+    let mut out = String::from(
+        "| case | class | pixel mm | DOF mm | step DOF | views (rows) | arc | height RMS / max µm | bins seen | pairs | reg ° / µm | black-crest err mm | verdict (truth) | decision | U coverage | quality |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+    );
+    for r in results {
+        let Some(s) = &r.station else { continue };
+        let a = &r.accuracy;
+        let seen = a.bins_compared as f64 / (a.bins_compared + a.bins_missing).max(1) as f64;
+        out.push_str(&format!(
+            "| {} | {} | {:.3} | {:.3} | {:.2} | {} ({}) | {} | {:.1} / {:.1} | {:.0}% | {}/{} | {:.3} / {:.0} | {:.2} | {} ({}) | {}{} | {} | {:?} |\n",
+            r.label(),
+            station_class(s.object_pixel_mm),
+            s.object_pixel_mm,
+            s.depth_of_field_mm,
+            s.frame_step_dof,
+            s.views,
+            s.axial_rows,
+            r.sector_deg.map_or("ring".into(), |d| format!("{d:.0}°")),
+            a.height_rms_um,
+            a.height_max_um,
+            100.0 * seen,
+            r.pairs_measured,
+            r.pairs_expected,
+            r.registration.angle_rms_deg,
+            r.registration.axial_rms_um,
+            a.black_crest_length_max_error_mm,
+            r.verdict.as_str(),
+            r.truth_verdict.as_str(),
+            a.decision.map_or("-", |d| d.as_str()),
+            if a.decision_wrong { " WRONG" } else { "" },
+            a.uncertainty_coverage.map_or("-".into(), |c| format!("{:.1}%", 100.0 * c)),
+            r.quality,
+        ));
+    }
+    out.push_str(
+        "\n| class | cases | height RMS median / worst µm | height max worst µm | verdicts wrong | decisions wrong | indeterminate | U coverage min / median | pairs measured |\n|---|---|---|---|---|---|---|---|---|\n",
+    );
+    for class in ["fine", "medium", "coarse"] {
+        let rows: Vec<&CaseResult> = results
+            .iter()
+            .filter(|r| r.station.as_ref().is_some_and(|s| station_class(s.object_pixel_mm) == class))
+            .collect();
+        if rows.is_empty() {
+            continue;
+        }
+        let mut rms: Vec<f64> = rows.iter().map(|r| r.accuracy.height_rms_um).filter(|v| v.is_finite()).collect();
+        let worst_rms = rms.iter().copied().fold(0.0, f64::max);
+        let median_rms = crate::numeric::stats::median(&mut rms).unwrap_or(f64::NAN);
+        let worst_max = rows.iter().map(|r| r.accuracy.height_max_um).fold(0.0, f64::max);
+        let mut cov: Vec<f64> = rows.iter().filter_map(|r| r.accuracy.uncertainty_coverage).collect();
+        let cov_min = cov.iter().copied().fold(1.0, f64::min);
+        let cov_median = crate::numeric::stats::median(&mut cov).unwrap_or(f64::NAN);
+        let (measured, expected) = rows.iter().fold((0, 0), |(m, e), r| (m + r.pairs_measured, e + r.pairs_expected));
+        out.push_str(&format!(
+            "| {class} | {} | {:.1} / {:.1} | {:.1} | {} | {} | {} | {:.1}% / {:.1}% | {}/{} ({:.0}%) |\n",
+            rows.len(),
+            median_rms,
+            worst_rms,
+            worst_max,
+            rows.iter().filter(|r| !r.accuracy.verdict_agrees).count(),
+            rows.iter().filter(|r| r.accuracy.decision_wrong).count(),
+            rows.iter()
+                .filter(|r| r.accuracy.decision == Some(crate::pipeline::uncertainty::Decision::Indeterminate))
+                .count(),
+            100.0 * cov_min,
+            100.0 * cov_median,
+            measured,
+            expected,
+            100.0 * measured as f64 / expected.max(1) as f64,
+        ));
+    }
+    // How the method's uncertainty is chosen: the coverage over all bins of these cases had it
+    // been each candidate multiple of the object pixel.
+    let candidates = results.iter().find_map(|r| (!r.accuracy.coverage_by_method_px.is_empty()).then_some(r));
+    if let Some(first) = candidates {
+        out.push_str("\nU coverage had the method's standard uncertainty been k × object pixel (median and least over the cases):\n");
+        for (i, (px, _)) in first.accuracy.coverage_by_method_px.iter().enumerate() {
+            let mut c: Vec<f64> =
+                results.iter().filter_map(|r| r.accuracy.coverage_by_method_px.get(i).map(|x| x.1)).collect();
+            let least = c.iter().copied().fold(1.0, f64::min);
+            out.push_str(&format!(
+                "  {px:.2} px: median {:.1}%, least {:.1}%\n",
+                100.0 * crate::numeric::stats::median(&mut c).unwrap_or(f64::NAN),
+                100.0 * least
+            ));
+        }
+    }
+    out
+}

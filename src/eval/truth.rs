@@ -23,12 +23,28 @@ pub struct Accuracy {
     pub verdict_agrees: bool,
     /// The worst bins: (thread, angle, report, truth).
     pub worst: Vec<(u32, f64, f64, f64)>,
+    /// The share of compared bins whose |error| is within the reported expanded uncertainty
+    /// (None without uncertainties).
+    pub uncertainty_coverage: Option<f64>,
+    /// The same share had the method's standard uncertainty been each of these multiples of the
+    /// object pixel (the rest of the budget as reported): how `uncertainty.method_px` is chosen.
+    pub coverage_by_method_px: Vec<(f64, f64)>,
+    /// The report's decision, and whether truth contradicts it (a verdict of `conforms` on a
+    /// part whose truth is reject, or `does_not_conform` on one whose truth is accept).
+    pub decision: Option<crate::pipeline::uncertainty::Decision>,
+    pub decision_wrong: bool,
+    pub review_required: bool,
 }
+
+/// Method uncertainties (object pixels) whose coverage the benchmark reports.
+pub const METHOD_PX_CANDIDATES: [f64; 8] = [0.0, 0.05, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0];
 
 /// Compares heights bin by bin (only full-coverage bins of threads present in both), black-crest
 /// lengths per thread (over the crests the views showed), and the verdict.
 pub fn compare(report: &Report, truth: &Truth) -> Accuracy {
     let mut errors: Vec<(f64, u32, f64, f64, f64)> = Vec::new();
+    // (|error|, expanded uncertainty) per compared bin that has one, mm.
+    let mut against_u: Vec<(f64, f64)> = Vec::new();
     let mut missing = 0;
     for t in &truth.threads {
         let Some(r) = report.threads.iter().find(|r| r.index == t.index) else {
@@ -38,7 +54,12 @@ pub fn compare(report: &Report, truth: &Truth) -> Accuracy {
         for (k, truth_value) in t.height_mm.values.iter().enumerate() {
             let Some(tv) = truth_value else { continue };
             match r.height_mm.values.get(k).copied().flatten() {
-                Some(rv) => errors.push((1e3 * (rv - tv), t.index, t.height_mm.angles_deg[k], rv, *tv)),
+                Some(rv) => {
+                    errors.push((1e3 * (rv - tv), t.index, t.height_mm.angles_deg[k], rv, *tv));
+                    if let Some(u) = r.height_mm.uncertainty_mm.get(k).copied().flatten() {
+                        against_u.push(((rv - tv).abs(), u));
+                    }
+                }
                 None => missing += 1,
             }
         }
@@ -61,7 +82,46 @@ pub fn compare(report: &Report, truth: &Truth) -> Accuracy {
         seen_crest_deg: seen.map(|threads| threads.iter().map(|t| crate::domain::arcs::arcs_deg(&t.arcs_deg)).sum()),
         verdict_agrees: report.verdict == truth.verdict,
         worst: errors.iter().take(5).map(|e| (e.1, e.2, e.3, e.4)).collect(),
+        uncertainty_coverage: (!against_u.is_empty())
+            .then(|| against_u.iter().filter(|(e, u)| e <= u).count() as f64 / against_u.len() as f64),
+        coverage_by_method_px: coverage_by_method_px(report, &against_u),
+        decision: Some(report.decision),
+        decision_wrong: {
+            use crate::domain::rules::Verdict;
+            use crate::pipeline::uncertainty::Decision;
+            matches!(
+                (report.decision, truth.verdict),
+                (Decision::Conforms, Verdict::Reject) | (Decision::DoesNotConform, Verdict::Accept)
+            )
+        },
+        review_required: report.review_required,
     }
+}
+
+/// The coverage of the expanded uncertainty had the method's term been each candidate: each
+/// bin's noise part is what remains of its reported uncertainty without the method's and
+/// registration's terms.
+fn coverage_by_method_px(report: &Report, against_u: &[(f64, f64)]) -> Vec<(f64, f64)> {
+    let (Some(budget), Some(station)) = (&report.uncertainty, &report.station) else { return Vec::new() };
+    if against_u.is_empty() {
+        return Vec::new();
+    }
+    let k = budget.coverage_factor;
+    let (m, r) = (1e-3 * budget.method_um, 1e-3 * budget.registration_um);
+    METHOD_PX_CANDIDATES
+        .iter()
+        .map(|&px| {
+            let method = px * station.object_pixel_mm;
+            let covered = against_u
+                .iter()
+                .filter(|(e, u)| {
+                    let noise_sq = ((u / k).powi(2) - m * m - r * r).max(0.0);
+                    *e <= k * (noise_sq + method * method + r * r).sqrt()
+                })
+                .count();
+            (px, covered as f64 / against_u.len() as f64)
+        })
+        .collect()
 }
 
 /// One thread's black crest, as reported and as true.

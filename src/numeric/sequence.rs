@@ -6,16 +6,42 @@
 /// three), where all were measured, else over the widest centred window that was. Unmeasured bins
 /// stay unmeasured. As in [`median_of_five`], the sequence is a line (the helix), not a circle.
 pub fn trimmed_mean(values: &[Option<f64>], half: usize) -> Vec<Option<f64>> {
+    trimmed_mean_counted(values, half).into_iter().map(|v| v.map(|(mean, _)| mean)).collect()
+}
+
+/// [`trimmed_mean`], with the number of values each mean kept (1 where a bin keeps its own).
+pub fn trimmed_mean_counted(values: &[Option<f64>], half: usize) -> Vec<Option<(f64, usize)>> {
     let mut window = Vec::with_capacity(2 * half + 1);
     (0..values.len())
         .map(|i| {
             let own = values[i]?;
             if !widest_whole_window(values, i, half, 1, &mut window) {
-                return Some(own);
+                return Some((own, 1));
             }
             let trim = (window.len() / 4).max(1);
             let kept = &window[trim..window.len() - trim];
-            Some(kept.iter().sum::<f64>() / kept.len() as f64)
+            Some((kept.iter().sum::<f64>() / kept.len() as f64, kept.len()))
+        })
+        .collect()
+}
+
+/// Each measured value's local noise: the robust scale of the differences between neighbouring
+/// measured values within `half` of it, over √2 (the difference of two independent errors has
+/// twice their variance; a slow trend along the sequence cancels in a difference). None where
+/// fewer than `min_pairs` neighbouring pairs lie within reach.
+pub fn local_noise(values: &[Option<f64>], half: usize, min_pairs: usize) -> Vec<Option<f64>> {
+    let diffs: Vec<Option<f64>> = values.windows(2).map(|w| Some(w[1]? - w[0]?)).collect();
+    let mut window = Vec::with_capacity(2 * half + 1);
+    (0..values.len())
+        .map(|i| {
+            values[i]?;
+            let (lo, hi) = (i.saturating_sub(half), (i + half).min(diffs.len()));
+            window.clear();
+            window.extend(diffs.get(lo..hi).unwrap_or(&[]).iter().flatten().map(|d| d.abs()));
+            if window.len() < min_pairs.max(1) {
+                return None;
+            }
+            crate::numeric::stats::median(&mut window).map(|m| 1.4826 * m / std::f64::consts::SQRT_2)
         })
         .collect()
 }
@@ -70,6 +96,33 @@ fn widest_whole_window(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn local_noise_reads_white_noise_and_ignores_a_trend() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        // Gaussian noise of σ = 0.01 (sum of twelve uniforms) on a steep trend.
+        let values: Vec<Option<f64>> = (0..2000)
+            .map(|i| {
+                let g: f64 = (0..12).map(|_| rng.random_range(0.0..1.0)).sum::<f64>() - 6.0;
+                Some(0.5 + 1e-3 * i as f64 + 0.01 * g)
+            })
+            .collect();
+        let noise = local_noise(&values, 200, 20);
+        for n in noise.iter().step_by(97) {
+            let n = n.unwrap();
+            assert!((n - 0.01).abs() < 0.0015, "{n}");
+        }
+        let mut gappy = values.clone();
+        for v in gappy.iter_mut().skip(1).step_by(2) {
+            *v = None;
+        }
+        // No neighbouring pair is measured: no estimate, rather than a wrong one.
+        assert!(local_noise(&gappy, 200, 20).iter().all(Option::is_none));
+        let counted = trimmed_mean_counted(&values, 5);
+        assert_eq!(counted[100].unwrap().1, 7);
+        assert_eq!(counted[0].unwrap().1, 1);
+    }
 
     #[test]
     fn the_median_of_five_removes_spikes_and_keeps_steps() {

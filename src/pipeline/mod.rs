@@ -11,6 +11,7 @@
 //! | [`profile`] | the unrolled surface and the thread form | the helix, per-thread heights per 1° bin |
 //! | [`crest`] | the per-thread measures | black-crest observations, the crest cone |
 //! | rules ([`crate::domain::rules`]) | the observations | the API 5B verdict and reasons |
+//! | [`uncertainty`] | the heights, the station, registration | U (k = 2) per height; the ISO 14253-1 decision |
 //! | [`report`] | all of the above | the report, with its [`quality`]: what was not measured |
 //!
 //! Stages never open a file: frames come through [`Recording`]. Progress, cancellation (checked
@@ -34,6 +35,8 @@ pub mod profile;
 
 pub mod crest;
 
+pub mod uncertainty;
+
 pub mod quality;
 
 pub mod report;
@@ -45,6 +48,7 @@ pub use crate::domain::frame::Recording;
 pub use options::PipelineOptions;
 pub use run::Stage;
 
+use crate::domain;
 use crate::domain::frame::FrameError;
 use crate::domain::optics::ViewPose;
 use crate::domain::rules::{self, RuleInput};
@@ -120,13 +124,43 @@ fn run_stages(recording: &dyn Recording, options: &PipelineOptions, mut run: Run
     let registered = register_views(recording, options, &depth_maps, &mut run)?;
     let map =
         fuse_views(recording, options, &depth_maps, &registered.poses, &registered.encoder_z_ranges_mm, &mut run)?;
-    let (mesh, helix, threads) = mesh_and_profile(recording, options, &map, &mut run)?;
-    let (assessment, crest) = crest_and_rules(recording, options, &helix, &threads, &mut run);
+    let (mesh, helix, mut threads) = mesh_and_profile(recording, options, &map, &mut run)?;
+    let (assessment, crest, rule_input) = crest_and_rules(recording, options, &helix, &threads, &mut run);
+    let part = recording.part();
+    let station = domain::station::Station::of(recording.optics(), recording.views(), part.pipe_od_mm / 2.0);
+    let (uncertainty, thread_mean_u) = uncertainty::heights(
+        &mut threads,
+        &uncertainty::Scales {
+            station: &station,
+            focus_window_radius_px: options.depth.for_form(&part.form).window_radius_px,
+            pipe_radius_mm: part.pipe_od_mm / 2.0,
+            registration: &registered.registration,
+            end_face: registered.end_face.as_ref(),
+        },
+        crest.cone.as_ref().map(|c| c.scatter_um),
+        &options.uncertainty,
+    );
+    let decision = uncertainty::decide(
+        &threads,
+        &uncertainty::RuleContext {
+            input: &rule_input,
+            arc_rule: options.arc_rule,
+            pitch_mm: helix.pitch_mm,
+            nominal_slope: part.form.radius_slope(),
+            crest_window_half_mm: profile::crest_window_half_mm(&part.form),
+            crest: &options.crest,
+        },
+        &uncertainty,
+    );
     let report = Report::assemble(report::Findings {
-        part: recording.part(),
+        part,
         options,
         optics: recording.optics(),
         views: recording.views(),
+        station,
+        uncertainty,
+        thread_mean_uncertainty_mm: thread_mean_u,
+        decision,
         helix,
         threads: &threads,
         assessment,
@@ -350,7 +384,7 @@ fn crest_and_rules(
     helix: &Helix,
     threads: &[ThreadMeasure],
     run: &mut Run,
-) -> (rules::Assessment, crest::CrestFindings) {
+) -> (rules::Assessment, crest::CrestFindings, RuleInput) {
     run.progress(Stage::Rules, 0.0);
     let part = recording.part();
     let form = &part.form;
@@ -373,5 +407,5 @@ fn crest_and_rules(
     let assessment = rules::assess(&input, options.arc_rule);
     run.lap(Stage::Rules);
     run.progress(Stage::Rules, 1.0);
-    (assessment, findings)
+    (assessment, findings, input)
 }

@@ -6,6 +6,7 @@ use crate::pipeline::depth::DepthOptions;
 use crate::pipeline::mesh::MeshOptions;
 use crate::pipeline::profile::ProfileOptions;
 use crate::pipeline::register::RegisterOptions;
+use crate::pipeline::uncertainty::UncertaintyOptions;
 use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -17,6 +18,10 @@ pub struct PipelineOptions {
     /// How heights are reported (options stored before this existed load with the default).
     #[serde(default)]
     pub profile: ProfileOptions,
+    /// How the heights' uncertainty is combined (options stored before it existed load with the
+    /// default).
+    #[serde(default)]
+    pub uncertainty: UncertaintyOptions,
     pub arc_rule: ArcRule,
     /// Fused-map cell size in object pixels.
     pub cell_px: f64,
@@ -37,6 +42,7 @@ impl Default for PipelineOptions {
             register: RegisterOptions::default(),
             mesh: MeshOptions::default(),
             profile: ProfileOptions::default(),
+            uncertainty: UncertaintyOptions::default(),
             arc_rule: ArcRule::PerThread,
             cell_px: 1.5,
             anchor_end_face: true,

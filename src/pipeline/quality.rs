@@ -8,8 +8,10 @@
 //! show.
 
 use crate::domain::frame::View;
+use crate::domain::part::Part;
 use crate::domain::rules::{Assessment, ReasonCode};
 use crate::domain::station::{self, Station};
+use crate::pipeline::profile::Helix;
 use crate::pipeline::register::{PairStatus, Registration};
 use serde::{Deserialize, Serialize};
 
@@ -39,6 +41,10 @@ pub enum QualityCode {
     PartialCoverage,
     /// The station lies outside the envelope the accuracy figures were measured in.
     StationUnmeasured,
+    /// The helix (nominal form at the measured phase and taper) fits the surface poorly.
+    HelixResidualLarge,
+    /// Depth from focus trusted few of the pixels that saw the part.
+    DepthCoverageLow,
     /// The report was stored before quality was assessed.
     NotAssessed,
 }
@@ -73,7 +79,33 @@ impl Quality {
 }
 
 /// The quality of a result from its station, its registration and the rule engine's coverage.
-pub fn assess(station: &Station, registration: &Registration, views: &[View], assessment: &Assessment) -> Quality {
+/// The helix's fit residual, as a fraction of the thread height, beyond which the profile's
+/// windows may not sit on the crests and roots they measure.
+pub const HELIX_RESIDUAL_OF_HEIGHT: f64 = 0.15;
+/// The share of pixels depth from focus trusts below which the surface is mostly interpolated.
+pub const MIN_DEPTH_COVERAGE: f64 = 0.5;
+
+/// How well the surface was measured: the helix's fit and depth's coverage.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SurfaceFit {
+    pub helix_fit_rms_um: f64,
+    pub thread_height_mm: f64,
+    pub depth_coverage: f64,
+}
+
+impl SurfaceFit {
+    pub fn of(helix: &Helix, part: &Part, depth_coverage: f64) -> Self {
+        Self { helix_fit_rms_um: helix.fit_rms_um, thread_height_mm: part.form.height_mm, depth_coverage }
+    }
+}
+
+pub fn assess(
+    station: &Station,
+    registration: &Registration,
+    views: &[View],
+    assessment: &Assessment,
+    surface: &SurfaceFit,
+) -> Quality {
     let mut reasons = Vec::new();
     let mut status = QualityStatus::Ok;
     let mut flag = |at: QualityStatus, code: QualityCode, message: String| {
@@ -88,6 +120,32 @@ pub fn assess(station: &Station, registration: &Registration, views: &[View], as
             format!(
                 "the station lies outside the envelope the accuracy figures were measured in: {}",
                 outside.join("; ")
+            ),
+        );
+    }
+    let height_um = 1e3 * surface.thread_height_mm;
+    if surface.helix_fit_rms_um > HELIX_RESIDUAL_OF_HEIGHT * height_um {
+        flag(
+            QualityStatus::Degraded,
+            QualityCode::HelixResidualLarge,
+            format!(
+                "the helix fits the surface with a residual of {:.0} µm RMS, over {:.0}% of the {:.0} µm thread \
+                 height: the heights' windows may not sit on the crests and roots",
+                surface.helix_fit_rms_um,
+                100.0 * HELIX_RESIDUAL_OF_HEIGHT,
+                height_um
+            ),
+        );
+    }
+    let depth_coverage = surface.depth_coverage;
+    if depth_coverage < MIN_DEPTH_COVERAGE {
+        flag(
+            QualityStatus::Degraded,
+            QualityCode::DepthCoverageLow,
+            format!(
+                "depth from focus trusted {:.0}% of the pixels (under {:.0}%): much of the surface is unmeasured",
+                100.0 * depth_coverage,
+                100.0 * MIN_DEPTH_COVERAGE
             ),
         );
     }
@@ -219,6 +277,26 @@ mod tests {
         }
     }
 
+    /// A surface the helix fits as on the standard preset (175 µm on a 1.575 mm thread).
+    fn fit() -> SurfaceFit {
+        SurfaceFit { helix_fit_rms_um: 175.0, thread_height_mm: 1.575, depth_coverage: 0.9 }
+    }
+
+    #[test]
+    fn a_poor_helix_fit_and_little_depth_are_each_named() {
+        use PairStatus::*;
+        let all = registration(&[(0, 1, Measured), (1, 2, Measured), (2, 3, Measured)], 4);
+        let poor = SurfaceFit { helix_fit_rms_um: 460.0, ..fit() };
+        let q = assess(&standard(), &all, &views(4), &covered(), &poor);
+        assert_eq!((q.status, q.reasons.len()), (QualityStatus::Degraded, 1));
+        assert_eq!(q.reasons[0].code, QualityCode::HelixResidualLarge);
+        assert!(q.reasons[0].message.contains("460 µm RMS"), "{}", q.reasons[0].message);
+        let sparse = SurfaceFit { depth_coverage: 0.3, ..fit() };
+        let q = assess(&standard(), &all, &views(4), &covered(), &sparse);
+        assert_eq!(q.reasons[0].code, QualityCode::DepthCoverageLow);
+        assert!(q.reasons[0].message.contains("30%"), "{}", q.reasons[0].message);
+    }
+
     fn covered() -> Assessment {
         let input = RuleInput {
             family: Family::Buttress,
@@ -260,10 +338,10 @@ mod tests {
     fn a_fully_measured_ring_is_ok_and_every_unmeasured_overlap_is_named() {
         use PairStatus::*;
         let all = registration(&[(0, 1, Measured), (1, 2, Measured), (2, 3, Measured)], 4);
-        assert_eq!(assess(&standard(), &all, &views(4), &covered()).status, QualityStatus::Ok);
+        assert_eq!(assess(&standard(), &all, &views(4), &covered(), &fit()).status, QualityStatus::Ok);
 
         let weak = registration(&[(0, 1, Measured), (1, 2, TooWeak), (2, 3, TooWeak)], 4);
-        let q = assess(&standard(), &weak, &views(4), &covered());
+        let q = assess(&standard(), &weak, &views(4), &covered(), &fit());
         assert!(q.needs_review());
         let incomplete = q.reasons.iter().find(|r| r.code == QualityCode::RegistrationIncomplete).unwrap();
         assert!(incomplete.message.contains("1 of 3 overlaps"), "{}", incomplete.message);
@@ -277,13 +355,13 @@ mod tests {
     #[test]
     fn outliers_and_views_that_do_not_overlap_are_reported() {
         let outlier = registration(&[(0, 1, PairStatus::Measured), (1, 2, PairStatus::Outlier)], 3);
-        let q = assess(&standard(), &outlier, &views(3), &covered());
+        let q = assess(&standard(), &outlier, &views(3), &covered(), &fit());
         assert_eq!(q.status, QualityStatus::Degraded);
         assert_eq!(q.reasons.iter().map(|r| r.code).collect::<Vec<_>>(), [QualityCode::RegistrationOutliers]);
         let apart = registration(&[], 3);
-        assert_eq!(assess(&standard(), &apart, &views(3), &covered()).reasons[0].code, QualityCode::NoOverlaps);
+        assert_eq!(assess(&standard(), &apart, &views(3), &covered(), &fit()).reasons[0].code, QualityCode::NoOverlaps);
         // One view alone has nothing to register.
-        assert_eq!(assess(&standard(), &registration(&[], 1), &views(1), &covered()).status, QualityStatus::Ok);
+        assert_eq!(assess(&standard(), &registration(&[], 1), &views(1), &covered(), &fit()).status, QualityStatus::Ok);
     }
 
     #[test]
@@ -291,7 +369,7 @@ mod tests {
         use PairStatus::*;
         let all = registration(&[(0, 1, Measured), (1, 2, Measured), (2, 3, Measured)], 4);
         let coarse = Station { object_pixel_mm: 0.12, depth_of_field_mm: 0.48, ..standard() };
-        let q = assess(&coarse, &all, &views(4), &covered());
+        let q = assess(&coarse, &all, &views(4), &covered(), &fit());
         assert_eq!(q.status, QualityStatus::Degraded);
         assert_eq!(q.reasons.len(), 1);
         assert_eq!(q.reasons[0].code, QualityCode::StationUnmeasured);

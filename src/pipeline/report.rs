@@ -12,6 +12,7 @@ use crate::pipeline::crest::CrestCone;
 use crate::pipeline::profile::{Helix, ThreadMeasure};
 use crate::pipeline::quality::{self, Quality};
 use crate::pipeline::register::{EndFace, Registration};
+use crate::pipeline::uncertainty::{self, Decision, DecisionFinding, HeightFinding, UncertaintyBudget};
 use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -19,6 +20,10 @@ pub struct HeightSeries {
     pub angles_deg: Vec<f64>,
     /// null where the views did not cover the bin.
     pub values: Vec<Option<f64>>,
+    /// The expanded uncertainty (k = 2) of each value, mm; null where the value is (reports
+    /// stored before it was computed have none).
+    #[serde(default)]
+    pub uncertainty_mm: Vec<Option<f64>>,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -33,6 +38,20 @@ pub struct ThreadReport {
     pub mean_height_mm: Option<f64>,
     pub max_height_mm: Option<f64>,
     pub bins_measured: usize,
+    /// The thread's height judged against nominal ± tolerance with its uncertainty: the mean over
+    /// its crests within Lc that are neither black nor the chamfer, and that mean's expanded
+    /// uncertainty (absent in reports stored before it was judged).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub height_finding: Option<ThreadHeightFinding>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ThreadHeightFinding {
+    pub finding: HeightFinding,
+    pub mean_height_mm: Option<f64>,
+    pub uncertainty_mm: Option<f64>,
+    /// Bins the mean is over.
+    pub bins: usize,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -56,9 +75,19 @@ pub struct Report {
     /// How far the result can be trusted: what was not measured, or measured poorly.
     #[serde(default = "Quality::not_assessed")]
     pub quality: Quality,
-    /// True when the quality is not ok: a person should look before the verdict is acted on.
+    /// The decision per ISO 14253-1: whether the verdict holds with every measured value moved by
+    /// its uncertainty (`indeterminate` in reports stored before it was made).
+    #[serde(default = "indeterminate")]
+    pub decision: Decision,
+    #[serde(default)]
+    pub decision_finding: Option<DecisionFinding>,
+    /// True when the quality is not ok or the decision indeterminate: a person should look before
+    /// the verdict is acted on.
     #[serde(default = "yes")]
     pub review_required: bool,
+    /// The components of the heights' uncertainty.
+    #[serde(default)]
+    pub uncertainty: Option<UncertaintyBudget>,
     /// The station the bundle was recorded at, from its optics and views (absent in reports
     /// stored before it was recorded).
     #[serde(default)]
@@ -172,6 +201,10 @@ fn yes() -> bool {
     true
 }
 
+fn indeterminate() -> Decision {
+    Decision::Indeterminate
+}
+
 /// What made a report.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Provenance {
@@ -189,6 +222,11 @@ pub struct Findings<'a> {
     pub options: &'a PipelineOptions,
     pub optics: &'a Optics,
     pub views: &'a [View],
+    pub station: Station,
+    pub uncertainty: UncertaintyBudget,
+    /// Each thread's mean height's expanded uncertainty, by thread index.
+    pub thread_mean_uncertainty_mm: Vec<(u32, Option<f64>)>,
+    pub decision: DecisionFinding,
     pub helix: Helix,
     pub threads: &'a [ThreadMeasure],
     pub assessment: Assessment,
@@ -214,9 +252,14 @@ impl Report {
                 let values: Vec<Option<f64>> = t.bins.iter().map(|b| b.height_mm).collect();
                 let measured: Vec<f64> = values.iter().flatten().copied().collect();
                 let black = f.assessment.black_threads.iter().find(|b| b.index == t.index);
+                let height_finding = judge_thread(t, black.map(|b| b.arcs_deg.as_slice()).unwrap_or(&[]), &f);
                 ThreadReport {
                     index: t.index,
-                    height_mm: HeightSeries { angles_deg: t.bins.iter().map(|b| b.angle_deg).collect(), values },
+                    height_mm: HeightSeries {
+                        angles_deg: t.bins.iter().map(|b| b.angle_deg).collect(),
+                        values,
+                        uncertainty_mm: t.bins.iter().map(|b| b.height_mm.and(b.uncertainty_mm)).collect(),
+                    },
                     black_crest_arcs_deg: black.map(|b| b.arcs_deg.clone()).unwrap_or_default(),
                     black_crest_length_mm: black.map_or(0.0, |b| b.length_mm),
                     crest_z_mm: [
@@ -228,11 +271,14 @@ impl Report {
                         .then(|| measured.iter().sum::<f64>() / measured.len() as f64),
                     max_height_mm: measured.iter().copied().reduce(f64::max),
                     bins_measured: measured.len(),
+                    height_finding: Some(height_finding),
                 }
             })
             .collect();
-        let station = Station::of(f.optics, f.views, part.pipe_od_mm / 2.0);
-        let quality = quality::assess(&station, &f.registration, f.views, &f.assessment);
+        let station = f.station;
+        let surface = quality::SurfaceFit::of(&f.helix, part, f.depth_coverage);
+        let quality = quality::assess(&station, &f.registration, f.views, &f.assessment, &surface);
+        let decision = f.decision.decision;
         Report {
             connection: part.connection.clone(),
             family: part.family(),
@@ -244,8 +290,11 @@ impl Report {
             threads,
             verdict: f.assessment.verdict,
             reasons: f.assessment.messages(),
-            review_required: quality.needs_review(),
+            review_required: quality.needs_review() || decision == Decision::Indeterminate,
             quality,
+            decision,
+            decision_finding: Some(f.decision),
+            uncertainty: Some(f.uncertainty),
             station: Some(station),
             provenance: Some(Provenance {
                 software_version: env!("CARGO_PKG_VERSION").into(),
@@ -266,6 +315,45 @@ impl Report {
             timings: f.timings,
             peak_memory_mb: peak_memory_mb(),
         }
+    }
+}
+
+/// Fewest bins a thread's height is judged over: a few degrees of crest say little of a thread.
+const MIN_JUDGED_BINS: usize = 30;
+
+/// A thread's height against nominal ± tolerance: the mean over its measured bins within Lc that
+/// are neither black nor the chamfer zone's (1.5 pitches from the end face), with that mean's
+/// uncertainty (the thread's, scaled to the bins it is over).
+fn judge_thread(t: &ThreadMeasure, black_arcs: &[[f64; 2]], f: &Findings) -> ThreadHeightFinding {
+    let (lc, chamfer_zone) = (f.part.lc_mm, 1.5 * f.part.form.pitch_mm);
+    let judged: Vec<f64> = t
+        .bins
+        .iter()
+        .filter(|b| b.crest_z_mm <= lc && b.crest_z_mm >= chamfer_zone)
+        .filter(|b| !black_arcs.iter().any(|a| a[0] <= b.angle_deg && b.angle_deg <= a[1]))
+        .filter_map(|b| b.height_mm)
+        .collect();
+    let measured = t.bins.iter().filter(|b| b.height_mm.is_some()).count();
+    let u_all = f.thread_mean_uncertainty_mm.iter().find(|(i, _)| *i == t.index).and_then(|(_, u)| *u);
+    if judged.len() < MIN_JUDGED_BINS {
+        return ThreadHeightFinding {
+            finding: HeightFinding::NotJudged,
+            mean_height_mm: None,
+            uncertainty_mm: None,
+            bins: judged.len(),
+        };
+    }
+    let mean = judged.iter().sum::<f64>() / judged.len() as f64;
+    // The noise part of the thread's uncertainty grows as the bins it averages shrink; the
+    // systematic parts do not shrink with more bins, so scaling the whole by √(measured/judged)
+    // is an upper bound.
+    let u = u_all.map(|u| u * (measured as f64 / judged.len() as f64).sqrt());
+    let form = &f.part.form;
+    ThreadHeightFinding {
+        finding: uncertainty::judge_height(Some(mean), u, form.height_mm, form.height_tolerance_mm),
+        mean_height_mm: Some(mean),
+        uncertainty_mm: u,
+        bins: judged.len(),
     }
 }
 

@@ -46,7 +46,9 @@ pub(super) fn fit_cone(crests: &[(f64, f64, f64)], nominal_slope: f64) -> Option
 pub(super) fn thresholds(smoothed: &[Option<f64>], options: &CrestOptions) -> (f64, f64, f64) {
     // Most crests are machined: their deficits scatter about zero, the black ones sit far out.
     let scatter_um = 1e3 * robust_scale(smoothed.iter().flatten().copied()).unwrap_or(0.0);
-    (options.mill_onset_um.max(4.0 * scatter_um), options.mill_extent_um.max(1.5 * scatter_um), scatter_um)
+    let extent_um = options.mill_extent_um.max(1.5 * scatter_um);
+    let onset_um = (options.mill_onset_um.max(4.0 * scatter_um) + options.onset_shift_um).max(extent_um);
+    (onset_um, extent_um, scatter_um)
 }
 
 /// Marks runs along the helix: a bin whose deficit reaches `onset` starts a run, which extends in

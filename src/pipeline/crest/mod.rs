@@ -64,6 +64,10 @@ pub struct CrestOptions {
     /// mill-surface) crest is a stretch of the crest, and mill scale is caught photometrically
     /// at any length.
     pub min_geometric_arc_deg: f64,
+    /// Added to the geometric onset threshold (not an option: the decision stage moves the
+    /// threshold by the deficit's uncertainty to see whether the verdict holds).
+    #[serde(skip)]
+    pub onset_shift_um: f64,
 }
 
 impl Default for CrestOptions {
@@ -76,6 +80,7 @@ impl Default for CrestOptions {
             mill_onset_um: 15.0,
             mill_extent_um: 5.0,
             min_geometric_arc_deg: 10.0,
+            onset_shift_um: 0.0,
         }
     }
 }

@@ -25,6 +25,7 @@ fn part(crest: impl Fn(u32, f64, f64) -> f64) -> Vec<ThreadMeasure> {
                         height_mm: Some(1.5),
                         crest_radius_mm: Some(crest(index, angle_deg, cone) + jitter),
                         crest_gray: Some(0.5),
+                        ..Default::default()
                     }
                 })
                 .collect();
@@ -273,6 +274,7 @@ fn one_thread(index: u32, z0_mm: f64, crest_radius_mm: Option<f64>, gray: impl F
             height_mm: Some(1.5),
             crest_radius_mm,
             crest_gray: Some(gray(k)),
+            ..Default::default()
         })
         .collect();
     ThreadMeasure { index, bins }

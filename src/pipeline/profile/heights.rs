@@ -256,6 +256,9 @@ pub(super) fn measure_threads_every(
                 height_mm: height,
                 crest_radius_mm: crest_r,
                 crest_gray: w.crest_gray,
+                raw_height_mm: height,
+                kept_bins: usize::from(height.is_some()),
+                uncertainty_mm: None,
             }
         })
         .collect();
@@ -264,9 +267,10 @@ pub(super) fn measure_threads_every(
     }
     // Along the helix, thread i's last bin (359.5°) is followed by thread i + 1's first (0.5°).
     let helix_order: Vec<Option<f64>> = threads.iter().flat_map(|t| t.bins.iter().map(|b| b.height_mm)).collect();
-    let filtered = trimmed_mean(&helix_order, options.height_window_half_bins);
+    let filtered = trimmed_mean_counted(&helix_order, options.height_window_half_bins);
     for (bin, h) in threads.iter_mut().flat_map(|t| t.bins.iter_mut()).zip(filtered) {
-        bin.height_mm = h;
+        bin.height_mm = h.map(|(mean, _)| mean);
+        bin.kept_bins = h.map_or(0, |(_, kept)| kept);
     }
     threads
 }

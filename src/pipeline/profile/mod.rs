@@ -17,7 +17,7 @@ pub use helix::{estimate_helix, refine_helix};
 
 use crate::domain::thread::{ProfileShape, ThreadForm};
 use crate::numeric::lsq::fit_line;
-use crate::numeric::sequence::trimmed_mean;
+use crate::numeric::sequence::trimmed_mean_counted;
 use crate::numeric::stats::median;
 use crate::pipeline::surface::UnrolledMap;
 use rayon::prelude::*;
@@ -39,7 +39,7 @@ pub struct Helix {
 }
 
 /// One thread at one 1° bin.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct BinMeasure {
     /// Bin centre.
     pub angle_deg: f64,
@@ -48,6 +48,15 @@ pub struct BinMeasure {
     pub crest_radius_mm: Option<f64>,
     /// Mean brightness of the crest (all-in-focus), for the photometric black-crest test.
     pub crest_gray: Option<f32>,
+    /// The bin's own fit, before the trimmed mean along the helix, and how many bins that mean
+    /// kept (1: the bin's own).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub raw_height_mm: Option<f64>,
+    #[serde(default)]
+    pub kept_bins: usize,
+    /// The expanded uncertainty (k = 2) of `height_mm`, set by the uncertainty stage.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub uncertainty_mm: Option<f64>,
 }
 
 /// How the profile stage reports heights.

@@ -1,0 +1,406 @@
+//! How sure the measurement is: an expanded uncertainty (k = 2) on every height, combined
+//! GUM-style from independent components, and a decision per ISO 14253-1 that uses it.
+//!
+//! Per 1° bin the reported height is the trimmed mean of the bins' own fits along the helix
+//! (profile stage). Its standard uncertainty combines
+//! - **noise** (Type A): the local scatter of the bins' own fits, from the differences between
+//!   neighbours along the helix (a slow change of the true height cancels in a difference),
+//!   corrected for the correlation between neighbouring bins that share the focus window and
+//!   divided by the bins the mean kept;
+//! - **the method** (Type B): what the depth-from-focus reconstruction gets wrong at a station
+//!   in ways that do not average out along the helix (the focus window smoothing the section,
+//!   the sub-frame phase, texture and gloss), as a multiple of the object pixel, chosen on the
+//!   tuning stations (docs/notebook/accuracy.md, "Uncertainty");
+//! - **registration**: the pairs' radial residuals after the ring's solve, which a fused cell
+//!   mixes where views overlap.
+//!
+//! The decision asks whether the verdict survives every measured value moved by its
+//! uncertainty: the black-crest rules are applied again at both bounds. At the bound toward
+//! reject, each black arc is lengthened at both ends by its end's uncertainty, crests whose
+//! deficit below the machined cone falls short of the onset threshold by less than the deficit's
+//! uncertainty count as black, Lc reaches further by the uncertainty of absolute z, and crests
+//! within Lc that no view showed count as black (a crest not measured cannot be shown to
+//! conform). At the bound toward accept, the same the other way, and unseen crests count as
+//! machined. Both bounds accept: `conforms`; both reject: `does_not_conform`; else
+//! `indeterminate`.
+
+use crate::domain::arcs::union_arcs;
+use crate::domain::rules::{self, ArcRule, RuleInput, ThreadObservation, Verdict};
+use crate::domain::station::Station;
+use crate::numeric::sequence::local_noise;
+use crate::numeric::stats::median;
+use crate::pipeline::crest::{self, CrestOptions};
+use crate::pipeline::profile::ThreadMeasure;
+use crate::pipeline::register::{EndFace, Registration};
+use serde::{Deserialize, Serialize};
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct UncertaintyOptions {
+    /// The method's standard uncertainty on a height, in object pixels (Type B).
+    pub method_px: f64,
+    /// The coverage factor of the expanded uncertainty.
+    pub coverage_factor: f64,
+    /// Half width, in bins along the helix, of the window a bin's noise is read over.
+    pub noise_half_bins: usize,
+    /// The encoders' axial error bound, mm, for the uncertainty of absolute z where no end face
+    /// is in view (the bundle does not declare it; the simulator's fixtures err by up to 0.3 mm).
+    pub encoder_axial_bound_mm: f64,
+}
+
+impl Default for UncertaintyOptions {
+    fn default() -> Self {
+        Self { method_px: 0.1, coverage_factor: 2.0, noise_half_bins: 30, encoder_axial_bound_mm: 0.3 }
+    }
+}
+
+/// The components of the heights' uncertainty, as the report states them.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct UncertaintyBudget {
+    pub coverage_factor: f64,
+    /// Standard uncertainties, µm: the method's (Type B) and registration's, the same for every
+    /// bin; the median over the bins of the noise's (Type A).
+    pub method_um: f64,
+    pub registration_um: f64,
+    pub noise_median_um: Option<f64>,
+    /// Bins along the helix that share a focus window: noise is correlated over this many.
+    pub noise_correlation_bins: f64,
+    /// The median expanded uncertainty of a bin's height, µm.
+    pub expanded_median_um: Option<f64>,
+    /// The decision's margins: the expanded uncertainty of a crest's deficit below the machined
+    /// cone (µm), of a black arc's end (degrees) and of absolute z (mm).
+    pub crest_deficit_um: f64,
+    pub arc_end_deg: f64,
+    pub z_mm: f64,
+}
+
+/// Where the uncertainty stage reads its scales: the station, the depth window and the part.
+pub struct Scales<'a> {
+    pub station: &'a Station,
+    /// Half size of the depth stage's focus window, pixels.
+    pub focus_window_radius_px: usize,
+    pub pipe_radius_mm: f64,
+    pub registration: &'a Registration,
+    pub end_face: Option<&'a EndFace>,
+}
+
+/// Sets every bin's `uncertainty_mm` and returns the budget with each thread's mean's expanded
+/// uncertainty (by thread index).
+pub fn heights(
+    threads: &mut [ThreadMeasure],
+    scales: &Scales,
+    crest_scatter_um: Option<f64>,
+    options: &UncertaintyOptions,
+) -> (UncertaintyBudget, Vec<(u32, Option<f64>)>) {
+    let k = options.coverage_factor;
+    let pixel_mm = scales.station.object_pixel_mm;
+    let bin_arc_mm = scales.pipe_radius_mm.to_radians();
+    // A focus window spans (2r + 1) pixels along the arc: bins within it share depth errors.
+    let correlation = ((2 * scales.focus_window_radius_px + 1) as f64 * pixel_mm / bin_arc_mm).max(1.0);
+    let method_mm = options.method_px * pixel_mm;
+    let residuals: Vec<f64> = scales.registration.pairs.iter().map(|p| 1e-3 * p.residual_radius_um).collect();
+    // A fused cell averages the views that saw it: half the pairs' radial disagreement.
+    let registration_mm = if residuals.is_empty() {
+        0.0
+    } else {
+        0.5 * (residuals.iter().map(|r| r * r).sum::<f64>() / residuals.len() as f64).sqrt()
+    };
+    let raw: Vec<Option<f64>> = threads.iter().flat_map(|t| t.bins.iter().map(|b| b.raw_height_mm)).collect();
+    let noise = local_noise(&raw, options.noise_half_bins, 10);
+    // Where too few neighbours were measured to read the noise, the part's median stands in.
+    let mut known: Vec<f64> = noise.iter().flatten().copied().collect();
+    let part_noise = median(&mut known);
+    let mut expanded = Vec::new();
+    let mut means = Vec::with_capacity(threads.len());
+    let mut i = 0;
+    for t in threads.iter_mut() {
+        let mut thread_noise = Vec::new();
+        for b in &mut t.bins {
+            let s = noise[i].or(part_noise);
+            i += 1;
+            b.uncertainty_mm = match (b.height_mm, s) {
+                (Some(_), Some(s)) => {
+                    let kept = b.kept_bins.max(1) as f64;
+                    // Correlated over `correlation` bins: neighbour differences see 1/L of the
+                    // variance, and a mean of m bins averages m/L independent ones (at most m).
+                    let noise_mm = s * (correlation * (correlation / kept).min(1.0)).sqrt();
+                    thread_noise.push(s);
+                    let u = k * (noise_mm.powi(2) + method_mm.powi(2) + registration_mm.powi(2)).sqrt();
+                    expanded.push(u);
+                    Some(u)
+                }
+                _ => None,
+            };
+        }
+        let n = t.bins.iter().filter(|b| b.height_mm.is_some()).count() as f64;
+        let mean_u = median(&mut thread_noise).map(|s| {
+            let noise_mm = s * (correlation * (correlation / n).min(1.0)).sqrt();
+            k * (noise_mm.powi(2) + method_mm.powi(2) + registration_mm.powi(2)).sqrt()
+        });
+        means.push((t.index, mean_u));
+    }
+    let z_mm = match scales.end_face {
+        Some(end) => 1e-3 * end.scatter_um / (end.views.max(1) as f64).sqrt(),
+        // Uniform within ± the bound, the mean over the views (registration keeps the mean).
+        None => options.encoder_axial_bound_mm / 3f64.sqrt() / (scales.station.views.max(1) as f64).sqrt(),
+    };
+    let arc_per_deg = bin_arc_mm;
+    let registration_arc_mm = {
+        let r: Vec<f64> = scales
+            .registration
+            .pairs
+            .iter()
+            .map(|p| p.residual_angle_deg.to_radians() * scales.pipe_radius_mm)
+            .collect();
+        if r.is_empty() { 0.0 } else { (r.iter().map(|x| x * x).sum::<f64>() / r.len() as f64).sqrt() }
+    };
+    // An arc's end: the bin's quantisation, the focus window's reach along the arc and the views'
+    // angular disagreement; never less than a bin.
+    let end_u_mm = ((arc_per_deg / 12f64.sqrt()).powi(2)
+        + (scales.focus_window_radius_px as f64 * pixel_mm / 3f64.sqrt()).powi(2)
+        + registration_arc_mm.powi(2))
+    .sqrt();
+    let budget = UncertaintyBudget {
+        coverage_factor: k,
+        method_um: 1e3 * method_mm,
+        registration_um: 1e3 * registration_mm,
+        noise_median_um: part_noise.map(|s| 1e3 * s),
+        noise_correlation_bins: correlation,
+        expanded_median_um: median(&mut expanded).map(|u| 1e3 * u),
+        crest_deficit_um: k * crest_scatter_um.unwrap_or(0.0),
+        arc_end_deg: (k * end_u_mm / arc_per_deg).max(1.0),
+        z_mm: k * z_mm,
+    };
+    (budget, means)
+}
+
+/// The decision per ISO 14253-1 on the black-crest rules.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Decision {
+    /// The verdict is accept at both bounds of the uncertainty.
+    Conforms,
+    /// The verdict is reject at both bounds.
+    DoesNotConform,
+    /// The bounds disagree: the measurement cannot decide.
+    Indeterminate,
+}
+
+impl Decision {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Decision::Conforms => "conforms",
+            Decision::DoesNotConform => "does_not_conform",
+            Decision::Indeterminate => "indeterminate",
+        }
+    }
+}
+
+/// The decision and how it was reached.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DecisionFinding {
+    pub decision: Decision,
+    /// The rules' verdict at the bound toward reject and at the bound toward accept.
+    pub verdict_toward_reject: Verdict,
+    pub verdict_toward_accept: Verdict,
+    /// Crest degrees within Lc that no view showed, and counted black toward reject.
+    pub unseen_crest_within_lc_deg: f64,
+    /// Why, in words: empty when the decision is the verdict's.
+    pub reasons: Vec<String>,
+}
+
+/// What the decision re-applies the rules with.
+pub struct RuleContext<'a> {
+    pub input: &'a RuleInput,
+    pub arc_rule: ArcRule,
+    pub pitch_mm: f64,
+    pub nominal_slope: f64,
+    pub crest_window_half_mm: f64,
+    pub crest: &'a CrestOptions,
+}
+
+/// Unseen gaps of up to this many bins between seen, machined crests of one thread are taken as
+/// their neighbours: the mill surface is smooth (ovality, eccentricity, a taper), and cannot dip
+/// below the cone and rise again within a few degrees.
+pub const BRIDGED_GAP_BINS: usize = 3;
+
+/// The decision on the black-crest verdict: the rules at both bounds of the uncertainty.
+pub fn decide(threads: &[ThreadMeasure], ctx: &RuleContext, budget: &UncertaintyBudget) -> DecisionFinding {
+    let at = |shift_um: f64| {
+        let options = CrestOptions { onset_shift_um: shift_um, ..ctx.crest.clone() };
+        crest::observations(
+            threads,
+            ctx.input.lc_mm,
+            ctx.pitch_mm,
+            ctx.nominal_slope,
+            ctx.crest_window_half_mm,
+            &options,
+        )
+        .observations
+    };
+    let end_bins = budget.arc_end_deg.ceil() as usize;
+    let mut toward_reject = at(-budget.crest_deficit_um);
+    let mut unseen_deg = 0.0;
+    for t in &mut toward_reject {
+        unseen_deg += count_unseen_as_black(t, ctx.input.lc_mm + budget.z_mm);
+        widen(t, budget.arc_end_deg, end_bins);
+    }
+    let mut toward_accept = at(budget.crest_deficit_um);
+    for t in &mut toward_accept {
+        narrow(t, budget.arc_end_deg, end_bins);
+    }
+    let verdict_at = |threads: Vec<ThreadObservation>, lc_mm: f64| {
+        rules::assess(&RuleInput { threads, lc_mm, ..ctx.input.clone() }, ctx.arc_rule)
+    };
+    let reject_side = verdict_at(toward_reject, ctx.input.lc_mm + budget.z_mm);
+    let accept_side = verdict_at(toward_accept, (ctx.input.lc_mm - budget.z_mm).max(0.0));
+    let decision = match (reject_side.verdict, accept_side.verdict) {
+        (Verdict::Accept, Verdict::Accept) => Decision::Conforms,
+        (Verdict::Reject, Verdict::Reject) => Decision::DoesNotConform,
+        _ => Decision::Indeterminate,
+    };
+    let mut reasons = Vec::new();
+    if decision == Decision::Indeterminate {
+        let margins = format!(
+            "black arcs {:.1}° longer at each end, crests within {:.1} µm of the onset counted black, Lc {:.3} mm further",
+            budget.arc_end_deg, budget.crest_deficit_um, budget.z_mm
+        );
+        let unseen = if unseen_deg > 0.0 {
+            format!(", {unseen_deg:.0}° of crest within Lc that no view showed counted black")
+        } else {
+            String::new()
+        };
+        for (side, a) in [("reject", &reject_side), ("accept", &accept_side)] {
+            if a.verdict.as_str() != side {
+                continue;
+            }
+            let why: Vec<String> = a
+                .reasons
+                .iter()
+                .filter(|r| r.code != rules::ReasonCode::PartialCoverage)
+                .map(|r| r.message.clone())
+                .collect();
+            if side == "reject" {
+                reasons.push(format!(
+                    "within the uncertainty the verdict could be reject ({margins}{unseen}): {}",
+                    why.join("; ")
+                ));
+            } else {
+                reasons.push(format!(
+                    "within the uncertainty the verdict could be accept (black arcs {:.1}° shorter at each end, \
+                     the onset {:.1} µm higher, Lc {:.3} mm shorter): {}",
+                    budget.arc_end_deg,
+                    budget.crest_deficit_um,
+                    budget.z_mm,
+                    why.join("; ")
+                ));
+            }
+        }
+    }
+    DecisionFinding {
+        decision,
+        verdict_toward_reject: reject_side.verdict,
+        verdict_toward_accept: accept_side.verdict,
+        unseen_crest_within_lc_deg: unseen_deg,
+        reasons,
+    }
+}
+
+/// Marks the thread's unseen crest bins within `lc_mm` black (on the mill surface), but for gaps
+/// of up to [`BRIDGED_GAP_BINS`] between seen crests that are not black; returns the degrees so
+/// marked.
+fn count_unseen_as_black(t: &mut ThreadObservation, lc_mm: f64) -> f64 {
+    let black = |b: &rules::CrestBin, arcs: &[[f64; 2]]| {
+        b.on_mill_surface || arcs.iter().any(|a| a[0] < b.angle_deg + b.width_deg && a[1] > b.angle_deg)
+    };
+    let n = t.bins.len();
+    let mut marked = 0.0;
+    let mut i = 0;
+    while i < n {
+        if t.bins[i].seen || t.bins[i].chamfer {
+            i += 1;
+            continue;
+        }
+        let start = i;
+        while i < n && !t.bins[i].seen && !t.bins[i].chamfer {
+            i += 1;
+        }
+        let len = i - start;
+        let bridged = len <= BRIDGED_GAP_BINS
+            && start > 0
+            && i < n
+            && !black(&t.bins[start - 1], &t.black_crest_arcs_deg)
+            && !black(&t.bins[i], &t.black_crest_arcs_deg);
+        if bridged {
+            continue;
+        }
+        for b in &mut t.bins[start..i] {
+            if b.z_mm <= lc_mm {
+                b.on_mill_surface = true;
+                b.mill_arc_deg = None;
+                marked += b.width_deg;
+            }
+        }
+    }
+    marked
+}
+
+/// Lengthens every black arc by `deg` at each end (photometric arcs by the angle, geometric runs
+/// by `bins` bins).
+fn widen(t: &mut ThreadObservation, deg: f64, bins: usize) {
+    t.black_crest_arcs_deg =
+        union_arcs(t.black_crest_arcs_deg.iter().map(|a| [(a[0] - deg).max(0.0), (a[1] + deg).min(360.0)]).collect());
+    let on: Vec<bool> = t.bins.iter().map(|b| b.on_mill_surface).collect();
+    for (i, b) in t.bins.iter_mut().enumerate() {
+        let near = on[i.saturating_sub(bins)..(i + bins + 1).min(on.len())].iter().any(|&x| x);
+        if near && !b.chamfer && !b.on_mill_surface {
+            b.on_mill_surface = true;
+            b.mill_arc_deg = None;
+        }
+    }
+}
+
+/// Shortens every black arc by `deg` at each end (geometric runs by `bins` bins); arcs shorter
+/// than twice that vanish.
+fn narrow(t: &mut ThreadObservation, deg: f64, bins: usize) {
+    t.black_crest_arcs_deg =
+        t.black_crest_arcs_deg.iter().filter(|a| a[1] - a[0] > 2.0 * deg).map(|a| [a[0] + deg, a[1] - deg]).collect();
+    let on: Vec<bool> = t.bins.iter().map(|b| b.on_mill_surface).collect();
+    for (i, b) in t.bins.iter_mut().enumerate() {
+        let whole = on[i.saturating_sub(bins)..(i + bins + 1).min(on.len())].iter().all(|&x| x)
+            && i >= bins
+            && i + bins < on.len();
+        if b.on_mill_surface && !whole {
+            b.on_mill_surface = false;
+            b.mill_arc_deg = None;
+        }
+    }
+}
+
+/// One thread's height against nominal ± tolerance, with its uncertainty (ISO 14253-1 on the
+/// thread's mean height): a finding of its own, apart from the black-crest verdict.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum HeightFinding {
+    /// The mean ± its uncertainty lies within the tolerance.
+    Within,
+    /// The mean lies outside the tolerance by more than its uncertainty.
+    Outside,
+    /// The uncertainty straddles a tolerance limit.
+    Indeterminate,
+    /// Not judged: no full crest within Lc was measured.
+    NotJudged,
+}
+
+/// Judges a mean height against nominal ± tolerance.
+pub fn judge_height(mean_mm: Option<f64>, u_mm: Option<f64>, nominal_mm: f64, tolerance_mm: f64) -> HeightFinding {
+    let (Some(mean), Some(u)) = (mean_mm, u_mm) else { return HeightFinding::NotJudged };
+    let off = (mean - nominal_mm).abs();
+    if off + u <= tolerance_mm {
+        HeightFinding::Within
+    } else if off - u > tolerance_mm {
+        HeightFinding::Outside
+    } else {
+        HeightFinding::Indeterminate
+    }
+}
