@@ -1,7 +1,7 @@
 //! `crestscan bench`: a benchmark suite against the simulator's truth.
 
 use super::DepthArgs;
-use anyhow::{Result, bail};
+use anyhow::{Context, Result, bail};
 use crestscan::eval::{self, Suite};
 use crestscan::pipeline::PipelineOptions;
 use std::path::PathBuf;
@@ -26,6 +26,10 @@ pub struct BenchArgs {
     /// medians: single timings on a shared machine scatter by tens of percent.
     #[arg(long, default_value_t = 1)]
     repeat: usize,
+    /// Pipeline options as a JSON file (the shape `POST /v1/inspections` takes under
+    /// `pipeline`; keys it leaves out keep their defaults), for trying a setting on a suite.
+    #[arg(long)]
+    options: Option<PathBuf>,
     #[command(flatten)]
     depth: DepthArgs,
 }
@@ -53,14 +57,23 @@ impl From<SuiteArg> for Suite {
 
 impl BenchArgs {
     pub fn run(self) -> Result<()> {
-        let Self { suite, work, only, json, repeat, depth } = self;
+        let Self { suite, work, only, json, repeat, options: options_file, depth } = self;
         let suite = Suite::from(suite);
         let work = work.unwrap_or_else(|| PathBuf::from(suite.default_work_dir()));
         if let Some(o) = only.iter().find(|o| !suite.cases().iter().any(|c| c.matches(o))) {
             let names: Vec<String> = suite.cases().iter().map(|c| c.name()).collect();
             bail!("--only {o:?} is no case of the {} suite; its cases: {}", suite.name(), names.join(", "));
         }
-        let options = PipelineOptions { depth: depth.into(), ..Default::default() };
+        let mut options = PipelineOptions { depth: depth.into(), ..Default::default() };
+        if let Some(path) = options_file {
+            let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+            let overrides: serde_json::Value =
+                serde_json::from_str(&text).with_context(|| format!("{}: not JSON", path.display()))?;
+            let mut merged = serde_json::to_value(&options)?;
+            merge_json(&mut merged, overrides);
+            options =
+                serde_json::from_value(merged).with_context(|| format!("{}: not pipeline options", path.display()))?;
+        }
         let mut results = Vec::new();
         for case in suite.cases().iter().filter(|c| only.is_empty() || only.iter().any(|o| c.matches(o))) {
             eprintln!("bench: {} (seed {})", case.preset, case.seed);
@@ -74,5 +87,17 @@ impl BenchArgs {
             std::fs::write(&path, serde_json::to_vec_pretty(&results)?)?;
         }
         Ok(())
+    }
+}
+
+/// `overrides` written over `base`, object by object.
+fn merge_json(base: &mut serde_json::Value, overrides: serde_json::Value) {
+    match (base, overrides) {
+        (serde_json::Value::Object(b), serde_json::Value::Object(o)) => {
+            for (k, v) in o {
+                merge_json(b.entry(k).or_insert(serde_json::Value::Null), v);
+            }
+        }
+        (b, o) => *b = o,
     }
 }

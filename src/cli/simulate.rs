@@ -7,12 +7,12 @@ use std::path::PathBuf;
 #[derive(clap::Args)]
 pub struct SimulateArgs {
     /// Preset name (see --list).
-    #[arg(long, required_unless_present = "list")]
+    #[arg(long, required_unless_present_any = ["list", "spec"])]
     preset: Option<String>,
     #[arg(long, default_value_t = 1)]
     seed: u64,
     /// Output directory (created).
-    #[arg(long, required_unless_present = "list")]
+    #[arg(long, required_unless_present_any = ["list", "print_spec"])]
     out: Option<PathBuf>,
     /// Print the presets, one per line: name, then a short description.
     #[arg(long)]
@@ -27,11 +27,18 @@ pub struct SimulateArgs {
     /// The seed a random station is drawn by [default: --seed].
     #[arg(long)]
     station_seed: Option<u64>,
+    /// Print the simulation's whole specification (part, station, sensor, texture) as JSON
+    /// instead of rendering.
+    #[arg(long)]
+    print_spec: bool,
+    /// Render this specification (JSON, as --print-spec writes it) instead of a preset's.
+    #[arg(long, conflicts_with = "preset")]
+    spec: Option<PathBuf>,
 }
 
 impl SimulateArgs {
     pub fn run(self) -> Result<()> {
-        let Self { preset, seed, out, list, truth_only, station, station_seed } = self;
+        let Self { preset, seed, out, list, truth_only, station, station_seed, print_spec, spec: spec_file } = self;
         if list {
             for p in sim::PRESETS {
                 println!("{}\t{}", p.name, p.description);
@@ -44,11 +51,19 @@ impl SimulateArgs {
             }
             return Ok(());
         }
-        let (Some(name), Some(out)) = (preset, out) else { bail!("--preset and --out are required") };
-        let Some(spec) = sim::preset(&name) else {
-            let names: Vec<_> = sim::PRESETS.iter().map(|p| p.name).collect();
-            bail!("unknown preset {name:?}; presets: {}", names.join(", "));
+        let spec = match (&preset, spec_file) {
+            (_, Some(path)) => {
+                let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+                serde_json::from_str::<sim::SimSpec>(&text)
+                    .with_context(|| format!("{}: not a simulation spec", path.display()))?
+            }
+            (Some(name), None) => sim::preset(name).with_context(|| {
+                let names: Vec<_> = sim::PRESETS.iter().map(|p| p.name).collect();
+                format!("unknown preset {name:?}; presets: {}", names.join(", "))
+            })?,
+            (None, None) => bail!("--preset or --spec is required"),
         };
+        let name = spec.name.clone();
         let spec = match station {
             None => spec,
             Some(station) => {
@@ -63,6 +78,11 @@ impl SimulateArgs {
                 spec
             }
         };
+        if print_spec {
+            println!("{}", serde_json::to_string_pretty(&spec)?);
+            return Ok(());
+        }
+        let Some(out) = out else { bail!("--out is required") };
         if truth_only {
             let truth = sim::write_truth(&spec, seed, &out)?;
             println!("{}: {}", truth.verdict.as_str(), truth.reasons.join(" | "));

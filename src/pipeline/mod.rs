@@ -57,7 +57,7 @@ use depth::{DepthMap, DepthScratch, depth_from_focus_in};
 use fuse::Fusion;
 use profile::{Helix, ThreadMeasure};
 use rayon::prelude::*;
-use register::{EndFace, RegisterOptions, Registration};
+use register::{EndFace, Registration};
 use report::Report;
 use run::{Halt, Run};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
@@ -128,6 +128,13 @@ fn run_stages(recording: &dyn Recording, options: &PipelineOptions, mut run: Run
     let (assessment, crest, rule_input) = crest_and_rules(recording, options, &helix, &threads, &mut run);
     let part = recording.part();
     let station = domain::station::Station::of(recording.optics(), recording.views(), part.pipe_od_mm / 2.0);
+    let quality = quality::assess(
+        &station,
+        &registered.registration,
+        recording.views(),
+        &assessment,
+        &quality::SurfaceFit::of(&helix, part, depth_coverage),
+    );
     let (uncertainty, thread_mean_u) = uncertainty::heights(
         &mut threads,
         &uncertainty::Scales {
@@ -136,8 +143,10 @@ fn run_stages(recording: &dyn Recording, options: &PipelineOptions, mut run: Run
             pipe_radius_mm: part.pipe_od_mm / 2.0,
             registration: &registered.registration,
             end_face: registered.end_face.as_ref(),
+            helix_fit_rms_um: helix.fit_rms_um,
         },
         crest.cone.as_ref().map(|c| c.scatter_um),
+        &quality,
         &options.uncertainty,
     );
     let decision = uncertainty::decide(
@@ -151,6 +160,7 @@ fn run_stages(recording: &dyn Recording, options: &PipelineOptions, mut run: Run
             crest: &options.crest,
         },
         &uncertainty,
+        &quality,
     );
     let report = Report::assemble(report::Findings {
         part,
@@ -158,6 +168,7 @@ fn run_stages(recording: &dyn Recording, options: &PipelineOptions, mut run: Run
         optics: recording.optics(),
         views: recording.views(),
         station,
+        quality,
         uncertainty,
         thread_mean_uncertainty_mm: thread_mean_u,
         decision,
@@ -252,8 +263,10 @@ fn register_views(
     let pixel_mm = optics.object_pixel_mm(optics.focus_distance_mm);
     let format = views[0].format;
     let radius_ref = part.pipe_od_mm / 2.0;
-    let register_options = RegisterOptions { cell_mm: pixel_mm, ..options.register.clone() };
-    let lattice = register::Lattice::new(radius_ref, register_options.cell_mm);
+    let register_options = options.register.clone();
+    // The overlap grids' cell is the object pixel: the texture registration correlates is
+    // resolved to a pixel, and finer cells would hold no more.
+    let lattice = register::Lattice::new(radius_ref, pixel_mm);
     let grids: Vec<register::ViewGrid> = encoder_poses
         .par_iter()
         .zip(depth_maps)

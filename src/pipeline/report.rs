@@ -10,7 +10,7 @@ use crate::domain::thread::Family;
 use crate::pipeline::PipelineOptions;
 use crate::pipeline::crest::CrestCone;
 use crate::pipeline::profile::{Helix, ThreadMeasure};
-use crate::pipeline::quality::{self, Quality};
+use crate::pipeline::quality::Quality;
 use crate::pipeline::register::{EndFace, Registration};
 use crate::pipeline::uncertainty::{self, Decision, DecisionFinding, HeightFinding, UncertaintyBudget};
 use serde::{Deserialize, Serialize};
@@ -136,10 +136,21 @@ impl Report {
         for r in &self.reasons {
             out.push_str(&format!("  {r}\n"));
         }
+        out.push_str(&format!(
+            "  decision (ISO 14253-1): {}{}\n",
+            self.decision.as_str(),
+            self.uncertainty
+                .as_ref()
+                .and_then(|u| u.expanded_median_um)
+                .map_or(String::new(), |u| format!("; heights ± {u:.1} µm (median U, k = 2)"))
+        ));
         if self.review_required {
             out.push_str("  REVIEW REQUIRED: this result needs a person's review before its verdict is acted on:\n");
             for r in &self.quality.reasons {
                 out.push_str(&format!("    - {}\n", r.message));
+            }
+            for r in self.decision_finding.iter().flat_map(|d| &d.reasons) {
+                out.push_str(&format!("    - {r}\n"));
             }
         }
         let registration = &self.registration;
@@ -223,6 +234,7 @@ pub struct Findings<'a> {
     pub optics: &'a Optics,
     pub views: &'a [View],
     pub station: Station,
+    pub quality: Quality,
     pub uncertainty: UncertaintyBudget,
     /// Each thread's mean height's expanded uncertainty, by thread index.
     pub thread_mean_uncertainty_mm: Vec<(u32, Option<f64>)>,
@@ -276,8 +288,7 @@ impl Report {
             })
             .collect();
         let station = f.station;
-        let surface = quality::SurfaceFit::of(&f.helix, part, f.depth_coverage);
-        let quality = quality::assess(&station, &f.registration, f.views, &f.assessment, &surface);
+        let quality = f.quality;
         let decision = f.decision.decision;
         Report {
             connection: part.connection.clone(),

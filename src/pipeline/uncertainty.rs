@@ -31,6 +31,7 @@ use crate::numeric::sequence::local_noise;
 use crate::numeric::stats::median;
 use crate::pipeline::crest::{self, CrestOptions};
 use crate::pipeline::profile::ThreadMeasure;
+use crate::pipeline::quality::{Quality, QualityCode, QualityStatus};
 use crate::pipeline::register::{EndFace, Registration};
 use serde::{Deserialize, Serialize};
 
@@ -50,7 +51,7 @@ pub struct UncertaintyOptions {
 
 impl Default for UncertaintyOptions {
     fn default() -> Self {
-        Self { method_px: 0.1, coverage_factor: 2.0, noise_half_bins: 30, encoder_axial_bound_mm: 0.3 }
+        Self { method_px: 0.05, coverage_factor: 2.0, noise_half_bins: 30, encoder_axial_bound_mm: 0.3 }
     }
 }
 
@@ -63,6 +64,10 @@ pub struct UncertaintyBudget {
     pub method_um: f64,
     pub registration_um: f64,
     pub noise_median_um: Option<f64>,
+    /// The floor each height's standard uncertainty was raised to because the measurement failed
+    /// its quality checks ([`measurement_failed`]), µm; 0 otherwise.
+    #[serde(default)]
+    pub failure_floor_um: f64,
     /// Bins along the helix that share a focus window: noise is correlated over this many.
     pub noise_correlation_bins: f64,
     /// The median expanded uncertainty of a bin's height, µm.
@@ -82,6 +87,20 @@ pub struct Scales<'a> {
     pub pipe_radius_mm: f64,
     pub registration: &'a Registration,
     pub end_face: Option<&'a EndFace>,
+    /// RMS of the nominal form at the measured helix against the surface, µm.
+    pub helix_fit_rms_um: f64,
+}
+
+/// Whether the quality checks say the measurement itself failed (not merely that it lies outside
+/// the measured envelope or that some overlaps went unmeasured): too little was measured, the
+/// helix does not fit the surface, or depth from focus trusted too few pixels. Such a result's
+/// heights may be wrong by far more than their local scatter shows, and no decision is made on it.
+pub fn measurement_failed(quality: &Quality) -> bool {
+    quality.status == QualityStatus::Insufficient
+        || quality
+            .reasons
+            .iter()
+            .any(|r| matches!(r.code, QualityCode::HelixResidualLarge | QualityCode::DepthCoverageLow))
 }
 
 /// Sets every bin's `uncertainty_mm` and returns the budget with each thread's mean's expanded
@@ -90,6 +109,7 @@ pub fn heights(
     threads: &mut [ThreadMeasure],
     scales: &Scales,
     crest_scatter_um: Option<f64>,
+    quality: &Quality,
     options: &UncertaintyOptions,
 ) -> (UncertaintyBudget, Vec<(u32, Option<f64>)>) {
     let k = options.coverage_factor;
@@ -98,6 +118,10 @@ pub fn heights(
     // A focus window spans (2r + 1) pixels along the arc: bins within it share depth errors.
     let correlation = ((2 * scales.focus_window_radius_px + 1) as f64 * pixel_mm / bin_arc_mm).max(1.0);
     let method_mm = options.method_px * pixel_mm;
+    // Where the measurement failed its checks, its errors are those of the surface departing from
+    // the thread form, which the helix's fit residual measures: each height's standard
+    // uncertainty is at least that.
+    let failure_mm = if measurement_failed(quality) { 1e-3 * scales.helix_fit_rms_um } else { 0.0 };
     let residuals: Vec<f64> = scales.registration.pairs.iter().map(|p| 1e-3 * p.residual_radius_um).collect();
     // A fused cell averages the views that saw it: half the pairs' radial disagreement.
     let registration_mm = if residuals.is_empty() {
@@ -125,7 +149,7 @@ pub fn heights(
                     // variance, and a mean of m bins averages m/L independent ones (at most m).
                     let noise_mm = s * (correlation * (correlation / kept).min(1.0)).sqrt();
                     thread_noise.push(s);
-                    let u = k * (noise_mm.powi(2) + method_mm.powi(2) + registration_mm.powi(2)).sqrt();
+                    let u = k * (noise_mm.powi(2) + method_mm.powi(2) + registration_mm.powi(2)).sqrt().max(failure_mm);
                     expanded.push(u);
                     Some(u)
                 }
@@ -135,7 +159,7 @@ pub fn heights(
         let n = t.bins.iter().filter(|b| b.height_mm.is_some()).count() as f64;
         let mean_u = median(&mut thread_noise).map(|s| {
             let noise_mm = s * (correlation * (correlation / n).min(1.0)).sqrt();
-            k * (noise_mm.powi(2) + method_mm.powi(2) + registration_mm.powi(2)).sqrt()
+            k * (noise_mm.powi(2) + method_mm.powi(2) + registration_mm.powi(2)).sqrt().max(failure_mm)
         });
         means.push((t.index, mean_u));
     }
@@ -165,6 +189,7 @@ pub fn heights(
         method_um: 1e3 * method_mm,
         registration_um: 1e3 * registration_mm,
         noise_median_um: part_noise.map(|s| 1e3 * s),
+        failure_floor_um: 1e3 * failure_mm,
         noise_correlation_bins: correlation,
         expanded_median_um: median(&mut expanded).map(|u| 1e3 * u),
         crest_deficit_um: k * crest_scatter_um.unwrap_or(0.0),
@@ -225,7 +250,12 @@ pub struct RuleContext<'a> {
 pub const BRIDGED_GAP_BINS: usize = 3;
 
 /// The decision on the black-crest verdict: the rules at both bounds of the uncertainty.
-pub fn decide(threads: &[ThreadMeasure], ctx: &RuleContext, budget: &UncertaintyBudget) -> DecisionFinding {
+pub fn decide(
+    threads: &[ThreadMeasure],
+    ctx: &RuleContext,
+    budget: &UncertaintyBudget,
+    quality: &Quality,
+) -> DecisionFinding {
     let at = |shift_um: f64| {
         let options = CrestOptions { onset_shift_um: shift_um, ..ctx.crest.clone() };
         crest::observations(
@@ -254,13 +284,22 @@ pub fn decide(threads: &[ThreadMeasure], ctx: &RuleContext, budget: &Uncertainty
     };
     let reject_side = verdict_at(toward_reject, ctx.input.lc_mm + budget.z_mm);
     let accept_side = verdict_at(toward_accept, (ctx.input.lc_mm - budget.z_mm).max(0.0));
+    let failed = measurement_failed(quality);
     let decision = match (reject_side.verdict, accept_side.verdict) {
+        _ if failed => Decision::Indeterminate,
         (Verdict::Accept, Verdict::Accept) => Decision::Conforms,
         (Verdict::Reject, Verdict::Reject) => Decision::DoesNotConform,
         _ => Decision::Indeterminate,
     };
     let mut reasons = Vec::new();
-    if decision == Decision::Indeterminate {
+    if failed {
+        reasons.push(
+            "no decision on a measurement that failed its quality checks (the quality reasons say which): its \
+             heights and black crests may be wrong by more than their uncertainty shows"
+                .to_string(),
+        );
+    }
+    if decision == Decision::Indeterminate && !failed {
         let margins = format!(
             "black arcs {:.1}° longer at each end, crests within {:.1} µm of the onset counted black, Lc {:.3} mm further",
             budget.arc_end_deg, budget.crest_deficit_um, budget.z_mm
@@ -270,31 +309,39 @@ pub fn decide(threads: &[ThreadMeasure], ctx: &RuleContext, budget: &Uncertainty
         } else {
             String::new()
         };
-        for (side, a) in [("reject", &reject_side), ("accept", &accept_side)] {
-            if a.verdict.as_str() != side {
-                continue;
-            }
-            let why: Vec<String> = a
+        let bound = |a: &rules::Assessment| {
+            let longest = a.black_threads.iter().map(|t| t.length_mm).fold(0.0, f64::max);
+            let codes: Vec<String> = a
                 .reasons
                 .iter()
                 .filter(|r| r.code != rules::ReasonCode::PartialCoverage)
-                .map(|r| r.message.clone())
+                .map(|r| {
+                    serde_json::to_value(r.code).ok().and_then(|v| v.as_str().map(String::from)).unwrap_or_default()
+                })
+                .collect::<std::collections::BTreeSet<_>>()
+                .into_iter()
                 .collect();
-            if side == "reject" {
-                reasons.push(format!(
-                    "within the uncertainty the verdict could be reject ({margins}{unseen}): {}",
-                    why.join("; ")
-                ));
-            } else {
-                reasons.push(format!(
-                    "within the uncertainty the verdict could be accept (black arcs {:.1}° shorter at each end, \
-                     the onset {:.1} µm higher, Lc {:.3} mm shorter): {}",
-                    budget.arc_end_deg,
-                    budget.crest_deficit_um,
-                    budget.z_mm,
-                    why.join("; ")
-                ));
-            }
+            format!(
+                "{} black-crested thread(s) within Lc, the longest {longest:.1} mm ({})",
+                a.black_threads.len(),
+                codes.join(", ")
+            )
+        };
+        if reject_side.verdict == Verdict::Reject {
+            reasons.push(format!(
+                "within the uncertainty the verdict could be reject ({margins}{unseen}): {}",
+                bound(&reject_side)
+            ));
+        }
+        if accept_side.verdict == Verdict::Accept {
+            reasons.push(format!(
+                "within the uncertainty the verdict could be accept (black arcs {:.1}° shorter at each end, the \
+                 onset {:.1} µm higher, Lc {:.3} mm shorter): {}",
+                budget.arc_end_deg,
+                budget.crest_deficit_um,
+                budget.z_mm,
+                bound(&accept_side)
+            ));
         }
     }
     DecisionFinding {
@@ -390,6 +437,17 @@ pub enum HeightFinding {
     Indeterminate,
     /// Not judged: no full crest within Lc was measured.
     NotJudged,
+}
+
+impl HeightFinding {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            HeightFinding::Within => "within",
+            HeightFinding::Outside => "outside",
+            HeightFinding::Indeterminate => "indeterminate",
+            HeightFinding::NotJudged => "not_judged",
+        }
+    }
 }
 
 /// Judges a mean height against nominal ± tolerance.

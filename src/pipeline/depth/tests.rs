@@ -373,7 +373,7 @@ fn box_sum_matches_brute_force() {
     let r = 4;
     // Both boxes from one Laplacian: each the same as its own measure, bit for bit.
     let (mut big, mut small, mut small_alone) = (vec![0f32; w * h], vec![0f32; w * h], vec![0f32; w * h]);
-    focus_measures(&gray, w, h, r, &mut scratch, &mut big, Some((1, &mut small)));
+    focus_measures(&gray, w, h, r, &mut scratch, &mut big, Some((1, &mut small)), None);
     focus_measure(&gray, w, h, 1, &mut scratch, &mut small_alone);
     assert_eq!(big, baseline);
     assert_eq!(small, small_alone);

@@ -141,22 +141,24 @@ pub struct Registration {
     pub closure: Option<RingClosure>,
 }
 
-/// The robust kernel's bound per axis (Huber): radial mm, angle °, axial mm.
-const HUBER_RADIUS_MM: f64 = 0.01;
-const HUBER_ANGLE_DEG: f64 = 0.02;
-const HUBER_AXIAL_MM: f64 = 0.01;
+/// The robust kernel's bound per axis (Huber), in cells of the lattice (an object pixel): a
+/// quarter radially and axially, half along the arc (at the standard station's 41 µm pixel,
+/// 0.01 mm, 0.02° and 0.01 mm). A pair's correlation peak is located to a fraction of a cell,
+/// so the bounds follow the pixel, not a length fixed to one station.
+const HUBER_RADIUS_CELLS: f64 = 0.25;
+const HUBER_ARC_CELLS: f64 = 0.5;
+const HUBER_AXIAL_CELLS: f64 = 0.25;
 /// A residual beyond this many kernel bounds marks a pair as an outlier.
 const OUTLIER_BOUNDS: f64 = 3.0;
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct RegisterOptions {
-    /// Cell of the unrolled overlap grids, mm.
-    pub cell_mm: f64,
     /// Search half ranges (encoder error bounds, relative between two views).
     pub max_angle_deg: f64,
     pub max_axial_mm: f64,
     /// Pairs whose correlation peak is weaker than this, or whose aligned overlap is smaller than
-    /// this many cells, are not trusted.
+    /// this many cells (object pixels: the unrolled overlap grids' cell is the bundle's object
+    /// pixel), are not trusted.
     pub min_ncc: f64,
     pub min_overlap_cells: usize,
     /// Pairs with a second alignment this close to the best one (as a fraction of its
@@ -175,7 +177,6 @@ fn default_max_rival_ratio() -> f64 {
 impl Default for RegisterOptions {
     fn default() -> Self {
         Self {
-            cell_mm: 0.041,
             max_angle_deg: 2.5,
             max_axial_mm: 0.8,
             min_ncc: 0.3,
@@ -228,7 +229,10 @@ pub fn register(
     let axis = |pairs: &[PairMeasure], f: &dyn Fn(&PairMeasure) -> f64, huber: f64| {
         solve_axis(n, &pairs.iter().map(|p| (p.a, p.b, f(p))).collect::<Vec<_>>(), huber)
     };
-    let radial = axis(&pairs, &|p| p.shift_radius_mm, HUBER_RADIUS_MM);
+    let huber_radius_mm = HUBER_RADIUS_CELLS * lattice.cell_z_mm;
+    let huber_angle_deg = (HUBER_ARC_CELLS * lattice.cell_arc_mm / lattice.radius_ref_mm).to_degrees();
+    let huber_axial_mm = HUBER_AXIAL_CELLS * lattice.cell_z_mm;
+    let radial = axis(&pairs, &|p| p.shift_radius_mm, huber_radius_mm);
     // A lens-radius error moves all of a view's points along its optical axis, which is radial
     // only at the view's centre: a point φ off it moves δ·sin φ along the arc. In an overlap, half
     // the views' spacing to either side of their centres, that adds (δ_a + δ_b)·sin(spacing/2)
@@ -238,17 +242,17 @@ pub fn register(
     for p in pairs.iter_mut() {
         p.shift_angle_deg -= lens_radius_arc_shift_deg(&poses[p.a], &poses[p.b], radial[p.a], radial[p.b], lattice);
     }
-    let angle = axis(&pairs, &|p| p.shift_angle_deg, HUBER_ANGLE_DEG);
-    let axial = axis(&pairs, &|p| p.shift_axial_mm, HUBER_AXIAL_MM);
+    let angle = axis(&pairs, &|p| p.shift_angle_deg, huber_angle_deg);
+    let axial = axis(&pairs, &|p| p.shift_axial_mm, huber_axial_mm);
     for p in pairs.iter_mut() {
         p.residual_angle_deg = angle[p.b] - angle[p.a] - p.shift_angle_deg;
         p.residual_axial_um = 1e3 * (axial[p.b] - axial[p.a] - p.shift_axial_mm);
         p.residual_radius_um = 1e3 * (radial[p.b] - radial[p.a] - p.shift_radius_mm);
     }
     for p in &pairs {
-        let outlier = p.residual_radius_um.abs() > 1e3 * OUTLIER_BOUNDS * HUBER_RADIUS_MM
-            || p.residual_angle_deg.abs() > OUTLIER_BOUNDS * HUBER_ANGLE_DEG
-            || p.residual_axial_um.abs() > 1e3 * OUTLIER_BOUNDS * HUBER_AXIAL_MM;
+        let outlier = p.residual_radius_um.abs() > 1e3 * OUTLIER_BOUNDS * huber_radius_mm
+            || p.residual_angle_deg.abs() > OUTLIER_BOUNDS * huber_angle_deg
+            || p.residual_axial_um.abs() > 1e3 * OUTLIER_BOUNDS * huber_axial_mm;
         if let Some(c) = candidates.iter_mut().find(|c| (c.a, c.b) == (p.a, p.b)).filter(|_| outlier) {
             c.status = PairStatus::Outlier;
         }

@@ -68,6 +68,10 @@ pub struct Inspection {
     /// (the report's `quality` says why). Null before, and for inspections that succeeded before
     /// quality was assessed.
     pub review_required: Option<bool>,
+    /// Once succeeded: the decision per ISO 14253-1 (conforms, does_not_conform or
+    /// indeterminate: whether the verdict holds with every measured value moved by its
+    /// uncertainty). Null before, and for inspections that succeeded before it was made.
+    pub decision: Option<String>,
     pub serial: Option<String>,
     pub connection: Option<String>,
     pub client_reference: Option<String>,
@@ -99,6 +103,7 @@ impl From<InspectionRow> for Inspection {
             status,
             verdict: r.verdict,
             review_required: r.review_required,
+            decision: r.decision,
             serial: r.serial,
             connection: r.connection,
             client_reference: r.client_reference,

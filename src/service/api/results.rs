@@ -65,6 +65,9 @@ pub struct AngleHeight {
     pub angle_deg: f64,
     /// null where no view covered the bin.
     pub height_mm: Option<f64>,
+    /// The height's expanded uncertainty (k = 2); null where the height is (or for results
+    /// stored before it was computed).
+    pub uncertainty_mm: Option<f64>,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
@@ -78,6 +81,11 @@ pub struct ThreadRow {
     pub bins_measured: i64,
     pub black_crest_arcs_deg: Vec<[f64; 2]>,
     pub black_crest_length_mm: f64,
+    /// The thread's height against nominal ± tolerance with its uncertainty: within, outside,
+    /// indeterminate or not_judged (the report's `threads[].height_finding` has its figures).
+    pub height_finding: Option<String>,
+    /// The expanded uncertainty (k = 2) of the mean the finding judged.
+    pub mean_height_uncertainty_mm: Option<f64>,
     pub heights: Vec<AngleHeight>,
 }
 
@@ -94,8 +102,9 @@ pub struct FormatQuery {
     pub format: Option<String>,
 }
 
-/// The per-thread height table: JSON, or CSV (`thread,angle_deg,height_mm`, the CMM upload's
-/// columns) on `Accept: text/csv` or `?format=csv`.
+/// The per-thread height table: JSON, or CSV (`thread,angle_deg,height_mm,uncertainty_mm`: the
+/// CMM upload's columns and each height's expanded uncertainty, k = 2) on `Accept: text/csv` or
+/// `?format=csv`.
 #[utoipa::path(
     get,
     path = "/v1/inspections/{id}/threads",
@@ -123,13 +132,14 @@ pub async fn get_threads(
         negotiate(&headers, q.format.as_deref(), &[("json", "application/json"), ("csv", "text/csv")])?;
     let (threads, heights) = state.store.threads(&id.0).await?;
     if format == "csv" {
-        let mut out = String::from("thread,angle_deg,height_mm\n");
+        let mut out = String::from("thread,angle_deg,height_mm,uncertainty_mm\n");
         for h in &heights {
             out.push_str(&format!(
-                "{},{},{}\n",
+                "{},{},{},{}\n",
                 h.thread_index,
                 h.angle_deg,
-                h.height_mm.map(|v| format!("{v:.6}")).unwrap_or_default()
+                h.height_mm.map(|v| format!("{v:.6}")).unwrap_or_default(),
+                h.uncertainty_mm.map(|v| format!("{v:.6}")).unwrap_or_default()
             ));
         }
         let etag = crate::service::store::etag_of(out.as_bytes());
@@ -137,10 +147,11 @@ pub async fn get_threads(
     }
     let mut by_thread: std::collections::BTreeMap<i64, Vec<AngleHeight>> = Default::default();
     for h in heights {
-        by_thread
-            .entry(h.thread_index)
-            .or_default()
-            .push(AngleHeight { angle_deg: h.angle_deg, height_mm: h.height_mm });
+        by_thread.entry(h.thread_index).or_default().push(AngleHeight {
+            angle_deg: h.angle_deg,
+            height_mm: h.height_mm,
+            uncertainty_mm: h.uncertainty_mm,
+        });
     }
     let table = ThreadTable {
         inspection_id: id.0.clone(),
@@ -155,6 +166,8 @@ pub async fn get_threads(
                 bins_measured: t.bins_measured,
                 black_crest_arcs_deg: serde_json::from_str(&t.black_crest_arcs_json).unwrap_or_default(),
                 black_crest_length_mm: t.black_crest_length_mm,
+                height_finding: t.height_finding,
+                mean_height_uncertainty_mm: t.mean_height_uncertainty_mm,
                 heights: by_thread.remove(&t.thread_index).unwrap_or_default(),
             })
             .collect(),

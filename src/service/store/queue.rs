@@ -111,12 +111,13 @@ impl Store {
         let now = now_ms();
         let mut tx = self.pool.begin().await?;
         let updated = sqlx::query(
-            "UPDATE inspections SET status = 'succeeded', verdict = ?, review_required = ?, finished_at = ?, \
+            "UPDATE inspections SET status = 'succeeded', verdict = ?, review_required = ?, decision = ?, finished_at = ?, \
              updated_at = ?, lease_owner = NULL, lease_expires_at = NULL, progress_fraction = 1.0, error_json = NULL \
              WHERE id = ? AND lease_owner = ? AND status = 'running'",
         )
         .bind(results.verdict)
         .bind(results.report.review_required)
+        .bind(results.report.decision.as_str())
         .bind(now)
         .bind(now)
         .bind(id)
@@ -146,8 +147,8 @@ impl Store {
         for t in &results.report.threads {
             sqlx::query(
                 "INSERT INTO threads (inspection_id, thread_index, crest_z_start_mm, crest_z_end_mm, min_height_mm, \
-                 mean_height_mm, max_height_mm, bins_measured, black_crest_length_mm, black_crest_arcs_json) \
-                 VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                 mean_height_mm, max_height_mm, bins_measured, black_crest_length_mm, black_crest_arcs_json, \
+                 mean_height_uncertainty_mm, height_finding) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
             )
             .bind(id)
             .bind(t.index as i64)
@@ -159,21 +160,28 @@ impl Store {
             .bind(t.bins_measured as i64)
             .bind(t.black_crest_length_mm)
             .bind(serde_json::to_string(&t.black_crest_arcs_deg).expect("arcs serialise"))
+            .bind(t.height_finding.as_ref().and_then(|f| f.uncertainty_mm))
+            .bind(t.height_finding.as_ref().map(|f| f.finding.as_str()))
             .execute(&mut *tx)
             .await?;
         }
-        let rows: Vec<(u32, f64, Option<f64>)> = results
+        let rows: Vec<(u32, f64, Option<f64>, Option<f64>)> = results
             .report
             .threads
             .iter()
-            .flat_map(|t| t.height_mm.angles_deg.iter().zip(&t.height_mm.values).map(|(&a, &h)| (t.index, a, h)))
+            .flat_map(|t| {
+                let h = &t.height_mm;
+                (0..h.angles_deg.len())
+                    .map(move |k| (t.index, h.angles_deg[k], h.values[k], h.uncertainty_mm.get(k).copied().flatten()))
+            })
             .collect();
-        // 4 parameters a row; SQLite allows 32 766 per statement.
+        // 5 parameters a row; SQLite allows 32 766 per statement.
         for chunk in rows.chunks(2000) {
-            let mut q: QueryBuilder<Sqlite> =
-                QueryBuilder::new("INSERT INTO thread_heights (inspection_id, thread_index, angle_deg, height_mm) ");
-            q.push_values(chunk, |mut b, (t, a, h)| {
-                b.push_bind(id).push_bind(*t as i64).push_bind(*a).push_bind(*h);
+            let mut q: QueryBuilder<Sqlite> = QueryBuilder::new(
+                "INSERT INTO thread_heights (inspection_id, thread_index, angle_deg, height_mm, uncertainty_mm) ",
+            );
+            q.push_values(chunk, |mut b, (t, a, h, u)| {
+                b.push_bind(id).push_bind(*t as i64).push_bind(*a).push_bind(*h).push_bind(*u);
             });
             q.build().execute(&mut *tx).await?;
         }

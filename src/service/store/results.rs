@@ -37,6 +37,8 @@ pub struct ThreadRow {
     pub bins_measured: i64,
     pub black_crest_length_mm: f64,
     pub black_crest_arcs_json: String,
+    pub mean_height_uncertainty_mm: Option<f64>,
+    pub height_finding: Option<String>,
 }
 
 #[derive(Clone, Debug, sqlx::FromRow)]
@@ -44,6 +46,7 @@ pub struct HeightRow {
     pub thread_index: i64,
     pub angle_deg: f64,
     pub height_mm: Option<f64>,
+    pub uncertainty_mm: Option<f64>,
 }
 
 impl Store {
@@ -67,14 +70,15 @@ impl Store {
     pub async fn threads(&self, id: &str) -> Result<(Vec<ThreadRow>, Vec<HeightRow>), StoreError> {
         let threads = sqlx::query_as::<_, ThreadRow>(
             "SELECT thread_index, crest_z_start_mm, crest_z_end_mm, min_height_mm, mean_height_mm, max_height_mm, \
-             bins_measured, black_crest_length_mm, black_crest_arcs_json FROM threads WHERE inspection_id = ? \
+             bins_measured, black_crest_length_mm, black_crest_arcs_json, mean_height_uncertainty_mm, height_finding \
+             FROM threads WHERE inspection_id = ? \
              ORDER BY thread_index",
         )
         .bind(id)
         .fetch_all(&self.pool)
         .await?;
         let heights = sqlx::query_as::<_, HeightRow>(
-            "SELECT thread_index, angle_deg, height_mm FROM thread_heights WHERE inspection_id = ? \
+            "SELECT thread_index, angle_deg, height_mm, uncertainty_mm FROM thread_heights WHERE inspection_id = ? \
              ORDER BY thread_index, angle_deg",
         )
         .bind(id)
