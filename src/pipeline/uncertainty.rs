@@ -462,3 +462,140 @@ pub fn judge_height(mean_mm: Option<f64>, u_mm: Option<f64>, nominal_mm: f64, to
         HeightFinding::Indeterminate
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::domain::thread::Family;
+    use crate::pipeline::profile::BinMeasure;
+    use crate::pipeline::quality::QualityReason;
+
+    const PITCH: f64 = 5.08;
+    const SLOPE: f64 = 0.03125;
+
+    /// Threads 1–`n` of a part whose crests follow the cone (with a few µm of scatter) except
+    /// where `black(thread, bin)` puts the crest 0.1 mm below it (a polished black crest), and
+    /// where `unseen(thread, bin)` no view showed it.
+    fn part(n: u32, black: impl Fn(u32, usize) -> bool, unseen: impl Fn(u32, usize) -> bool) -> Vec<ThreadMeasure> {
+        let mut seed = 7u64;
+        (1..=n)
+            .map(|index| {
+                let bins = (0..360)
+                    .map(|k| {
+                        let angle_deg = k as f64 + 0.5;
+                        let z = 10.0 + PITCH * (index as f64 - 1.0 + angle_deg / 360.0);
+                        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                        let jitter = ((seed >> 33) as f64 / (1u64 << 31) as f64 - 0.5) * 0.006;
+                        let r = 55.0 + SLOPE * z + jitter - if black(index, k) { 0.1 } else { 0.0 };
+                        let seen = !unseen(index, k);
+                        BinMeasure {
+                            angle_deg,
+                            crest_z_mm: z,
+                            height_mm: seen.then_some(1.575),
+                            crest_radius_mm: seen.then_some(r),
+                            crest_gray: seen.then_some(0.5),
+                            ..Default::default()
+                        }
+                    })
+                    .collect();
+                ThreadMeasure { index, bins }
+            })
+            .collect()
+    }
+
+    fn budget() -> UncertaintyBudget {
+        UncertaintyBudget {
+            coverage_factor: 2.0,
+            method_um: 2.0,
+            registration_um: 0.0,
+            noise_median_um: Some(3.0),
+            failure_floor_um: 0.0,
+            noise_correlation_bins: 1.0,
+            expanded_median_um: Some(8.0),
+            crest_deficit_um: 10.0,
+            arc_end_deg: 1.0,
+            z_mm: 0.05,
+        }
+    }
+
+    fn ok() -> Quality {
+        Quality { status: QualityStatus::Ok, reasons: vec![] }
+    }
+
+    fn decide_on(threads: &[ThreadMeasure], family: Family, quality: &Quality) -> DecisionFinding {
+        let crest = CrestOptions::default();
+        let findings = crest::observations(threads, 200.0, PITCH, SLOPE, 0.5, &crest);
+        let input = RuleInput {
+            family,
+            lc_mm: 200.0,
+            circumference_mm: 359.0,
+            nominal_height_mm: 1.575,
+            height_tolerance_mm: 0.05,
+            threads: findings.observations,
+        };
+        let ctx = RuleContext {
+            input: &input,
+            arc_rule: ArcRule::PerThread,
+            pitch_mm: PITCH,
+            nominal_slope: SLOPE,
+            crest_window_half_mm: 0.5,
+            crest: &crest,
+        };
+        decide(threads, &ctx, &budget(), quality)
+    }
+
+    #[test]
+    fn a_black_crest_well_under_the_limit_conforms_and_one_at_it_is_indeterminate() {
+        // Thread 4 black over 60° of its turn: 25% of the circumference is 90°.
+        let short = part(6, |t, k| t == 4 && (100..160).contains(&k), |_, _| false);
+        let d = decide_on(&short, Family::Buttress, &ok());
+        assert_eq!(d.decision, Decision::Conforms, "{d:?}");
+        // Black over 89.5° of it: a degree more at the ends passes the limit.
+        let at_limit = part(6, |t, k| t == 4 && (100..190).contains(&k), |_, _| false);
+        let d = decide_on(&at_limit, Family::Buttress, &ok());
+        assert_eq!((d.verdict_toward_reject, d.decision), (Verdict::Reject, Decision::Indeterminate), "{d:?}");
+        assert!(d.reasons[0].contains("could be reject"), "{:?}", d.reasons);
+        // Three threads black over half a turn: reject at both bounds.
+        let three = part(6, |t, k| (2..=4).contains(&t) && (0..180).contains(&k), |_, _| false);
+        assert_eq!(decide_on(&three, Family::Buttress, &ok()).decision, Decision::DoesNotConform);
+    }
+
+    #[test]
+    fn a_crest_no_view_showed_cannot_be_shown_to_conform() {
+        // A round thread allows no black crest within Lc: 20° unseen on thread 3 might be one.
+        let gap = part(6, |_, _| false, |t, k| t == 3 && (200..220).contains(&k));
+        let d = decide_on(&gap, Family::Round, &ok());
+        assert_eq!(d.decision, Decision::Indeterminate, "{d:?}");
+        assert!((d.unseen_crest_within_lc_deg - 20.0).abs() < 1e-9, "{d:?}");
+        assert!(d.reasons[0].contains("20° of crest within Lc that no view showed"), "{:?}", d.reasons);
+        // A gap of two bins between machined crests is bridged: the mill surface cannot dip and
+        // rise again within it.
+        let bridged = part(6, |_, _| false, |t, k| t == 3 && (200..202).contains(&k));
+        let d = decide_on(&bridged, Family::Round, &ok());
+        assert_eq!((d.decision, d.unseen_crest_within_lc_deg), (Decision::Conforms, 0.0), "{d:?}");
+    }
+
+    #[test]
+    fn a_measurement_that_failed_its_checks_decides_nothing() {
+        let clean = part(6, |_, _| false, |_, _| false);
+        let failed = Quality {
+            status: QualityStatus::Degraded,
+            reasons: vec![QualityReason { code: QualityCode::HelixResidualLarge, message: String::new() }],
+        };
+        let d = decide_on(&clean, Family::Buttress, &failed);
+        assert_eq!(d.decision, Decision::Indeterminate);
+        assert!(d.reasons[0].contains("failed its quality checks"), "{:?}", d.reasons);
+        assert_eq!(decide_on(&clean, Family::Buttress, &ok()).decision, Decision::Conforms);
+    }
+
+    #[test]
+    fn heights_are_judged_against_the_tolerance_with_their_uncertainty() {
+        use HeightFinding::*;
+        let judge = |mean, u| judge_height(Some(mean), Some(u), 1.575, 0.05);
+        assert_eq!(judge(1.575, 0.01), Within);
+        assert_eq!(judge(1.62, 0.01), Indeterminate);
+        assert_eq!(judge(1.64, 0.01), Outside);
+        assert_eq!(judge(1.51, 0.01), Outside);
+        assert_eq!(judge_height(None, Some(0.01), 1.575, 0.05), NotJudged);
+    }
+}
