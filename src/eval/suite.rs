@@ -108,7 +108,7 @@ pub const STATION_PRESETS: &[&str] = &[
 pub const STATION_TUNING_SEEDS: std::ops::Range<u64> = 1..13;
 /// Station seeds of the station benchmark: rendered after every setting was chosen, used to
 /// choose none.
-pub const STATION_BENCH_SEEDS: std::ops::Range<u64> = 101..149;
+pub const STATION_BENCH_SEEDS: std::ops::Range<u64> = 101..141;
 
 fn station_cases(seeds: std::ops::Range<u64>) -> Vec<Case> {
     seeds

@@ -201,7 +201,7 @@ pub fn station_class(object_pixel_mm: f64) -> &'static str {
 /// The station benchmark's table: one row per case (its station, heights, coverage,
 /// registration, black-crest length, verdict and decision, the uncertainty's coverage), then a
 /// summary per station class.
-pub fn station_table(results: &[CaseResult]) -> String {
+pub fn station_table(results: &[CaseResult], refused: &[(String, String)]) -> String {
     let mut out = String::from(
         "| case | class | pixel mm | DOF mm | step DOF | views (rows) | arc | height RMS / max µm | bins seen | pairs | reg ° / µm | black-crest err mm | verdict (truth) | decision | U coverage | quality |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
@@ -234,6 +234,9 @@ pub fn station_table(results: &[CaseResult]) -> String {
             a.uncertainty_coverage.map_or("-".into(), |c| format!("{:.1}%", 100.0 * c)),
             r.quality,
         ));
+    }
+    for (case, why) in refused {
+        out.push_str(&format!("| {case} | refused: {why} |\n"));
     }
     out.push_str(
         "\n| class | cases | height RMS median / worst µm | height max worst µm | verdicts wrong | decisions wrong | indeterminate | U coverage min / median | pairs measured |\n|---|---|---|---|---|---|---|---|---|\n",
@@ -270,6 +273,13 @@ pub fn station_table(results: &[CaseResult]) -> String {
             measured,
             expected,
             100.0 * measured as f64 / expected.max(1) as f64,
+        ));
+    }
+    if !refused.is_empty() {
+        out.push_str(&format!(
+            "\n{} case(s) refused by the pipeline (an error, no report: no height, no verdict, no decision): {}\n",
+            refused.len(),
+            refused.iter().map(|(c, _)| c.as_str()).collect::<Vec<_>>().join(", ")
         ));
     }
     // How the method's uncertainty is chosen: the coverage over all bins of these cases had it

@@ -31,11 +31,13 @@ done
 # Report.
 verdict=$(curl -sS -f "$base$location/report" | jq -r .verdict)
 case $verdict in accept|reject) ;; *) fail "verdict $verdict" ;; esac
-echo "smoke: verdict $verdict"
+decision=$(curl -sS -f "$base$location/report" | jq -r .decision)
+case $decision in conforms|does_not_conform|indeterminate) ;; *) fail "decision $decision" ;; esac
+echo "smoke: verdict $verdict, decision $decision"
 
 # Threads as CSV: the header and one row per thread and angle bin.
 curl -sS -f -H 'Accept: text/csv' "$base$location/threads" -o "$work/threads.csv"
-[ "$(head -1 "$work/threads.csv")" = "thread,angle_deg,height_mm" ] || fail "CSV header: $(head -1 "$work/threads.csv")"
+[ "$(head -1 "$work/threads.csv")" = "thread,angle_deg,height_mm,uncertainty_mm" ] || fail "CSV header: $(head -1 "$work/threads.csv")"
 rows=$(($(wc -l < "$work/threads.csv") - 1))
 [ "$rows" -gt 0 ] || fail "empty threads CSV"
 

@@ -66,13 +66,30 @@ async fn round_trip_on_the_ci_preset() {
     assert!(csv.headers()["content-type"].to_str().unwrap().starts_with("text/csv"));
     let csv = csv.text().await.unwrap();
     let mut lines = csv.lines();
-    assert_eq!(lines.next(), Some("thread,angle_deg,height_mm"));
+    assert_eq!(lines.next(), Some("thread,angle_deg,height_mm,uncertainty_mm"));
     assert_eq!(lines.count(), json_bins);
+    // Each measured height with its expanded uncertainty, in the report, the CSV and the JSON table.
     let first_measured = report.threads.iter().find_map(|t| {
-        t.height_mm.angles_deg.iter().zip(&t.height_mm.values).find_map(|(a, v)| v.map(|v| (t.index, *a, v)))
+        let h = &t.height_mm;
+        (0..h.values.len()).find_map(|k| Some((t.index, h.angles_deg[k], h.values[k]?, h.uncertainty_mm[k]?)))
     });
-    let (thread, angle, height) = first_measured.expect("some bin measured");
-    assert!(csv.contains(&format!("{thread},{angle},{height:.6}")), "CSV lacks {thread},{angle},{height:.6}");
+    let (thread, angle, height, u) = first_measured.expect("some bin measured, with its uncertainty");
+    assert!(u > 0.0 && u < 0.05, "{u}");
+    assert!(
+        csv.contains(&format!("{thread},{angle},{height:.6},{u:.6}")),
+        "CSV lacks {thread},{angle},{height:.6},{u:.6}"
+    );
+    let row = threads.iter().find(|t| t["thread"] == thread).unwrap();
+    let bin = row["heights"].as_array().unwrap().iter().find(|b| b["angle_deg"] == angle).unwrap();
+    assert_eq!(bin["uncertainty_mm"].as_f64(), Some(u));
+    for t in &report.threads {
+        for (v, u) in t.height_mm.values.iter().zip(&t.height_mm.uncertainty_mm) {
+            assert_eq!(v.is_some(), u.is_some(), "thread {}: a height without its uncertainty or the reverse", t.index);
+        }
+    }
+    // A sliver of crest within Lc seen: the verdict cannot be shown to hold (ISO 14253-1).
+    assert_eq!(report.decision, crestscan::pipeline::uncertainty::Decision::Indeterminate);
+    assert_eq!(done["decision"], "indeterminate", "{done}");
     // Weights decide, not the order the client lists them in.
     let weighted = app
         .client
