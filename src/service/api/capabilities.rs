@@ -42,6 +42,10 @@ pub struct Capabilities {
     /// each parameter outside, and `review_required` is true.
     pub measured_envelope: StationEnvelope,
     pub description: String,
+    /// The coverage factor of every height's expanded uncertainty (`uncertainty_mm`).
+    pub coverage_factor: f64,
+    /// How a report's `decision` is made from the verdict and the uncertainties.
+    pub decision_rule: String,
 }
 
 /// The station envelope the accuracy figures hold in.
@@ -63,7 +67,16 @@ pub async fn get_capabilities() -> Json<Capabilities> {
         },
         description: "Every accuracy figure so far was measured at one station design (the simulator's presets): \
                       this envelope is that station ±10% on each parameter. Stations outside it are inspected \
-                      and their results flagged for review; how well crestscan measures there is not yet known."
+                      and their results flagged for review: on the station benchmark's random stations \
+                      (object pixels 0.03–0.15 mm) crestscan does not yet measure within its targets \
+                      (docs/benchmark.md, Stations)."
+            .into(),
+        coverage_factor: crate::pipeline::uncertainty::UncertaintyOptions::default().coverage_factor,
+        decision_rule: "ISO 14253-1: the black-crest rules applied again with every measured value moved by its \
+                        uncertainty toward reject and toward accept (black arcs lengthened or shortened at each end, \
+                        the geometric onset moved by the crest scatter, Lc by the uncertainty of absolute z, crests \
+                        no view showed counted black toward reject); conforms / does_not_conform where both bounds \
+                        agree, indeterminate otherwise or where the measurement failed its quality checks"
             .into(),
     })
 }

@@ -53,5 +53,7 @@ async fn capabilities_state_the_envelope_the_figures_were_measured_in() {
         let (min, max) = (envelope[parameter]["min"].as_f64().unwrap(), envelope[parameter]["max"].as_f64().unwrap());
         assert!(min < max, "{parameter}: {envelope}");
     }
+    assert_eq!(caps["coverage_factor"].as_f64(), Some(2.0));
+    assert!(caps["decision_rule"].as_str().unwrap().starts_with("ISO 14253-1"), "{caps}");
     app.stop().await;
 }
