@@ -7,21 +7,24 @@ use std::path::PathBuf;
 #[derive(clap::Args)]
 pub struct SimulateArgs {
     /// Preset name (see --list).
-    #[arg(long, required_unless_present_any = ["list", "spec"])]
+    #[arg(long, required_unless_present_any = ["list", "list_stations", "spec"])]
     preset: Option<String>,
     #[arg(long, default_value_t = 1)]
     seed: u64,
     /// Output directory (created).
-    #[arg(long, required_unless_present_any = ["list", "print_spec"])]
+    #[arg(long, required_unless_present_any = ["list", "list_stations", "print_spec"])]
     out: Option<PathBuf>,
     /// Print the presets, one per line: name, then a short description.
     #[arg(long)]
     list: bool,
+    /// Print the stations --station takes, one per line: name, then a short description.
+    #[arg(long)]
+    list_stations: bool,
     /// Write only truth/truth.json (no rendering).
     #[arg(long)]
     truth_only: bool,
     /// Record the preset's part at another station: `random` (drawn by --station-seed from the
-    /// ranges in docs/simulator.md) or a named one (see --list).
+    /// ranges in docs/simulator.md) or a named one (see --list-stations).
     #[arg(long)]
     station: Option<String>,
     /// The seed a random station is drawn by [default: --seed].
@@ -38,14 +41,26 @@ pub struct SimulateArgs {
 
 impl SimulateArgs {
     pub fn run(self) -> Result<()> {
-        let Self { preset, seed, out, list, truth_only, station, station_seed, print_spec, spec: spec_file } = self;
+        let Self {
+            preset,
+            seed,
+            out,
+            list,
+            list_stations,
+            truth_only,
+            station,
+            station_seed,
+            print_spec,
+            spec: spec_file,
+        } = self;
         if list {
             for p in sim::PRESETS {
                 println!("{}\t{}", p.name, p.description);
             }
-            println!(
-                "\nstations (--station NAME):\nrandom\tdrawn by --station-seed from the ranges in docs/simulator.md"
-            );
+            return Ok(());
+        }
+        if list_stations {
+            println!("random\tdrawn by --station-seed from the ranges in docs/simulator.md (Stations)");
             for (name, description) in sim::station::NAMED {
                 println!("{name}\t{description}");
             }

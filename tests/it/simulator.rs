@@ -333,3 +333,30 @@ fn cli_output_into_a_closed_pipe_ends_the_command_without_a_panic() {
     assert!(!stderr.contains("panicked"), "{stderr}");
     assert!(out.status.success() || out.status.signal() == Some(libc::SIGPIPE), "{:?}: {stderr}", out.status);
 }
+
+/// A preset recorded at a named station renders a bundle of that station's optics and views, and
+/// an unknown station is named in the error with the ones there are.
+#[test]
+fn a_preset_renders_at_a_named_station_and_an_unknown_one_is_refused() {
+    let bin = env!("CARGO_BIN_EXE_crestscan");
+    let out = std::process::Command::new(bin).args(["simulate", "--list-stations"]).output().unwrap();
+    let listed = String::from_utf8(out.stdout).unwrap();
+    assert!(listed.lines().any(|l| l.starts_with("random\t")) && listed.contains("coarse-survey\t"), "{listed}");
+    let spec = std::process::Command::new(bin)
+        .args(["simulate", "--preset", "standard", "--station", "coarse-survey", "--print-spec"])
+        .output()
+        .unwrap();
+    assert!(spec.status.success());
+    let spec: crestscan::sim::SimSpec = serde_json::from_slice(&spec.stdout).unwrap();
+    let pixel = spec.optics.object_pixel_mm(spec.optics.focus_distance_mm);
+    assert!((pixel - 0.12).abs() < 0.002, "{pixel}");
+    assert_eq!(spec.views.len(), 16);
+    assert!(spec.description.contains("station coarse-survey"), "{}", spec.description);
+    let bad = std::process::Command::new(bin)
+        .args(["simulate", "--preset", "standard", "--station", "nowhere", "--print-spec"])
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    let err = String::from_utf8(bad.stderr).unwrap();
+    assert!(err.contains("unknown station \"nowhere\"") && err.contains("coarse-survey"), "{err}");
+}
