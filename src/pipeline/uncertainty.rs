@@ -588,6 +588,96 @@ mod tests {
         assert_eq!(decide_on(&clean, Family::Buttress, &ok()).decision, Decision::Conforms);
     }
 
+    fn station(object_pixel_mm: f64) -> Station {
+        Station {
+            projection: crate::domain::optics::Projection::Perspective,
+            object_pixel_mm,
+            depth_of_field_mm: 0.5,
+            frame_step_mm: 0.25,
+            frame_step_dof: 0.5,
+            frames_per_view: 20,
+            views: 45,
+            axial_rows: 1,
+            view_spacing_deg: Some(8.0),
+            overlap_deg: Some(5.0),
+        }
+    }
+
+    /// Threads whose bins' own fits scatter by `sigma_mm` (alternating ±σ, so that neighbours
+    /// differ by 2σ), their reported heights the trimmed mean of 7.
+    fn noisy(sigma_mm: f64) -> Vec<ThreadMeasure> {
+        (1..=3)
+            .map(|index| ThreadMeasure {
+                index,
+                bins: (0..360)
+                    .map(|k| {
+                        let raw = 1.575 + if k % 2 == 0 { sigma_mm } else { -sigma_mm };
+                        BinMeasure {
+                            angle_deg: k as f64 + 0.5,
+                            height_mm: Some(1.575),
+                            raw_height_mm: Some(raw),
+                            kept_bins: 7,
+                            ..Default::default()
+                        }
+                    })
+                    .collect(),
+            })
+            .collect()
+    }
+
+    #[test]
+    fn every_height_gets_the_combined_uncertainty_and_a_failed_measurement_its_floor() {
+        let registration = Registration {
+            corrections: vec![],
+            pairs: vec![],
+            candidates: vec![],
+            pairs_expected: 0,
+            pairs_measured: 0,
+            unregistered_views: vec![],
+            closure: None,
+        };
+        let st = station(0.04);
+        let scales = |helix_fit_rms_um| Scales {
+            station: &st,
+            focus_window_radius_px: 5,
+            pipe_radius_mm: 57.15,
+            registration: &registration,
+            end_face: None,
+            helix_fit_rms_um,
+        };
+        let options = UncertaintyOptions::default();
+        let mut threads = noisy(0.004);
+        let (budget, means) = heights(&mut threads, &scales(175.0), Some(3.0), &ok(), &options);
+        // Neighbours differ by 8 µm: σ = 1.4826 · 8/√2 µm (the robust scale of the differences,
+        // normal-consistent); 11 pixels of 0.04 mm span 0.44 bins (L = 1); the mean of 7 divides
+        // it by √7; the method adds 0.05 × 40 µm = 2 µm.
+        let noise = 1.4826 * 8.0 / 2f64.sqrt() / 7f64.sqrt();
+        let expected_um = 2.0 * (noise * noise + 2.0 * 2.0).sqrt();
+        let u = 1e3 * threads[1].bins[100].uncertainty_mm.unwrap();
+        assert!((u - expected_um).abs() < 0.05, "{u} against {expected_um}");
+        assert!((budget.method_um - 2.0).abs() < 1e-9 && budget.failure_floor_um == 0.0, "{budget:?}");
+        // A thread's mean averages 360 bins of noise, not the method's part.
+        let mean_u = 1e3 * means[1].1.unwrap();
+        assert!(mean_u < u && mean_u > 2.0 * 2.0, "{mean_u}");
+        // Four times the scatter: about four times the noise part.
+        let mut louder = noisy(0.016);
+        heights(&mut louder, &scales(175.0), Some(3.0), &ok(), &options);
+        assert!(1e3 * louder[1].bins[100].uncertainty_mm.unwrap() > 3.0 * u);
+        // A measurement that failed its checks: a standard uncertainty of at least the helix
+        // residual, so U = 2 × 0.45 mm.
+        let failed = Quality {
+            status: QualityStatus::Degraded,
+            reasons: vec![QualityReason { code: QualityCode::DepthCoverageLow, message: String::new() }],
+        };
+        let (budget, _) = heights(&mut threads, &scales(450.0), Some(3.0), &failed, &options);
+        assert_eq!(budget.failure_floor_um, 450.0);
+        assert!((threads[1].bins[100].uncertainty_mm.unwrap() - 0.9).abs() < 1e-9);
+        // No height, no uncertainty.
+        threads[0].bins[5].height_mm = None;
+        heights(&mut threads, &scales(175.0), Some(3.0), &ok(), &options);
+        assert_eq!(threads[0].bins[5].uncertainty_mm, None);
+    }
+
     #[test]
     fn heights_are_judged_against_the_tolerance_with_their_uncertainty() {
         use HeightFinding::*;
