@@ -293,15 +293,25 @@ fn register_views(
     drop(grids);
     let mut poses: Vec<ViewPose> =
         encoder_poses.iter().zip(&registration.corrections).map(|(p, c)| c.apply(p)).collect();
-    let end_face = options
-        .anchor_end_face
-        .then(|| {
-            let edges: Vec<&[depth::FrameEdge]> = depth_maps.iter().map(|d| d.end_edges.as_slice()).collect();
-            register::anchor(optics, &poses, &edges, format.width, format.height, 3, 20.0)
-        })
-        .flatten();
-    if let Some(end) = &end_face {
-        poses.iter_mut().for_each(|p| p.axial_mm -= end.z_offset_mm);
+    let mut registration = registration;
+    let mut end_face = None;
+    if options.anchor_end_face {
+        let edges: Vec<&[depth::FrameEdge]> = depth_maps.iter().map(|d| d.end_edges.as_slice()).collect();
+        let corners = register::corners(optics, &poses, &edges, format.width, format.height);
+        let ring: Vec<bool> = (0..poses.len()).map(|v| !registration.unregistered_views.contains(&v)).collect();
+        end_face = register::anchor(&corners, &ring, 3, 20.0);
+        for (v, pose) in poses.iter_mut().enumerate() {
+            match (ring[v], corners[v]) {
+                // A view no overlap placed keeps its encoder's axial error (up to the fixture's
+                // bound); where it sees the end face, its own corner places it instead: the end
+                // face is z = 0 by the contract.
+                (false, Some((own_z, _))) => {
+                    pose.axial_mm -= own_z;
+                    registration.placed_by_end_face.push(v);
+                }
+                _ => pose.axial_mm -= end_face.as_ref().map_or(0.0, |e| e.z_offset_mm),
+            }
+        }
     }
     run.lap(Stage::Register);
     run.check()?;

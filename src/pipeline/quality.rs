@@ -184,13 +184,19 @@ pub fn assess(
         );
     } else if views.len() > 1 && !registration.unregistered_views.is_empty() {
         let names: Vec<String> = registration.unregistered_views.iter().map(|&v| name(v)).collect();
+        let placed: Vec<String> = registration.placed_by_end_face.iter().map(|&v| name(v)).collect();
+        let placed = if placed.is_empty() {
+            String::new()
+        } else {
+            format!("; the end face placed {} of them axially on their own: {}", placed.len(), placed.join(", "))
+        };
         // With half the views or more unplaced, the surface is mostly where the encoders put it.
         let at = if 2 * names.len() >= views.len() { QualityStatus::Insufficient } else { QualityStatus::Degraded };
         flag(
             at,
             QualityCode::ViewsUnregistered,
             format!(
-                "{} of {} views have no measured overlap and keep their encoder poses: {}",
+                "{} of {} views have no measured overlap and keep their encoder poses: {}{placed}",
                 names.len(),
                 views.len(),
                 names.join(", ")
@@ -330,6 +336,7 @@ mod tests {
             pairs_measured: measured.len(),
             unregistered_views: (0..views).filter(|&v| !measured.iter().any(|c| c.a == v || c.b == v)).collect(),
             closure: None,
+            placed_by_end_face: vec![],
             candidates,
         }
     }

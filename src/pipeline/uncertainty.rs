@@ -634,6 +634,7 @@ mod tests {
             pairs_expected: 0,
             pairs_measured: 0,
             unregistered_views: vec![],
+            placed_by_end_face: vec![],
             closure: None,
         };
         let st = station(0.04);

@@ -269,3 +269,49 @@ fn registration_that_fails_on_weak_texture_is_reported_and_needs_review() {
         assert!(unplaced.message.contains(&bundle.views[v].id), "{}", unplaced.message);
     }
 }
+
+/// Where the texture cannot register a view, the geometry still places it axially: the end face
+/// is at z = 0 by the contract, so a view that sees it, and none of whose overlaps was measured,
+/// takes its axial position from its own corner rather than its encoder. The ci preset without
+/// albedo grain, its views moved to see the end face (and its stack widened to keep the chamfer
+/// in focus).
+#[test]
+fn a_view_the_texture_cannot_place_is_placed_axially_by_the_end_face() {
+    use crestscan::pipeline::quality::QualityCode;
+    let mut spec = crestscan::sim::preset("ci").unwrap();
+    for look in [&mut spec.appearance.machined, &mut spec.appearance.mill_scale, &mut spec.appearance.polished] {
+        look.albedo_variation = 0.0;
+    }
+    for v in &mut spec.views {
+        v.pose.axial_mm = 6.5;
+    }
+    let step = spec.offsets_mm[1] - spec.offsets_mm[0];
+    let (first, last) = (spec.offsets_mm[0], *spec.offsets_mm.last().unwrap());
+    spec.offsets_mm = (0..4).rev().map(|k| first - step * (k + 1) as f64).chain(spec.offsets_mm.clone()).collect();
+    spec.offsets_mm.extend((1..=2).map(|k| last + step * k as f64));
+    spec.truth_z_end_mm = 14.0;
+    let dir = tempfile::tempdir().unwrap();
+    crestscan::sim::simulate(&spec, crate::common::CI_SEED, dir.path()).unwrap();
+    let truth = spec.truth(crate::common::CI_SEED);
+    let bundle = Bundle::open(dir.path(), &ConnectionTable::api5b(), OpenOptions::default()).unwrap();
+    let inspection = pipeline::inspect(&bundle, &PipelineOptions::default(), &|_, _| {}, &AtomicBool::new(false))
+        .unwrap()
+        .expect("not cancelled");
+    let report = &inspection.report;
+    let unregistered = &report.registration.unregistered_views;
+    assert!(!unregistered.is_empty(), "{:?}", report.registration.candidates);
+    assert_eq!(&report.registration.placed_by_end_face, unregistered, "{:?}", report.registration);
+    for &v in unregistered {
+        let id = &bundle.views[v].id;
+        let (encoder, placed, true_axial) =
+            (bundle.views[v].pose.axial_mm, inspection.poses[v].axial_mm, truth.true_poses[id].axial_mm);
+        eprintln!(
+            "{id}: encoder {:+.1} µm, placed {:+.1} µm off",
+            1e3 * (encoder - true_axial),
+            1e3 * (placed - true_axial)
+        );
+        assert!((placed - true_axial).abs() < 0.03, "{id}: placed {placed}, truth {true_axial}");
+    }
+    let reason = report.quality.reasons.iter().find(|r| r.code == QualityCode::ViewsUnregistered).unwrap();
+    assert!(reason.message.contains("the end face placed"), "{}", reason.message);
+}

@@ -70,19 +70,22 @@ fn corner_z(optics: &Optics, pose: &ViewPose, edges: &[FrameEdge], width: u32, h
     Some((sum / frame.rows.len() as f64, radius))
 }
 
-/// The ring's axial offset from every view that saw the end (the median); None unless at least
-/// `min_views` did and their values agree within `max_scatter_um` (robust scatter).
-pub fn anchor(
+/// Each view's corner as that view alone reconstructs it: (z, radius), where it saw the end.
+pub fn corners(
     optics: &Optics,
     poses: &[ViewPose],
     edges: &[&[FrameEdge]],
     width: u32,
     height: u32,
-    min_views: usize,
-    max_scatter_um: f64,
-) -> Option<EndFace> {
-    let found: Vec<(f64, f64)> =
-        poses.iter().zip(edges).filter_map(|(pose, e)| corner_z(optics, pose, e, width, height)).collect();
+) -> Vec<Option<(f64, f64)>> {
+    poses.iter().zip(edges).map(|(pose, e)| corner_z(optics, pose, e, width, height)).collect()
+}
+
+/// The ring's axial offset from the views that saw the end among those `ring` marks (the views
+/// registration tied together), the median of their `corners`; None unless at least `min_views`
+/// did and their values agree within `max_scatter_um` (robust scatter).
+pub fn anchor(corners: &[Option<(f64, f64)>], ring: &[bool], min_views: usize, max_scatter_um: f64) -> Option<EndFace> {
+    let found: Vec<(f64, f64)> = corners.iter().zip(ring).filter(|(_, r)| **r).filter_map(|(v, _)| *v).collect();
     if found.len() < min_views.max(1) {
         return None;
     }
@@ -147,11 +150,21 @@ mod tests {
             .collect();
         let believed: Vec<ViewPose> = truth.iter().map(|p| ViewPose { axial_mm: p.axial_mm - 0.03, ..*p }).collect();
         let edges: Vec<&[FrameEdge]> = edges.iter().map(Vec::as_slice).collect();
-        let end = anchor(&optics, &believed, &edges, w, h, 3, 20.0).expect("every view sees the end");
+        let corners = corners(&optics, &believed, &edges, w, h);
+        let end = anchor(&corners, &[true; 8], 3, 20.0).expect("every view sees the end");
         assert_eq!(end.views, 8);
         // Pixel-centre sampling places each row's edge within half a pixel (20 µm); the rows of a
         // view and the views average it down.
         assert!((end.z_offset_mm + 0.03).abs() < 0.006, "{end:?}");
         assert!((end.corner_radius_mm - r).abs() < 0.05, "{end:?}");
+        // Each view's own corner, for placing a view its overlaps could not.
+        assert!(corners.iter().all(|c| c.is_some_and(|(z, _)| (z + 0.03).abs() < 0.02)), "{corners:?}");
+        // Only the ring's views make the ring's offset: one view 0.3 mm off, outside the ring,
+        // does not move it.
+        let mut off = corners.clone();
+        off[3] = off[3].map(|(z, r)| (z + 0.3, r));
+        let ring: Vec<bool> = (0..8).map(|v| v != 3).collect();
+        let end = anchor(&off, &ring, 3, 20.0).unwrap();
+        assert!((end.z_offset_mm + 0.03).abs() < 0.006 && end.views == 7, "{end:?}");
     }
 }

@@ -20,7 +20,7 @@ mod ncc;
 mod pair;
 mod pose_graph;
 
-pub use anchor::{EndFace, anchor};
+pub use anchor::{EndFace, anchor, corners};
 pub use lattice::{GridScratch, Lattice, ViewGrid, view_grid};
 pub use pair::overlapping_pairs;
 
@@ -132,9 +132,14 @@ pub struct Registration {
     pub pairs_expected: usize,
     #[serde(default)]
     pub pairs_measured: usize,
-    /// Views none of whose overlaps was measured: they keep their encoder poses.
+    /// Views none of whose overlaps was measured: they keep their encoder poses (but see
+    /// `placed_by_end_face`).
     #[serde(default)]
     pub unregistered_views: Vec<usize>,
+    /// Unregistered views that saw the end face and were placed axially by their own corner (the
+    /// end face is z = 0 by the contract) instead of keeping their encoder's axial position.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub placed_by_end_face: Vec<usize>,
     /// The ring's closure, where the views form one ring in one axial row and every overlap
     /// around it was measured.
     #[serde(default)]
@@ -268,6 +273,7 @@ pub fn register(
         candidates,
         pairs,
         unregistered_views,
+        placed_by_end_face: Vec::new(),
     }
 }
 
