@@ -72,7 +72,7 @@ fn focus_measure(c: &mut Criterion) {
     let (mut scratch, mut out, mut edge) = (vec![0f32; w * h], vec![0f32; w * h], vec![0f32; w * h]);
     c.bench_function("focus measure, 11×11 box and 3×3 edge box, 864×320", |b| {
         b.iter(|| {
-            focus_measures(black_box(&gray), w, h, 5, &mut scratch, &mut out, Some((1, &mut edge)), None);
+            focus_measures(black_box(&gray), w, h, 5, &mut scratch, &mut out, Some((1, &mut edge)));
             black_box(&out);
         })
     });

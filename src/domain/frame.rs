@@ -128,22 +128,6 @@ impl Frame {
         out
     }
 
-    /// Marks into `out` the pixels with a sample at the sensor's full scale (any channel) and
-    /// returns whether any is; float frames have no full scale and mark none.
-    pub fn clipped_into(&self, out: &mut Vec<bool>) -> bool {
-        out.clear();
-        let channels = self.channels.max(1) as usize;
-        fn fill<T: Copy + PartialEq>(out: &mut Vec<bool>, samples: &[T], channels: usize, full: T) {
-            out.extend(samples.chunks_exact(channels).map(|p| p.contains(&full)));
-        }
-        match &self.samples {
-            Samples::Eight(s) => fill(out, s, channels, u8::MAX),
-            Samples::Sixteen(s) => fill(out, s, channels, u16::MAX),
-            Samples::Float(s) => out.resize(s.len() / channels, false),
-        }
-        out.contains(&true)
-    }
-
     /// [`Frame::gray`] into a buffer that is reused from frame to frame.
     pub fn gray_into(&self, out: &mut Vec<f32>) {
         out.clear();

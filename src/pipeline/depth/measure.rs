@@ -4,14 +4,12 @@
 /// [`focus_measures`] with one box.
 #[cfg(test)]
 pub(super) fn focus_measure(gray: &[f32], w: usize, h: usize, r: usize, scratch: &mut [f32], out: &mut [f32]) {
-    focus_measures(gray, w, h, r, scratch, out, None, None)
+    focus_measures(gray, w, h, r, scratch, out, None)
 }
 
 /// Squared Laplacian, box-summed over (2r+1)², written into `out`; with `edge` = (r_edge, plane),
 /// the same Laplacian summed over the box of half size r_edge into that plane as well (one
-/// Laplacian for both). `scratch` is reused. Where `clipped` marks a pixel (a sample at the
-/// sensor's full scale), the Laplacian of every pixel whose taps reach it counts zero: a clipped
-/// highlight's edge stays sharp however far it is out of focus, so it carries no focus.
+/// Laplacian for both). `scratch` is reused.
 ///
 /// Every pass runs along whole rows so that it vectorises: the Laplacian, a running sum of rows
 /// (the vertical box), then the horizontal box as 2r+1 shifted row additions (a running sum along
@@ -24,14 +22,13 @@ pub fn focus_measures(
     scratch: &mut [f32],
     out: &mut [f32],
     edge: Option<(usize, &mut [f32])>,
-    clipped: Option<&[bool]>,
 ) {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the processor has AVX2 (checked just above).
-        return unsafe { focus_measures_avx2(gray, w, h, r, scratch, out, edge, clipped) };
+        return unsafe { focus_measures_avx2(gray, w, h, r, scratch, out, edge) };
     }
-    focus_measures_body::<false>(gray, w, h, r, scratch, out, edge, clipped)
+    focus_measures_body::<false>(gray, w, h, r, scratch, out, edge)
 }
 
 /// [`focus_measures_body`] compiled for AVX2. The build targets baseline x86-64 (SSE2), so the
@@ -41,7 +38,6 @@ pub fn focus_measures(
 /// docs/notebook/accuracy.md, Speed).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-#[allow(clippy::too_many_arguments)]
 pub(super) fn focus_measures_avx2(
     gray: &[f32],
     w: usize,
@@ -50,14 +46,12 @@ pub(super) fn focus_measures_avx2(
     scratch: &mut [f32],
     out: &mut [f32],
     edge: Option<(usize, &mut [f32])>,
-    clipped: Option<&[bool]>,
 ) {
-    focus_measures_body::<true>(gray, w, h, r, scratch, out, edge, clipped)
+    focus_measures_body::<true>(gray, w, h, r, scratch, out, edge)
 }
 
 /// `AVX2`: the horizontal box by [`horizontal_box_row_avx2`] (only where the processor has it).
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
 pub(super) fn focus_measures_body<const AVX2: bool>(
     gray: &[f32],
     w: usize,
@@ -66,7 +60,6 @@ pub(super) fn focus_measures_body<const AVX2: bool>(
     scratch: &mut [f32],
     out: &mut [f32],
     edge: Option<(usize, &mut [f32])>,
-    clipped: Option<&[bool]>,
 ) {
     if w == 0 || h == 0 {
         return;
@@ -74,41 +67,15 @@ pub(super) fn focus_measures_body<const AVX2: bool>(
     match edge {
         None => {
             laplacian_squared(gray, w, h, out);
-            if let Some(clipped) = clipped {
-                ignore_clipped(out, clipped, w, h);
-            }
             vertical_box(out, w, h, r, scratch);
             horizontal_box::<AVX2>(scratch, w, h, r, out);
         }
         Some((r_edge, edge_out)) => {
             laplacian_squared(gray, w, h, edge_out);
-            if let Some(clipped) = clipped {
-                ignore_clipped(edge_out, clipped, w, h);
-            }
             vertical_box(edge_out, w, h, r, scratch);
             horizontal_box::<AVX2>(scratch, w, h, r, out);
             vertical_box(edge_out, w, h, r_edge, scratch);
             horizontal_box::<AVX2>(scratch, w, h, r_edge, edge_out);
-        }
-    }
-}
-
-/// Zeroes the Laplacian of every pixel that is clipped or has a clipped 4-neighbour.
-fn ignore_clipped(laplacian: &mut [f32], clipped: &[bool], w: usize, h: usize) {
-    for (i, _) in clipped.iter().enumerate().filter(|(_, c)| **c) {
-        let (x, y) = (i % w, i / w);
-        laplacian[i] = 0.0;
-        if x > 0 {
-            laplacian[i - 1] = 0.0;
-        }
-        if x + 1 < w {
-            laplacian[i + 1] = 0.0;
-        }
-        if y > 0 {
-            laplacian[i - w] = 0.0;
-        }
-        if y + 1 < h {
-            laplacian[i + w] = 0.0;
         }
     }
 }

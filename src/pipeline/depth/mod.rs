@@ -184,8 +184,6 @@ pub struct DepthScratch {
     best_edge: Vec<f32>,
     best_edge_frame: Vec<u32>,
     edge_row: Vec<f32>,
-    /// The frame's pixels at full scale.
-    clipped: Vec<bool>,
 }
 
 /// `buffer` holding `len` copies of `value` (its allocation kept).
@@ -225,7 +223,6 @@ pub fn depth_from_focus_in(
         best_edge,
         best_edge_frame,
         edge_row,
-        clipped,
     } = buffers;
     let edge_radius = options.edge_window_radius_px;
     let edge_aware = edge_radius > 0;
@@ -260,10 +257,8 @@ pub fn depth_from_focus_in(
             Projection::Telecentric => 1.0,
         };
         frame.gray_into(gray);
-        let any_clipped = frame.clipped_into(clipped);
         let edge = edge_aware.then_some((edge_radius, &mut native_edge[..]));
-        let clipped_mask = any_clipped.then_some(&clipped[..]);
-        focus_measures(gray, w, h, options.window_radius_px, scratch, native, edge, clipped_mask);
+        focus_measures(gray, w, h, options.window_radius_px, scratch, native, edge);
         end_edges.extend(frame_edge(gray, w, h, entry.offset_mm));
         let taps = Taps { xs: axis_taps(w, principal[0], scale), ys: axis_taps(h, principal[1], scale) };
         let (spans, fxs) = (tap_spans(&taps.xs), taps.xs.iter().map(|t| t.2).collect::<Vec<f32>>());
