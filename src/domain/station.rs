@@ -104,6 +104,17 @@ impl Station {
     }
 }
 
+impl Station {
+    /// Whether the optics (object pixel, depth of field, frame step) lie outside `envelope`: where
+    /// the depth from focus itself, not only registration, was never measured.
+    pub fn optics_outside(&self, envelope: &Envelope) -> bool {
+        let out = |v: f64, (lo, hi): (f64, f64)| !(lo..=hi).contains(&v);
+        out(self.object_pixel_mm, envelope.object_pixel_mm)
+            || out(self.depth_of_field_mm, envelope.depth_of_field_mm)
+            || out(self.frame_step_dof, envelope.frame_step_dof)
+    }
+}
+
 /// A range of stations, per parameter, inclusive.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Envelope {

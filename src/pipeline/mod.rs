@@ -161,6 +161,7 @@ fn run_stages(recording: &dyn Recording, options: &PipelineOptions, mut run: Run
         },
         &uncertainty,
         &quality,
+        &station,
     );
     let report = Report::assemble(report::Findings {
         part,

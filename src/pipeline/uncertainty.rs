@@ -91,16 +91,19 @@ pub struct Scales<'a> {
     pub helix_fit_rms_um: f64,
 }
 
-/// Whether the quality checks say the measurement itself failed (not merely that it lies outside
-/// the measured envelope or that some overlaps went unmeasured): too little was measured, the
-/// helix does not fit the surface, or depth from focus trusted too few pixels. Such a result's
-/// heights may be wrong by far more than their local scatter shows, and no decision is made on it.
-pub fn measurement_failed(quality: &Quality) -> bool {
+/// Whether the measurement cannot vouch for its own uncertainty: the quality checks say it failed
+/// (too little was measured, the helix does not fit the surface, or depth from focus trusted too
+/// few pixels), or the station's optics lie outside the envelope the method's uncertainty was
+/// measured in (its Type B term is known only there: on the random stations' optics heights were
+/// off by tens to hundreds of µm that no local scatter shows). Such a result's heights may be
+/// wrong by far more than their scatter says, and no decision is made on it.
+pub fn measurement_failed(quality: &Quality, station: &Station) -> bool {
     quality.status == QualityStatus::Insufficient
         || quality
             .reasons
             .iter()
             .any(|r| matches!(r.code, QualityCode::HelixResidualLarge | QualityCode::DepthCoverageLow))
+        || station.optics_outside(&crate::domain::station::MEASURED)
 }
 
 /// Sets every bin's `uncertainty_mm` and returns the budget with each thread's mean's expanded
@@ -121,7 +124,7 @@ pub fn heights(
     // Where the measurement failed its checks, its errors are those of the surface departing from
     // the thread form, which the helix's fit residual measures: each height's standard
     // uncertainty is at least that.
-    let failure_mm = if measurement_failed(quality) { 1e-3 * scales.helix_fit_rms_um } else { 0.0 };
+    let failure_mm = if measurement_failed(quality, scales.station) { 1e-3 * scales.helix_fit_rms_um } else { 0.0 };
     let residuals: Vec<f64> = scales.registration.pairs.iter().map(|p| 1e-3 * p.residual_radius_um).collect();
     // A fused cell averages the views that saw it: half the pairs' radial disagreement.
     let registration_mm = if residuals.is_empty() {
@@ -255,6 +258,7 @@ pub fn decide(
     ctx: &RuleContext,
     budget: &UncertaintyBudget,
     quality: &Quality,
+    station: &Station,
 ) -> DecisionFinding {
     let at = |shift_um: f64| {
         let options = CrestOptions { onset_shift_um: shift_um, ..ctx.crest.clone() };
@@ -284,7 +288,7 @@ pub fn decide(
     };
     let reject_side = verdict_at(toward_reject, ctx.input.lc_mm + budget.z_mm);
     let accept_side = verdict_at(toward_accept, (ctx.input.lc_mm - budget.z_mm).max(0.0));
-    let failed = measurement_failed(quality);
+    let failed = measurement_failed(quality, station);
     let decision = match (reject_side.verdict, accept_side.verdict) {
         _ if failed => Decision::Indeterminate,
         (Verdict::Accept, Verdict::Accept) => Decision::Conforms,
@@ -294,8 +298,10 @@ pub fn decide(
     let mut reasons = Vec::new();
     if failed {
         reasons.push(
-            "no decision on a measurement that failed its quality checks (the quality reasons say which): its \
-             heights and black crests may be wrong by more than their uncertainty shows"
+            "no decision: the measurement failed its quality checks or its station's optics lie outside the \
+             envelope its uncertainty was measured in (the quality reasons say which); its heights and black \
+             crests may be wrong by more than their scatter shows, and each height's uncertainty is at least \
+             the helix fit's residual"
                 .to_string(),
         );
     }
@@ -562,7 +568,7 @@ mod tests {
             crest_window_half_mm: 0.5,
             crest: &crest,
         };
-        decide(threads, &ctx, &budget(), quality)
+        decide(threads, &ctx, &budget(), quality, &station(0.041))
     }
 
     #[test]
@@ -612,6 +618,9 @@ mod tests {
         assert_eq!(d.decision, Decision::Indeterminate);
         assert!(d.reasons[0].contains("failed its quality checks"), "{:?}", d.reasons);
         assert_eq!(decide_on(&clean, Family::Buttress, &ok()).decision, Decision::Conforms);
+        // Optics outside the measured envelope: the method's uncertainty is not known there.
+        assert!(measurement_failed(&ok(), &station(0.12)));
+        assert!(!measurement_failed(&ok(), &station(0.041)));
     }
 
     fn station(object_pixel_mm: f64) -> Station {
