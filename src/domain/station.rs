@@ -88,30 +88,46 @@ impl Station {
 
     /// The parameters of this station outside `envelope`, each as (name, value, range) text.
     pub fn outside(&self, envelope: &Envelope) -> Vec<String> {
-        let mut out = Vec::new();
-        let mut check = |name: &str, value: f64, (lo, hi): (f64, f64), unit: &str| {
-            if !(lo..=hi).contains(&value) {
-                out.push(format!("{name} {value:.3}{unit} (measured: {lo}–{hi}{unit})"));
-            }
-        };
-        check("object pixel", self.object_pixel_mm, envelope.object_pixel_mm, " mm");
-        check("depth of field", self.depth_of_field_mm, envelope.depth_of_field_mm, " mm");
-        check("frame step", self.frame_step_dof, envelope.frame_step_dof, " depths of field");
-        if let Some(overlap) = self.overlap_deg {
-            check("overlap between neighbouring views", overlap, envelope.overlap_deg, "°");
-        }
-        out
+        self.parameters(envelope)
+            .into_iter()
+            .filter(|p| p.is_outside())
+            .map(|p| {
+                let (lo, hi) = p.range;
+                format!("{} {:.3}{u} (measured: {lo}–{hi}{u})", p.name, p.value.unwrap_or(f64::NAN), u = p.unit)
+            })
+            .collect()
     }
-}
 
-impl Station {
     /// Whether the optics (object pixel, depth of field, frame step) lie outside `envelope`: where
     /// the depth from focus itself, not only registration, was never measured.
     pub fn optics_outside(&self, envelope: &Envelope) -> bool {
-        let out = |v: f64, (lo, hi): (f64, f64)| !(lo..=hi).contains(&v);
-        out(self.object_pixel_mm, envelope.object_pixel_mm)
-            || out(self.depth_of_field_mm, envelope.depth_of_field_mm)
-            || out(self.frame_step_dof, envelope.frame_step_dof)
+        self.parameters(envelope).iter().any(|p| p.optics && p.is_outside())
+    }
+
+    /// Each parameter the envelope bounds, with its value (None: the station has none) and range.
+    fn parameters(&self, e: &Envelope) -> [Parameter; 4] {
+        let p = |name, value, range, unit, optics| Parameter { name, value, range, unit, optics };
+        [
+            p("object pixel", Some(self.object_pixel_mm), e.object_pixel_mm, " mm", true),
+            p("depth of field", Some(self.depth_of_field_mm), e.depth_of_field_mm, " mm", true),
+            p("frame step", Some(self.frame_step_dof), e.frame_step_dof, " depths of field", true),
+            p("overlap between neighbouring views", self.overlap_deg, e.overlap_deg, "°", false),
+        ]
+    }
+}
+
+struct Parameter {
+    name: &'static str,
+    value: Option<f64>,
+    range: (f64, f64),
+    unit: &'static str,
+    /// A parameter of the optics (depth from focus) rather than of the view layout.
+    optics: bool,
+}
+
+impl Parameter {
+    fn is_outside(&self) -> bool {
+        self.value.is_some_and(|v| !(self.range.0..=self.range.1).contains(&v))
     }
 }
 

@@ -27,12 +27,13 @@
 use crate::domain::arcs::union_arcs;
 use crate::domain::rules::{self, ArcRule, RuleInput, ThreadObservation, Verdict};
 use crate::domain::station::Station;
+use crate::numeric::runs::run_spans;
 use crate::numeric::sequence::local_noise;
 use crate::numeric::stats::median;
 use crate::pipeline::crest::{self, CrestOptions};
 use crate::pipeline::profile::ThreadMeasure;
 use crate::pipeline::quality::{Quality, QualityCode, QualityStatus};
-use crate::pipeline::register::{EndFace, Registration};
+use crate::pipeline::register::{EndFace, PairMeasure, Registration};
 use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -125,13 +126,22 @@ pub fn heights(
     // the thread form, which the helix's fit residual measures: each height's standard
     // uncertainty is at least that.
     let failure_mm = if measurement_failed(quality, scales.station) { 1e-3 * scales.helix_fit_rms_um } else { 0.0 };
-    let residuals: Vec<f64> = scales.registration.pairs.iter().map(|p| 1e-3 * p.residual_radius_um).collect();
-    // A fused cell averages the views that saw it: half the pairs' radial disagreement.
-    let registration_mm = if residuals.is_empty() {
-        0.0
-    } else {
-        0.5 * (residuals.iter().map(|r| r * r).sum::<f64>() / residuals.len() as f64).sqrt()
+    // RMS over the measured pairs of one of their residuals (0 without pairs).
+    let pairs = &scales.registration.pairs;
+    let pairs_rms = |residual_mm: &dyn Fn(&PairMeasure) -> f64| {
+        if pairs.is_empty() {
+            0.0
+        } else {
+            (pairs.iter().map(|p| residual_mm(p).powi(2)).sum::<f64>() / pairs.len() as f64).sqrt()
+        }
     };
+    // A fused cell averages the views that saw it: half the pairs' radial disagreement.
+    let registration_mm = 0.5 * pairs_rms(&|p| 1e-3 * p.residual_radius_um);
+    // A bin's noise `s`, correlated over `correlation` bins, in a mean of `m` bins: neighbour
+    // differences see 1/L of the variance, and the mean averages m/L independent ones (at most m).
+    let noise_of = |s: f64, m: f64| s * (correlation * (correlation / m).min(1.0)).sqrt();
+    let expanded_of =
+        |noise_mm: f64| k * (noise_mm.powi(2) + method_mm.powi(2) + registration_mm.powi(2)).sqrt().max(failure_mm);
     let raw: Vec<Option<f64>> = threads.iter().flat_map(|t| t.bins.iter().map(|b| b.raw_height_mm)).collect();
     let noise = local_noise(&raw, options.noise_half_bins, 10);
     // Where too few neighbours were measured to read the noise, the part's median stands in.
@@ -147,12 +157,8 @@ pub fn heights(
             i += 1;
             b.uncertainty_mm = match (b.height_mm, s) {
                 (Some(_), Some(s)) => {
-                    let kept = b.kept_bins.max(1) as f64;
-                    // Correlated over `correlation` bins: neighbour differences see 1/L of the
-                    // variance, and a mean of m bins averages m/L independent ones (at most m).
-                    let noise_mm = s * (correlation * (correlation / kept).min(1.0)).sqrt();
                     thread_noise.push(s);
-                    let u = k * (noise_mm.powi(2) + method_mm.powi(2) + registration_mm.powi(2)).sqrt().max(failure_mm);
+                    let u = expanded_of(noise_of(s, b.kept_bins.max(1) as f64));
                     expanded.push(u);
                     Some(u)
                 }
@@ -160,10 +166,7 @@ pub fn heights(
             };
         }
         let n = t.bins.iter().filter(|b| b.height_mm.is_some()).count() as f64;
-        let mean_u = median(&mut thread_noise).map(|s| {
-            let noise_mm = s * (correlation * (correlation / n).min(1.0)).sqrt();
-            k * (noise_mm.powi(2) + method_mm.powi(2) + registration_mm.powi(2)).sqrt().max(failure_mm)
-        });
+        let mean_u = median(&mut thread_noise).map(|s| expanded_of(noise_of(s, n)));
         means.push((t.index, mean_u));
     }
     let z_mm = match scales.end_face {
@@ -171,19 +174,10 @@ pub fn heights(
         // Uniform within ± the bound, the mean over the views (registration keeps the mean).
         None => options.encoder_axial_bound_mm / 3f64.sqrt() / (scales.station.views.max(1) as f64).sqrt(),
     };
-    let arc_per_deg = bin_arc_mm;
-    let registration_arc_mm = {
-        let r: Vec<f64> = scales
-            .registration
-            .pairs
-            .iter()
-            .map(|p| p.residual_angle_deg.to_radians() * scales.pipe_radius_mm)
-            .collect();
-        if r.is_empty() { 0.0 } else { (r.iter().map(|x| x * x).sum::<f64>() / r.len() as f64).sqrt() }
-    };
+    let registration_arc_mm = pairs_rms(&|p| p.residual_angle_deg.to_radians() * scales.pipe_radius_mm);
     // An arc's end: the bin's quantisation, the focus window's reach along the arc and the views'
     // angular disagreement; never less than a bin.
-    let end_u_mm = ((arc_per_deg / 12f64.sqrt()).powi(2)
+    let end_u_mm = ((bin_arc_mm / 12f64.sqrt()).powi(2)
         + (scales.focus_window_radius_px as f64 * pixel_mm / 3f64.sqrt()).powi(2)
         + registration_arc_mm.powi(2))
     .sqrt();
@@ -196,7 +190,7 @@ pub fn heights(
         noise_correlation_bins: correlation,
         expanded_median_um: median(&mut expanded).map(|u| 1e3 * u),
         crest_deficit_um: k * crest_scatter_um.unwrap_or(0.0),
-        arc_end_deg: (k * end_u_mm / arc_per_deg).max(1.0),
+        arc_end_deg: (k * end_u_mm / bin_arc_mm).max(1.0),
         z_mm: k * z_mm,
     };
     (budget, means)
@@ -367,32 +361,21 @@ fn count_unseen_as_black(t: &mut ThreadObservation, lc_mm: f64) -> f64 {
         b.on_mill_surface || arcs.iter().any(|a| a[0] < b.angle_deg + b.width_deg && a[1] > b.angle_deg)
     };
     let n = t.bins.len();
+    let unseen: Vec<bool> = t.bins.iter().map(|b| !b.seen && !b.chamfer).collect();
     let mut marked = 0.0;
-    let mut i = 0;
-    while i < n {
-        if t.bins[i].seen || t.bins[i].chamfer {
-            i += 1;
-            continue;
-        }
-        let start = i;
-        while i < n && !t.bins[i].seen && !t.bins[i].chamfer {
-            i += 1;
-        }
-        let len = i - start;
-        let bridged = len <= BRIDGED_GAP_BINS
-            && start > 0
-            && i < n
-            && !black(&t.bins[start - 1], &t.black_crest_arcs_deg)
-            && !black(&t.bins[i], &t.black_crest_arcs_deg);
+    for gap in run_spans(&unseen) {
+        let bridged = gap.len() <= BRIDGED_GAP_BINS
+            && gap.start > 0
+            && gap.end < n
+            && !black(&t.bins[gap.start - 1], &t.black_crest_arcs_deg)
+            && !black(&t.bins[gap.end], &t.black_crest_arcs_deg);
         if bridged {
             continue;
         }
-        for b in &mut t.bins[start..i] {
-            if b.z_mm <= lc_mm {
-                b.on_mill_surface = true;
-                b.mill_arc_deg = None;
-                marked += b.width_deg;
-            }
+        for b in t.bins[gap].iter_mut().filter(|b| b.z_mm <= lc_mm) {
+            b.on_mill_surface = true;
+            b.mill_arc_deg = None;
+            marked += b.width_deg;
         }
     }
     marked
@@ -419,19 +402,11 @@ fn widen(t: &mut ThreadObservation, deg: f64, bins: usize) {
 /// sector its off-axis terms bend it there), so a crest below it there may be the fit's.
 fn narrow(t: &mut ThreadObservation, deg: f64, bins: usize) {
     let n = t.bins.len();
-    let mut i = 0;
-    while i < n {
-        if !t.bins[i].on_mill_surface {
-            i += 1;
-            continue;
-        }
-        let start = i;
-        while i < n && t.bins[i].on_mill_surface {
-            i += 1;
-        }
-        let at_edge = (start > 0 && !t.bins[start - 1].seen) || (i < n && !t.bins[i].seen);
+    let on: Vec<bool> = t.bins.iter().map(|b| b.on_mill_surface).collect();
+    for run in run_spans(&on) {
+        let at_edge = (run.start > 0 && !t.bins[run.start - 1].seen) || (run.end < n && !t.bins[run.end].seen);
         if at_edge {
-            for b in &mut t.bins[start..i] {
+            for b in &mut t.bins[run] {
                 b.on_mill_surface = false;
                 b.mill_arc_deg = None;
             }
