@@ -1,7 +1,7 @@
 //! `crestscan bench`: a benchmark suite against the simulator's truth.
 
 use super::DepthArgs;
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use crestscan::eval::{self, Suite};
 use crestscan::pipeline::PipelineOptions;
 use std::path::PathBuf;
@@ -64,16 +64,7 @@ impl BenchArgs {
             let names: Vec<String> = suite.cases().iter().map(|c| c.name()).collect();
             bail!("--only {o:?} is no case of the {} suite; its cases: {}", suite.name(), names.join(", "));
         }
-        let mut options = PipelineOptions { depth: depth.into(), ..Default::default() };
-        if let Some(path) = options_file {
-            let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
-            let overrides: serde_json::Value =
-                serde_json::from_str(&text).with_context(|| format!("{}: not JSON", path.display()))?;
-            let mut merged = serde_json::to_value(&options)?;
-            merge_json(&mut merged, overrides);
-            options =
-                serde_json::from_value(merged).with_context(|| format!("{}: not pipeline options", path.display()))?;
-        }
+        let options = super::options_over(PipelineOptions { depth: depth.into(), ..Default::default() }, options_file)?;
         let mut results = Vec::new();
         let stations = matches!(suite, Suite::Stations | Suite::StationsTuning);
         // At a random station the pipeline may find no depth or no thread: that case is an
@@ -99,17 +90,5 @@ impl BenchArgs {
             std::fs::write(&path, serde_json::to_vec_pretty(&results)?)?;
         }
         Ok(())
-    }
-}
-
-/// `overrides` written over `base`, object by object.
-fn merge_json(base: &mut serde_json::Value, overrides: serde_json::Value) {
-    match (base, overrides) {
-        (serde_json::Value::Object(b), serde_json::Value::Object(o)) => {
-            for (k, v) in o {
-                merge_json(b.entry(k).or_insert(serde_json::Value::Null), v);
-            }
-        }
-        (b, o) => *b = o,
     }
 }

@@ -29,6 +29,10 @@ pub struct InspectArgs {
     /// or two is trimmed away, one of a few degrees flattened).
     #[arg(long, default_value_t = ProfileOptions::default().height_window_half_bins)]
     height_window_half_bins: usize,
+    /// Pipeline options as a JSON file (the shape `POST /v1/inspections` takes under
+    /// `pipeline`; keys it leaves out keep their defaults), written over the flags above.
+    #[arg(long)]
+    options: Option<PathBuf>,
     #[command(flatten)]
     depth: DepthArgs,
 }
@@ -41,7 +45,7 @@ enum ArcRuleArg {
 
 impl InspectArgs {
     pub fn run(self) -> Result<()> {
-        let Self { bundle, out, json, arc_rule, height_window_half_bins, depth } = self;
+        let Self { bundle, out, json, arc_rule, height_window_half_bins, options: options_file, depth } = self;
         let b = open_bundle(&bundle, OpenOptions::default())?;
         let options = PipelineOptions {
             arc_rule: match arc_rule {
@@ -52,6 +56,7 @@ impl InspectArgs {
             depth: depth.into(),
             ..Default::default()
         };
+        let options = super::options_over(options, options_file)?;
         let cancel = AtomicBool::new(false);
         let inspection = pipeline::inspect(&b, &options, &|_, _| {}, &cancel)?.context("cancelled")?;
         if let Some(dir) = &out {

@@ -29,6 +29,8 @@ pub mod surface;
 
 pub mod fuse;
 
+pub mod gate;
+
 pub mod mesh;
 
 pub mod profile;
@@ -122,7 +124,7 @@ type Step<T> = Result<T, Halt<PipelineError>>;
 fn run_stages(recording: &dyn Recording, options: &PipelineOptions, mut run: Run) -> Step<Inspection> {
     let (depth_maps, depth_coverage) = measure_depth(recording, options, &mut run)?;
     let registered = register_views(recording, options, &depth_maps, &mut run)?;
-    let map =
+    let (map, map_implausible_share) =
         fuse_views(recording, options, &depth_maps, &registered.poses, &registered.encoder_z_ranges_mm, &mut run)?;
     let (mesh, helix, mut threads) = mesh_and_profile(recording, options, &map, &mut run)?;
     let (assessment, crest, rule_input) = crest_and_rules(recording, options, &helix, &threads, &mut run);
@@ -182,6 +184,7 @@ fn run_stages(recording: &dyn Recording, options: &PipelineOptions, mut run: Run
         end_face: registered.end_face,
         depth_coverage,
         map_coverage: map.coverage(),
+        map_implausible_share,
         timings: run.into_timings(),
     });
     Ok(Inspection { report, map, depth_maps, poses: registered.poses, mesh })
@@ -327,7 +330,7 @@ fn fuse_views(
     poses: &[ViewPose],
     encoder_z_ranges_mm: &[(f64, f64)],
     run: &mut Run,
-) -> Step<UnrolledMap> {
+) -> Step<(UnrolledMap, f64)> {
     run.progress(Stage::Fuse, 0.0);
     let (part, optics, views) = (recording.part(), recording.optics(), recording.views());
     let total = views.len();
@@ -358,10 +361,12 @@ fn fuse_views(
     }
     drop(buffers);
     run.progress(Stage::Fuse, 1.0);
-    let map = fusion.finish();
+    let mut map = fusion.finish();
+    let seen = map.radius_mm.iter().filter(|r| r.is_finite()).count();
+    let dropped = if options.gate_implausible { gate::drop_implausible(&mut map, &part.form) } else { 0 };
     run.lap(Stage::Fuse);
     run.check()?;
-    Ok(map)
+    Ok((map, dropped as f64 / seen.max(1) as f64))
 }
 
 /// The mesh is an export: it runs beside the profile, which the verdict needs. Each stage's own

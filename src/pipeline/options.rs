@@ -28,6 +28,9 @@ pub struct PipelineOptions {
     /// Take the ring's axial offset from the end face's silhouette when the views show it.
     #[serde(default = "yes")]
     pub anchor_end_face: bool,
+    /// Drop fused cells more than a thread height from their bin's mean line ([`super::gate`]).
+    #[serde(default = "yes")]
+    pub gate_implausible: bool,
 }
 
 fn yes() -> bool {
@@ -46,6 +49,7 @@ impl Default for PipelineOptions {
             arc_rule: ArcRule::PerThread,
             cell_px: 1.5,
             anchor_end_face: true,
+            gate_implausible: true,
         }
     }
 }

@@ -108,6 +108,11 @@ pub struct Report {
     pub end_face: Option<EndFace>,
     pub depth_coverage: f64,
     pub map_coverage: f64,
+    /// The share of fused cells dropped as implausible: more than a thread height from their
+    /// bin's mean line, so no surface of the form (pipeline.md, 3. Fusion). Absent in reports
+    /// written before the gate existed.
+    #[serde(default)]
+    pub map_implausible_share: f64,
     pub machined_crest_gray: f32,
     /// The machined crest cone the geometric black-crest test measured crests against.
     pub crest_cone: Option<CrestCone>,
@@ -248,6 +253,7 @@ pub struct Findings<'a> {
     pub end_face: Option<EndFace>,
     pub depth_coverage: f64,
     pub map_coverage: f64,
+    pub map_implausible_share: f64,
     pub timings: Vec<StageTiming>,
 }
 
@@ -321,6 +327,7 @@ impl Report {
             end_face: f.end_face,
             depth_coverage: f.depth_coverage,
             map_coverage: f.map_coverage,
+            map_implausible_share: f.map_implausible_share,
             machined_crest_gray: f.machined_crest_gray,
             crest_cone: f.crest_cone,
             timings: f.timings,

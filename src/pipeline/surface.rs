@@ -38,6 +38,14 @@ impl GridSpec {
     pub fn theta_deg_at(&self, it: usize) -> f64 {
         (it as f64 + 0.5) * self.dtheta_deg()
     }
+
+    /// The columns whose centres fall in the 1° bin [bin, bin + 1).
+    pub fn bin_columns(&self, bin: usize) -> std::ops::Range<usize> {
+        let per_bin = self.ntheta as f64 / 360.0;
+        let start = (bin as f64 * per_bin).ceil() as usize;
+        let end = (((bin + 1) as f64 * per_bin).ceil() as usize).min(self.ntheta);
+        start..end
+    }
 }
 
 /// The fused map, row-major by z (rows) then θ (columns).

@@ -80,22 +80,52 @@ pub(super) fn shared_section(windows: &[&[(f64, f64)]], nominal_c_per_mm: f64) -
     Section::Parabola { c_per_mm: measured.unwrap_or(nominal_c_per_mm) }
 }
 
-/// Value at x = 0 of a least-squares fit r = a + b·x + section(x) with one pass of outlier rejection
-/// (residuals beyond 3 MAD). The section's shape is known from the form, so only its height and
-/// tilt are fitted: a free curvature term would more than double the variance of the height at
-/// the centre. None unless samples lie on both sides of the centre (`half` is the window's half
-/// width): an edge of the data would make it an extrapolation.
+/// Value at x = 0 of a fit r = a + b·x + section(x) robust to a minority of samples from another
+/// surface. The section's shape is known from the form, so only its height and tilt are fitted: a
+/// free curvature term would more than double the variance of the height at the centre. None
+/// unless samples lie on both sides of the centre (`half` is the window's half width): an edge of
+/// the data would make it an extrapolation.
+///
+/// Near a flank a window holds, besides its own surface, pixels that took the other surface's
+/// depth (a thread height away) and focus peaks on noise: at coarse stations a third of the
+/// samples. One pass of rejection at 3 MAD about a least-squares line does not reject them there
+/// (the line and the MAD are pulled by what is to be rejected), so the level is first taken as
+/// the mean of the half of the samples nearest their median, then of the half nearest that level
+/// until the half holds (least trimmed squares by concentration steps, on the level alone: a
+/// half can sit at one end of the window, where a tilt would be an extrapolation); then every
+/// sample within 3 robust scales of the level is kept and the line fitted to them.
 pub(super) fn fit_at_centre(samples: &[(f64, f64)], section: Section, half: f64) -> Option<f64> {
     let (lo, hi) = samples.iter().fold((f64::MAX, f64::MIN), |(l, h), s| (l.min(s.0), h.max(s.0)));
-    if lo > -0.5 * half || hi < 0.5 * half {
+    if lo > -0.5 * half || hi < 0.5 * half || samples.len() < 6 {
         return None;
     }
     let levelled: Vec<(f64, f64)> = samples.iter().map(|&(x, r)| (x, r - section.offset_mm(x))).collect();
-    let (a, b) = fit_line_checked(&levelled)?;
-    let resid: Vec<f64> = levelled.iter().map(|&(x, r)| (r - a - b * x).abs()).collect();
-    let mad = median(&mut resid.clone()).expect("at least six samples").max(1e-6);
-    let kept: Vec<(f64, f64)> =
-        levelled.iter().zip(&resid).filter(|(_, e)| **e <= 3.0 * 1.4826 * mad).map(|(s, _)| *s).collect();
+    let n = levelled.len();
+    let h = n.div_ceil(2).max(6).min(n);
+    let centre = median(&mut levelled.iter().map(|s| s.1).collect::<Vec<_>>()).expect("at least six samples");
+    let mut residuals: Vec<(f64, usize)> =
+        levelled.iter().enumerate().map(|(i, s)| ((s.1 - centre).abs(), i)).collect();
+    let mut subset: Vec<usize> = Vec::new();
+    for _ in 0..8 {
+        residuals.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let mut next: Vec<usize> = residuals[..h].iter().map(|r| r.1).collect();
+        next.sort_unstable();
+        if next == subset {
+            break;
+        }
+        subset = next;
+        let level = subset.iter().map(|&i| levelled[i].1).sum::<f64>() / h as f64;
+        for r in residuals.iter_mut() {
+            r.0 = (levelled[r.1].1 - level).abs();
+        }
+    }
+    let mut abs: Vec<f64> = residuals.iter().map(|r| r.0).collect();
+    let scale = (1.4826 * median(&mut abs).expect("at least six samples")).max(1e-6);
+    let kept: Vec<(f64, f64)> = residuals.iter().filter(|r| r.0 <= 3.0 * scale).map(|r| levelled[r.1]).collect();
+    let (lo, hi) = kept.iter().fold((f64::MAX, f64::MIN), |(l, h), s| (l.min(s.0), h.max(s.0)));
+    if lo > -0.5 * half || hi < 0.5 * half {
+        return None; // what is kept lies to one side: the centre would be extrapolated
+    }
     fit_line_checked(&kept).map(|(a, _)| a)
 }
 

@@ -17,10 +17,7 @@ pub(super) fn form_fundamental(form: &ThreadForm) -> Complex<f64> {
 
 /// The map columns whose centres fall in the 1° bin [bin, bin + 1).
 pub(super) fn bin_columns(g: &crate::pipeline::surface::GridSpec, bin: usize) -> std::ops::Range<usize> {
-    let per_bin = g.ntheta as f64 / 360.0;
-    let start = (bin as f64 * per_bin).ceil() as usize;
-    let end = (((bin + 1) as f64 * per_bin).ceil() as usize).min(g.ntheta);
-    start..end
+    g.bin_columns(bin)
 }
 
 /// Mean generatrix r(z) of a 1° bin; None where the bin is mostly unseen.
