@@ -181,6 +181,42 @@ fn cli_inspect_writes_the_report_in_the_contract_shape() {
     }
 }
 
+/// `inspect --options` takes a pipeline options file (bad keys named), and `compare` reads the
+/// folders `inspect --out` and `simulate --out` wrote.
+#[test]
+fn cli_inspect_options_and_compare_on_folders() {
+    let out = tempfile::tempdir().unwrap();
+    let bin = env!("CARGO_BIN_EXE_crestscan");
+    let options = out.path().join("options.json");
+    std::fs::write(&options, r#"{"depth": {"drop_speckles": false}, "gate_implausible": false}"#).unwrap();
+    let report_dir = out.path().join("report");
+    let inspected = std::process::Command::new(bin)
+        .args(["inspect", ci_bundle().to_str().unwrap(), "--options", options.to_str().unwrap()])
+        .args(["--out", report_dir.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(inspected.status.success(), "{}", String::from_utf8_lossy(&inspected.stderr));
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(report_dir.join("report.json")).unwrap()).unwrap();
+    assert_eq!(report["map_implausible_share"], 0.0, "the gate was turned off");
+    let compared = std::process::Command::new(bin)
+        .args(["compare", report_dir.to_str().unwrap(), ci_bundle().to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(compared.status.success(), "{}", String::from_utf8_lossy(&compared.stderr));
+    let accuracy: serde_json::Value = serde_json::from_slice(&compared.stdout).unwrap();
+    assert!(accuracy["bins_compared"].as_u64().unwrap() > 0, "{accuracy}");
+    // An options file with a value of the wrong type is refused, naming the file.
+    std::fs::write(&options, r#"{"depth": {"drop_speckles": "sometimes"}}"#).unwrap();
+    let refused = std::process::Command::new(bin)
+        .args(["inspect", ci_bundle().to_str().unwrap(), "--options", options.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(!refused.status.success());
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(stderr.contains("options.json") && stderr.contains("not pipeline options"), "{stderr}");
+}
+
 /// The pipeline issue's Table 1 target, end to end through the benchmark's own code: the seed's
 /// custom 1.000 mm form, rendered with the tests' seed (the benchmark suites keep theirs), each of
 /// its measured threads recovered within 10 µm, the heights and registration within their targets.
@@ -248,13 +284,15 @@ fn registration_that_fails_on_weak_texture_is_reported_and_needs_review() {
         match c.status {
             PairStatus::TooWeak => assert!(ncc < options.min_ncc, "{c:?}"),
             PairStatus::Ambiguous => assert!(ncc >= options.min_ncc && rival > options.max_rival_ratio, "{c:?}"),
+            // Bare metal leaves little trusted depth, so an aligned overlap can be too small.
+            PairStatus::TooSmall => assert!(c.overlap_cells.unwrap() < options.min_overlap_cells, "{c:?}"),
             other => panic!("{other:?}: {c:?}"),
         }
     }
     assert!(bare.review_required);
     let incomplete = bare.quality.reasons.iter().find(|r| r.code == QualityCode::RegistrationIncomplete).unwrap();
     assert!(
-        incomplete.message.contains("too weak") || incomplete.message.contains("ambiguous"),
+        ["too weak", "ambiguous", "too small"].iter().any(|s| incomplete.message.contains(s)),
         "{}",
         incomplete.message
     );

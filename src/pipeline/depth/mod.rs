@@ -20,10 +20,12 @@ mod peak;
 mod phase;
 mod resample;
 mod silhouette;
+mod speckle;
 
 pub use peak::peak_offset;
 pub use phase::{equalize_sub_frame_phase, even_frame_grid};
 pub use silhouette::{FrameEdge, frame_edge};
+pub use speckle::drop_speckles;
 
 use crate::domain::frame::{Frame, FrameError, View};
 use crate::domain::optics::{Optics, Projection};
@@ -73,6 +75,17 @@ pub struct DepthOptions {
     /// its own there, that peak is the pixel's.
     #[serde(default = "edge_window_radius_px")]
     pub edge_window_radius_px: usize,
+    /// Drop speckles ([`drop_speckles`]): regions smaller than one focus window's area whose
+    /// depths, linked within half the depth of field, do not join their surroundings.
+    #[serde(default = "yes")]
+    pub drop_speckles: bool,
+    /// The least area of a region that is kept, in focus windows ((2r + 1)² pixels each).
+    #[serde(default = "speckle_min_windows")]
+    pub speckle_min_windows: f64,
+}
+
+fn speckle_min_windows() -> f64 {
+    DepthOptions::default().speckle_min_windows
 }
 
 /// Frames between the small box's sharpest frame and the big box's beyond which they see two
@@ -109,6 +122,8 @@ impl Default for DepthOptions {
             equalize_phase: true,
             row_step: 1,
             edge_window_radius_px: 1,
+            drop_speckles: true,
+            speckle_min_windows: 0.25,
         }
     }
 }
@@ -358,7 +373,14 @@ pub fn depth_from_focus_in(
                 }
             }
         });
-    Ok(Some(DepthMap { width: w, height: h, row_step: step, depth_mm, peak_ratio, all_in_focus, end_edges }))
+    let mut map = DepthMap { width: w, height: h, row_step: step, depth_mm, peak_ratio, all_in_focus, end_edges };
+    if options.drop_speckles {
+        let link_mm = 0.5 * optics.depth_of_field_mm(crate::domain::station::IN_FOCUS_BLUR_PX);
+        let window = (2 * options.window_radius_px + 1) as f64;
+        let min_pixels = (options.speckle_min_windows * window * window / step as f64).ceil() as usize;
+        drop_speckles(&mut map, link_mm as f32, min_pixels);
+    }
+    Ok(Some(map))
 }
 
 #[cfg(test)]
