@@ -72,8 +72,14 @@ pub enum PipelineError {
     Frame(#[from] FrameError),
     #[error("no view gave a usable depth map (is the part in focus anywhere in the stacks?)")]
     NoDepth,
-    #[error("no thread found: the profile shows no spectrum at the {pitch_mm} mm pitch")]
-    NoThread { pitch_mm: f64 },
+    #[error(
+        "no thread found: the profile shows no spectrum at the {pitch_mm} mm pitch (the fused map covers {:.1}% of \
+         the surface, {:.1}% of its cells dropped as no surface of the form: where that is little, the station's depth \
+         from focus did not resolve the part)",
+        100.0 * map_coverage,
+        100.0 * map_implausible_share
+    )]
+    NoThread { pitch_mm: f64, map_coverage: f64, map_implausible_share: f64 },
     #[error(transparent)]
     Mesh(#[from] mesh::MeshError),
 }
@@ -126,7 +132,7 @@ fn run_stages(recording: &dyn Recording, options: &PipelineOptions, mut run: Run
     let registered = register_views(recording, options, &depth_maps, &mut run)?;
     let (map, map_implausible_share) =
         fuse_views(recording, options, &depth_maps, &registered.poses, &registered.encoder_z_ranges_mm, &mut run)?;
-    let (mesh, helix, mut threads) = mesh_and_profile(recording, options, &map, &mut run)?;
+    let (mesh, helix, mut threads) = mesh_and_profile(recording, options, &map, map_implausible_share, &mut run)?;
     let (assessment, crest, rule_input) = crest_and_rules(recording, options, &helix, &threads, &mut run);
     let part = recording.part();
     let station = domain::station::Station::of(recording.optics(), recording.views(), part.pipe_od_mm / 2.0);
@@ -375,6 +381,7 @@ fn mesh_and_profile(
     recording: &dyn Recording,
     options: &PipelineOptions,
     map: &UnrolledMap,
+    map_implausible_share: f64,
     run: &mut Run,
 ) -> Step<(mesh::Mesh, Helix, Vec<ThreadMeasure>)> {
     run.progress(Stage::Mesh, 0.0);
@@ -399,7 +406,11 @@ fn mesh_and_profile(
         },
     );
     let mesh = mesh.map_err(PipelineError::from)?;
-    let helix = helix.ok_or(PipelineError::NoThread { pitch_mm: form.pitch_mm })?;
+    let helix = helix.ok_or(PipelineError::NoThread {
+        pitch_mm: form.pitch_mm,
+        map_coverage: map.coverage(),
+        map_implausible_share,
+    })?;
     let threads = threads.expect("measured whenever the helix was found");
     run.record_side_by_side(&[(Stage::Mesh, mesh_seconds), (Stage::Profile, profile_seconds)]);
     run.check()?;
