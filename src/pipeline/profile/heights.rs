@@ -102,26 +102,28 @@ pub(super) fn fit_at_centre(samples: &[(f64, f64)], section: Section, half: f64)
     let levelled: Vec<(f64, f64)> = samples.iter().map(|&(x, r)| (x, r - section.offset_mm(x))).collect();
     let n = levelled.len();
     let h = n.div_ceil(2).max(6).min(n);
-    let centre = median(&mut levelled.iter().map(|s| s.1).collect::<Vec<_>>()).expect("at least six samples");
-    let mut residuals: Vec<(f64, usize)> =
-        levelled.iter().enumerate().map(|(i, s)| ((s.1 - centre).abs(), i)).collect();
-    let mut subset: Vec<usize> = Vec::new();
+    let mut abs: Vec<f64> = levelled.iter().map(|s| s.1).collect();
+    let mut level = median(&mut abs).expect("at least six samples");
     for _ in 0..8 {
-        residuals.sort_by(|a, b| a.0.total_cmp(&b.0));
-        let mut next: Vec<usize> = residuals[..h].iter().map(|r| r.1).collect();
-        next.sort_unstable();
-        if next == subset {
+        // The h-th smallest distance from the level bounds the half nearest it.
+        abs.clear();
+        abs.extend(levelled.iter().map(|s| (s.1 - level).abs()));
+        let bound = *abs.select_nth_unstable_by(h - 1, f64::total_cmp).1;
+        let (sum, count) = levelled
+            .iter()
+            .filter(|s| (s.1 - level).abs() <= bound)
+            .fold((0.0, 0usize), |(sum, count), s| (sum + s.1, count + 1));
+        let next = sum / count as f64;
+        let settled = next == level;
+        level = next;
+        if settled {
             break;
         }
-        subset = next;
-        let level = subset.iter().map(|&i| levelled[i].1).sum::<f64>() / h as f64;
-        for r in residuals.iter_mut() {
-            r.0 = (levelled[r.1].1 - level).abs();
-        }
     }
-    let mut abs: Vec<f64> = residuals.iter().map(|r| r.0).collect();
+    abs.clear();
+    abs.extend(levelled.iter().map(|s| (s.1 - level).abs()));
     let scale = (1.4826 * median(&mut abs).expect("at least six samples")).max(1e-6);
-    let kept: Vec<(f64, f64)> = residuals.iter().filter(|r| r.0 <= 3.0 * scale).map(|r| levelled[r.1]).collect();
+    let kept: Vec<(f64, f64)> = levelled.iter().copied().filter(|s| (s.1 - level).abs() <= 3.0 * scale).collect();
     let (lo, hi) = kept.iter().fold((f64::MAX, f64::MIN), |(l, h), s| (l.min(s.0), h.max(s.0)));
     if lo > -0.5 * half || hi < 0.5 * half {
         return None; // what is kept lies to one side: the centre would be extrapolated
