@@ -16,11 +16,9 @@ fn main() {
     let args: Vec<String> = std::env::args().collect();
     let dir = std::path::Path::new(&args[1]);
     let options: PipelineOptions = match args.get(2) {
-        Some(f) => {
-            let mut base = serde_json::to_value(PipelineOptions::default()).unwrap();
-            merge(&mut base, serde_json::from_slice(&std::fs::read(f).unwrap()).unwrap());
-            serde_json::from_value(base).unwrap()
-        }
+        Some(f) => PipelineOptions::default()
+            .overridden_by(serde_json::from_slice(&std::fs::read(f).unwrap()).unwrap())
+            .unwrap(),
         None => PipelineOptions::default(),
     };
     let table = ConnectionTable::api5b();
@@ -122,15 +120,4 @@ fn stats(e: &[f64]) -> (f64, f64, f64) {
     let mut a: Vec<f64> = e.iter().map(|x| x.abs()).collect();
     a.sort_by(f64::total_cmp);
     (mean, a[a.len() / 2], rms)
-}
-
-fn merge(base: &mut serde_json::Value, patch: serde_json::Value) {
-    match (base, patch) {
-        (serde_json::Value::Object(b), serde_json::Value::Object(p)) => {
-            for (k, v) in p {
-                merge(b.entry(k).or_insert(serde_json::Value::Null), v);
-            }
-        }
-        (b, p) => *b = p,
-    }
 }

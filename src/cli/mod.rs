@@ -123,19 +123,5 @@ pub fn options_over(
     let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
     let overrides: serde_json::Value =
         serde_json::from_str(&text).with_context(|| format!("{}: not JSON", path.display()))?;
-    let mut merged = serde_json::to_value(&options)?;
-    merge_json(&mut merged, overrides);
-    serde_json::from_value(merged).with_context(|| format!("{}: not pipeline options", path.display()))
-}
-
-/// `overrides` written over `base`, object by object.
-fn merge_json(base: &mut serde_json::Value, overrides: serde_json::Value) {
-    match (base, overrides) {
-        (serde_json::Value::Object(b), serde_json::Value::Object(o)) => {
-            for (k, v) in o {
-                merge_json(b.entry(k).or_insert(serde_json::Value::Null), v);
-            }
-        }
-        (b, o) => *b = o,
-    }
+    options.overridden_by(overrides).with_context(|| format!("{}: not pipeline options", path.display()))
 }

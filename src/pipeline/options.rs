@@ -54,6 +54,26 @@ impl Default for PipelineOptions {
     }
 }
 
+impl PipelineOptions {
+    /// These options with `overrides` written over them, object by object (the shape `POST
+    /// /v1/inspections` takes under `pipeline`; keys it leaves out keep their values).
+    pub fn overridden_by(&self, overrides: serde_json::Value) -> Result<Self, serde_json::Error> {
+        fn merge(base: &mut serde_json::Value, overrides: serde_json::Value) {
+            match (base, overrides) {
+                (serde_json::Value::Object(b), serde_json::Value::Object(o)) => {
+                    for (k, v) in o {
+                        merge(b.entry(k).or_insert(serde_json::Value::Null), v);
+                    }
+                }
+                (b, o) => *b = o,
+            }
+        }
+        let mut merged = serde_json::to_value(self)?;
+        merge(&mut merged, overrides);
+        serde_json::from_value(merged)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
