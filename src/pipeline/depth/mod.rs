@@ -75,8 +75,9 @@ pub struct DepthOptions {
     /// its own there, that peak is the pixel's.
     #[serde(default = "edge_window_radius_px")]
     pub edge_window_radius_px: usize,
-    /// Drop speckles ([`drop_speckles`]): regions smaller than one focus window's area whose
-    /// depths, linked within half the depth of field, do not join their surroundings.
+    /// Drop speckles ([`drop_speckles`]): regions smaller than `speckle_min_windows` focus windows
+    /// whose depths, linked within half the depth of field, do not join their surroundings, in
+    /// maps where such regions are common ([`speckle::MIN_SPECKLE_SHARE`]).
     #[serde(default = "yes")]
     pub drop_speckles: bool,
     /// The least area of a region that is kept, in focus windows ((2r + 1)² pixels each).

@@ -7,10 +7,10 @@
 
 use super::DepthMap;
 
-/// The share of a map's trusted pixels in speckles below which none is dropped. At the stations
-/// the accuracy suite was measured at they are 0.2–0.3% of a map, and dropping them only took
-/// data (the round thread's worst bin went 21.5 → 46.1 µm); at random stations they were a fifth
-/// to a third, mostly gross errors.
+/// The share of a map's trusted pixels in speckles below which none is dropped. On the standard
+/// preset they are 0.2% of its pixels, and dropping them on the round thread took only data (its
+/// worst bin went 21.5 → 46.1 µm; under this rule it is filtered nowhere); at random stations
+/// they were a fifth to a third of the trusted pixels, mostly gross errors.
 pub const MIN_SPECKLE_SHARE: f64 = 0.02;
 
 /// Sets to NaN every 4-connected region of trusted pixels, linked where neighbours' depths differ

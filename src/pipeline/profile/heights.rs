@@ -91,7 +91,7 @@ pub(super) fn shared_section(windows: &[&[(f64, f64)]], nominal_c_per_mm: f64) -
 /// samples. One pass of rejection at 3 MAD about a least-squares line does not reject them there
 /// (the line and the MAD are pulled by what is to be rejected), so the level is first taken as
 /// the mean of the half of the samples nearest their median, then of the half nearest that level
-/// until the half holds (least trimmed squares by concentration steps, on the level alone: a
+/// until the level holds (least trimmed squares by concentration steps, on the level alone: a
 /// half can sit at one end of the window, where a tilt would be an extrapolation); then every
 /// sample within 3 robust scales of the level is kept and the line fitted to them.
 pub(super) fn fit_at_centre(samples: &[(f64, f64)], section: Section, half: f64) -> Option<f64> {
