@@ -109,7 +109,7 @@ pub struct Report {
     pub depth_coverage: f64,
     pub map_coverage: f64,
     /// The share of fused cells dropped as implausible: more than a thread height from their
-    /// bin's mean line, so no surface of the form (pipeline.md, 3. Fusion). Absent in reports
+    /// bin's mean line, so no surface of the form (docs/pipeline.md, 4. Fusion and the mesh). Absent in reports
     /// written before the gate existed.
     #[serde(default)]
     pub map_implausible_share: f64,
