@@ -75,7 +75,9 @@ fn report(views: &[&crestscan::domain::frame::View], maps: &[DepthMap], truths: 
     for ((view, map), t) in views.iter().zip(maps).zip(truths) {
         let offsets: Vec<f64> = view.frames.iter().map(|f| f.offset_mm).collect();
         let step = (offsets[offsets.len() - 1] - offsets[0]) / (offsets.len() - 1) as f64;
-        for (i, (&d, &tr)) in map.depth_mm.iter().zip(t).enumerate() {
+        // The map holds every `row_step`-th pixel row; truth holds every row.
+        let truth_rows = t.chunks_exact(map.width).step_by(map.row_step.max(1)).flatten();
+        for (i, (&d, &tr)) in map.depth_mm.iter().zip(truth_rows).enumerate() {
             if !tr.is_finite() {
                 continue;
             }

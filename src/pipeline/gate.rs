@@ -27,8 +27,9 @@ pub fn drop_implausible(map: &mut UnrolledMap, form: &ThreadForm) -> usize {
         .into_par_iter()
         .map(|bin| {
             let mut cells: Vec<(usize, f64, f64)> = Vec::new();
+            let columns = g.bin_columns(bin);
             for iz in 0..g.nz {
-                for it in g.bin_columns(bin) {
+                for it in columns.clone() {
                     let i = map.index(iz, it);
                     let r = map.radius_mm[i];
                     if r.is_finite() {

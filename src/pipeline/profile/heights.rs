@@ -2,7 +2,6 @@
 //! known section, crest minus root, then a trimmed mean along the helix.
 
 use super::*;
-use crate::pipeline::profile::helix::bin_columns;
 
 /// Half width of the strip around the crest centre line whose brightness decides black crests.
 pub(super) const CREST_LINE_HALF_MM: f64 = 0.15;
@@ -226,7 +225,7 @@ pub(super) fn measure_threads_every(
         .step_by(bin_step.max(1))
         .map(|bin| {
             let centre_deg = bin as f64 + 0.5;
-            let columns = bin_columns(g, bin);
+            let columns = g.bin_columns(bin);
             threads
                 .iter()
                 .enumerate()

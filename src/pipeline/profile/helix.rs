@@ -15,15 +15,10 @@ pub(super) fn form_fundamental(form: &ThreadForm) -> Complex<f64> {
     c / n as f64
 }
 
-/// The map columns whose centres fall in the 1° bin [bin, bin + 1).
-pub(super) fn bin_columns(g: &crate::pipeline::surface::GridSpec, bin: usize) -> std::ops::Range<usize> {
-    g.bin_columns(bin)
-}
-
 /// Mean generatrix r(z) of a 1° bin; None where the bin is mostly unseen.
 pub(super) fn bin_generatrix(map: &UnrolledMap, bin: usize) -> Option<Vec<f64>> {
     let g = &map.grid;
-    let columns = bin_columns(g, bin);
+    let columns = g.bin_columns(bin);
     let mut profile = vec![f64::NAN; g.nz];
     let mut seen = 0;
     for (iz, value) in profile.iter_mut().enumerate() {
