@@ -52,6 +52,7 @@ codes! {
     BodyTooLarge = ("body_too_large", 413, "Body too large"),
     UnsupportedMediaType = ("unsupported_media_type", 415, "Unsupported media type"),
     InvalidOption = ("invalid_option", 422, "Invalid option"),
+    OptionOutOfRange = ("option_out_of_range", 422, "Option out of range"),
     InvalidCmm = ("invalid_cmm", 422, "Invalid CMM measurements"),
     IdempotencyKeyReused = ("idempotency_key_reused", 422, "Idempotency-Key reused"),
     InspectionNotSucceeded = ("inspection_not_succeeded", 409, "Inspection has no results"),

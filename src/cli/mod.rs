@@ -123,5 +123,8 @@ pub fn options_over(
     let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
     let overrides: serde_json::Value =
         serde_json::from_str(&text).with_context(|| format!("{}: not JSON", path.display()))?;
-    options.overridden_by(overrides).with_context(|| format!("{}: not pipeline options", path.display()))
+    let options =
+        options.overridden_by(overrides).with_context(|| format!("{}: not pipeline options", path.display()))?;
+    options.check_ranges().with_context(|| path.display().to_string())?;
+    Ok(options)
 }

@@ -71,8 +71,11 @@ pub fn build(map: &UnrolledMap, options: &MeshOptions) -> Result<Mesh, MeshError
             }
         }
     }
-    // The smallest stride that fits the budget (features thinned too if they alone exceed it).
+    // The smallest stride that fits the budget (features thinned too if they alone exceed it). At
+    // a stride past the grid's larger side only one cell is left, so the search ends there
+    // whatever the budget.
     let mut stride = 1;
+    let widest_stride = g.nz.max(g.ntheta).max(1);
     let count = |s: usize| {
         let keep = |&&(iz, it): &&(usize, usize)| iz % s == 0 && it % s == 0;
         let fs = if features.len() > options.max_vertices / 2 {
@@ -82,7 +85,7 @@ pub fn build(map: &UnrolledMap, options: &MeshOptions) -> Result<Mesh, MeshError
         };
         fs + flats.iter().filter(keep).count()
     };
-    while count(stride) > options.max_vertices {
+    while stride <= widest_stride && count(stride) > options.max_vertices {
         stride += 1;
     }
     let thin_features = features.len() > options.max_vertices / 2;
@@ -207,6 +210,19 @@ pub(crate) mod tests {
                 let v = mesh.vertices[i as usize];
                 let theta = (v[1] as f64).atan2(v[0] as f64).to_degrees();
                 assert!((-0.5..90.5).contains(&theta), "a vertex off the seen sector at {theta}°");
+            }
+        }
+    }
+
+    /// A budget no stride can meet ends the search (it once looped for ever: the grid's first cell
+    /// is on every stride).
+    #[test]
+    fn a_budget_below_one_vertex_ends_with_the_fewest_vertices() {
+        let map = sector_map();
+        for max_vertices in [0, 1] {
+            match build(&map, &MeshOptions { max_vertices, ..Default::default() }) {
+                Ok(mesh) => assert!(mesh.vertices.len() <= 2, "{}", mesh.vertices.len()),
+                Err(e) => assert!(!e.to_string().is_empty()),
             }
         }
     }

@@ -82,6 +82,8 @@ pub enum PipelineError {
     NoThread { pitch_mm: f64, map_coverage: f64, map_implausible_share: f64 },
     #[error(transparent)]
     Mesh(#[from] mesh::MeshError),
+    #[error(transparent)]
+    Option(#[from] options::OptionOutOfRange),
 }
 
 impl ErrorCode for PipelineError {
@@ -91,12 +93,14 @@ impl ErrorCode for PipelineError {
             PipelineError::NoDepth => Code::NoDepth,
             PipelineError::NoThread { .. } => Code::NoThread,
             PipelineError::Mesh(_) => Code::MeshFailed,
+            PipelineError::Option(e) => e.code(),
         }
     }
 
     fn culprit(&self) -> Option<String> {
         match self {
             PipelineError::Frame(e) => e.culprit(),
+            PipelineError::Option(e) => e.culprit(),
             _ => None,
         }
     }
@@ -118,6 +122,9 @@ pub fn inspect(
     progress: &(dyn Fn(Stage, f64) + Sync),
     cancel: &AtomicBool,
 ) -> Result<Option<Inspection>, PipelineError> {
+    // Every caller (the service checks at submission too) meets the same bounds: an option outside
+    // them can multiply a stage's memory or work without limit.
+    options.check_ranges()?;
     match run_stages(recording, options, Run::new(progress, cancel)) {
         Ok(inspection) => Ok(Some(inspection)),
         Err(Halt::Cancelled) => Ok(None),

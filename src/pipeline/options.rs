@@ -54,7 +54,98 @@ impl Default for PipelineOptions {
     }
 }
 
+/// The documented range of one numeric option, by its dotted path in the stored shape.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct OptionRange {
+    pub field: &'static str,
+    pub min: f64,
+    pub max: f64,
+    /// Whole numbers only (the option is a count or a size in pixels).
+    pub integer: bool,
+}
+
+const fn range(field: &'static str, min: f64, max: f64) -> OptionRange {
+    OptionRange { field, min, max, integer: false }
+}
+
+const fn count(field: &'static str, min: f64, max: f64) -> OptionRange {
+    OptionRange { field, min, max, integer: true }
+}
+
+/// Every numeric option's range (a test checks that none is missing and every default is inside).
+/// The bounds keep each stage's work and memory within a small multiple of the defaults' (a
+/// fused-map cell under one object pixel only multiplies cells; a focus box past 20 px or a search
+/// past 10° / 5 mm is no station's), and keep fractions and thresholds meaningful.
+pub const RANGES: &[OptionRange] = &[
+    count("depth.window_radius_px", 1.0, 20.0),
+    count("depth.flat_window_radius_px", 1.0, 20.0),
+    range("depth.min_peak_ratio", 1.0, 100.0),
+    range("depth.peak_fraction", 0.05, 0.95),
+    count("depth.row_step", 1.0, 8.0),
+    count("depth.edge_window_radius_px", 0.0, 10.0),
+    range("depth.speckle_min_windows", 0.0, 100.0),
+    range("crest.dark_fraction", 0.0, 1.0),
+    range("crest.dark_sigmas", 0.0, 50.0),
+    range("crest.dark_run_sigmas", 0.0, 50.0),
+    range("crest.dark_extent_sigmas", 0.0, 50.0),
+    range("crest.mill_onset_um", 0.0, 1000.0),
+    range("crest.mill_extent_um", 0.0, 1000.0),
+    range("crest.min_geometric_arc_deg", 0.0, 360.0),
+    range("register.max_angle_deg", 0.0, 10.0),
+    range("register.max_axial_mm", 0.0, 5.0),
+    range("register.min_ncc", 0.0, 1.0),
+    count("register.min_overlap_cells", 1.0, 10_000_000.0),
+    range("register.max_rival_ratio", 0.0, 1.0),
+    count("mesh.max_vertices", 1000.0, 20_000_000.0),
+    range("mesh.feature_mm", 0.0, 10.0),
+    count("profile.height_window_half_bins", 0.0, 90.0),
+    range("uncertainty.method_px", 0.0, 10.0),
+    range("uncertainty.coverage_factor", 1.0, 5.0),
+    count("uncertainty.noise_half_bins", 1.0, 180.0),
+    range("uncertainty.encoder_axial_bound_mm", 0.0, 10.0),
+    range("cell_px", 1.0, 10.0),
+];
+
+/// An option outside its documented range.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+#[error("pipeline.{field}: {value} is outside {min}..={max}{}", if *.integer { " (a whole number)" } else { "" })]
+pub struct OptionOutOfRange {
+    pub field: &'static str,
+    pub value: f64,
+    pub min: f64,
+    pub max: f64,
+    pub integer: bool,
+}
+
+impl crate::problem::ErrorCode for OptionOutOfRange {
+    fn code(&self) -> crate::problem::Code {
+        crate::problem::Code::OptionOutOfRange
+    }
+    fn culprit(&self) -> Option<String> {
+        Some(format!("pipeline.{}", self.field))
+    }
+}
+
+/// The numeric leaf at a dotted path of a serialised options value.
+fn leaf<'a>(value: &'a serde_json::Value, field: &str) -> Option<&'a serde_json::Value> {
+    field.split('.').try_fold(value, |v, key| v.get(key))
+}
+
 impl PipelineOptions {
+    /// Checks every numeric option against [`RANGES`]; the first one outside is named.
+    pub fn check_ranges(&self) -> Result<(), OptionOutOfRange> {
+        let value = serde_json::to_value(self).expect("options serialise");
+        for r in RANGES {
+            // A NaN serialises as null: it is out of every range.
+            let v = leaf(&value, r.field).and_then(serde_json::Value::as_f64).unwrap_or(f64::NAN);
+            let whole = !r.integer || v.fract() == 0.0;
+            if !(v >= r.min && v <= r.max && whole) {
+                return Err(OptionOutOfRange { field: r.field, value: v, min: r.min, max: r.max, integer: r.integer });
+            }
+        }
+        Ok(())
+    }
+
     /// These options with `overrides` written over them, object by object (the shape `POST
     /// /v1/inspections` takes under `pipeline`; keys it leaves out keep their values).
     pub fn overridden_by(&self, overrides: serde_json::Value) -> Result<Self, serde_json::Error> {
@@ -77,6 +168,49 @@ impl PipelineOptions {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Every numeric leaf of the stored shape, by dotted path.
+    fn numeric_leaves(value: &serde_json::Value, prefix: &str, out: &mut Vec<String>) {
+        match value {
+            serde_json::Value::Object(map) => {
+                for (k, v) in map {
+                    let path = if prefix.is_empty() { k.clone() } else { format!("{prefix}.{k}") };
+                    numeric_leaves(v, &path, out);
+                }
+            }
+            serde_json::Value::Number(_) => out.push(prefix.to_string()),
+            _ => {}
+        }
+    }
+
+    #[test]
+    fn every_numeric_option_has_a_range_and_its_default_is_inside() {
+        let mut leaves = Vec::new();
+        numeric_leaves(&serde_json::to_value(PipelineOptions::default()).unwrap(), "", &mut leaves);
+        let mut ranged: Vec<String> = RANGES.iter().map(|r| r.field.to_string()).collect();
+        leaves.sort();
+        ranged.sort();
+        assert_eq!(leaves, ranged, "RANGES must list exactly the numeric options");
+        PipelineOptions::default().check_ranges().unwrap();
+    }
+
+    #[test]
+    fn an_option_outside_its_range_is_named() {
+        let tiny_cells = PipelineOptions { cell_px: 0.01, ..Default::default() };
+        let e = tiny_cells.check_ranges().unwrap_err();
+        assert_eq!((e.field, e.value), ("cell_px", 0.01));
+        assert!(e.to_string().starts_with("pipeline.cell_px: 0.01 is outside 1..=10"), "{e}");
+        let mut no_vertices = PipelineOptions::default();
+        no_vertices.mesh.max_vertices = 0;
+        assert_eq!(no_vertices.check_ranges().unwrap_err().field, "mesh.max_vertices");
+        let mut nan = PipelineOptions::default();
+        nan.register.min_ncc = f64::NAN;
+        assert_eq!(nan.check_ranges().unwrap_err().field, "register.min_ncc");
+        let mut edge = PipelineOptions::default();
+        edge.register.min_ncc = 1.0;
+        edge.cell_px = 10.0;
+        edge.check_ranges().unwrap();
+    }
 
     /// Jobs store their options; those stored before the profile options existed still load.
     #[test]

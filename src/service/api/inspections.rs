@@ -83,7 +83,7 @@ pub struct Inspection {
     pub attempts: i64,
     pub cancel_requested: bool,
     pub bundle: BundleSummary,
-    /// The options the pipeline runs with (defaults filled in).
+    /// The options the pipeline runs with (defaults filled in), under `pipeline`.
     #[schema(value_type = Object)]
     pub options: serde_json::Value,
     /// Why it failed: the same problem object HTTP errors use.
@@ -152,8 +152,56 @@ pub struct SubmitOptions {
     /// Only in the multipart `options` part.
     #[serde(default)]
     #[param(ignore)]
-    #[schema(value_type = Option<Object>)]
+    #[schema(schema_with = pipeline_options_schema)]
     pub pipeline: Option<serde_json::Value>,
+}
+
+/// The schema of `pipeline`, built from the options' defaults and their ranges
+/// ([`crate::pipeline::options::RANGES`]), so the document states the bounds the server checks:
+/// every key optional, unknown keys refused, each number with its minimum, maximum and default.
+fn pipeline_options_schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
+    use crate::pipeline::options::RANGES;
+    use utoipa::openapi::schema::{AdditionalProperties, ObjectBuilder, Schema, SchemaType, Type};
+    fn node(value: &serde_json::Value, path: &str) -> Schema {
+        // Single-precision defaults widen to f64 with a tail (0.45 → 0.44999998807907104): six
+        // significant digits state them as written.
+        let shown = match value.as_f64() {
+            Some(v) if value.is_f64() => serde_json::json!(format!("{v:.6e}").parse::<f64>().unwrap_or(v)),
+            _ => value.clone(),
+        };
+        let builder = ObjectBuilder::new().default(Some(shown));
+        let built = match value {
+            serde_json::Value::Object(map) => {
+                let mut object = ObjectBuilder::new()
+                    .schema_type(SchemaType::new(Type::Object))
+                    .additional_properties(Some(AdditionalProperties::FreeForm(false)));
+                for (key, child) in map {
+                    let child_path = if path.is_empty() { key.clone() } else { format!("{path}.{key}") };
+                    object = object.property(key, node(child, &child_path));
+                }
+                object
+            }
+            serde_json::Value::Bool(_) => builder.schema_type(SchemaType::new(Type::Boolean)),
+            serde_json::Value::Number(_) => {
+                let range = RANGES.iter().find(|r| r.field == path).expect("every numeric option has a range");
+                let kind = if range.integer { Type::Integer } else { Type::Number };
+                builder.schema_type(SchemaType::new(kind)).minimum(Some(range.min)).maximum(Some(range.max))
+            }
+            serde_json::Value::String(_) if path == "arc_rule" => {
+                builder.schema_type(SchemaType::new(Type::String)).enum_values(Some(["per_thread", "combined"]))
+            }
+            _ => builder,
+        };
+        Schema::Object(built.build())
+    }
+    let defaults = serde_json::to_value(PipelineOptions::default()).expect("options serialise");
+    let Schema::Object(mut object) = node(&defaults, "") else { unreachable!("the options are an object") };
+    object.description = Some(
+        "Pipeline options to override (same shape as the inspection's `options.pipeline`; keys left out keep \
+         their defaults). Only in the multipart `options` part."
+            .into(),
+    );
+    utoipa::openapi::RefOr::T(Schema::Object(object))
 }
 
 /// The multipart form of an upload. Instead of `bundle`, a `manifest` part and one part per frame
@@ -164,8 +212,8 @@ pub struct BundleForm {
     /// The bundle as a zip or tar archive.
     #[schema(value_type = String, format = Binary)]
     bundle: Vec<u8>,
-    /// Submission options as JSON: `client_reference`, `arc_rule`, `pipeline`.
-    options: Option<String>,
+    /// Submission options (a JSON part): `client_reference`, `arc_rule`, `pipeline`.
+    options: Option<SubmitOptions>,
 }
 
 /// Idempotency-Key: 1–255 visible ASCII characters.
@@ -240,6 +288,7 @@ pub fn resolve_options(query: SubmitOptions, part: Option<&[u8]>) -> Result<(Opt
     if let Some(rule) = part.arc_rule.or(query.arc_rule) {
         pipeline.arc_rule = rule;
     }
+    pipeline.check_ranges().map_err(|e| ApiError::of(&e))?;
     Ok((reference, JobOptions { pipeline }))
 }
 

@@ -1,6 +1,7 @@
 //! The service over real HTTP: the real app on a loopback port with a fresh SQLite file, driven by
 //! reqwest; and the real binary, killed with SIGKILL and restarted.
 
+mod hostile;
 mod inspections;
 mod openapi;
 mod queue;
