@@ -277,15 +277,10 @@ pub(super) fn check_work(part: &Part, optics: &Optics, views: &[View], limits: L
             ),
         ));
     }
-    // The band along the axis: the views' axial poses, widened by the widest frame (image columns
-    // run along the axis).
-    let pixel_mm = optics.object_pixel_mm(optics.focus_distance_mm);
+    let band = crate::domain::station::surface_pixels(optics, views, part.circumference_mm());
+    let (surface, band_mm, frame_mm, lo, hi, pixel_mm) =
+        (band.pixels, band.band_mm, band.frame_mm, band.lo, band.hi, band.pixel_mm);
     let axial = |i: usize| views[i].pose.axial_mm;
-    let lo = (0..views.len()).min_by(|&a, &b| axial(a).total_cmp(&axial(b))).unwrap_or(0);
-    let hi = (0..views.len()).max_by(|&a, &b| axial(a).total_cmp(&axial(b))).unwrap_or(0);
-    let frame_mm = views.iter().map(|v| v.format.width).max().unwrap_or(0) as f64 * pixel_mm;
-    let band_mm = axial(hi) - axial(lo) + frame_mm;
-    let surface = (part.circumference_mm() / pixel_mm) * (band_mm / pixel_mm);
     if surface > limits.max_surface_pixels as f64 {
         // The culprit: a pose far from the others when the poses spread over more than a frame, a
         // custom pipe over twice the largest API 5B one (20 in, 508 mm), else the optics' scale.

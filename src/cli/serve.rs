@@ -47,6 +47,10 @@ pub struct ServeArgs {
     /// Largest upload in MiB [default: 4096].
     #[arg(long, env = "CRESTSCAN_MAX_UPLOAD_MB")]
     max_upload_mb: Option<u64>,
+    /// Memory one inspection may take, MiB; bigger bundles are refused at upload [default: 0 =
+    /// 60% of physical memory over the workers].
+    #[arg(long, env = "CRESTSCAN_WORKER_MEMORY_MB")]
+    worker_memory_mb: Option<u64>,
     /// Job lease in seconds [default: 30].
     #[arg(long, env = "CRESTSCAN_LEASE_SECONDS")]
     lease_seconds: Option<f64>,
@@ -85,6 +89,7 @@ impl ServeArgs {
             workers,
             compute_threads,
             max_upload_mb,
+            worker_memory_mb,
             lease_seconds,
             heartbeat_seconds,
             max_attempts,

@@ -20,13 +20,18 @@ impl ValidateArgs {
             ..Default::default()
         };
         let b = open_bundle(&self.bundle, options)?;
+        let threads = rayon::current_num_threads();
+        let memory = crestscan::pipeline::memory::estimate(&b, &Default::default(), threads);
         println!(
-            "{}: valid bundle v1; {} ({}), {} views, {} frames",
+            "{}: valid bundle v1; {} ({}), {} views, {} frames; an inspection takes about {:.0} MiB at its peak \
+             on {threads} threads ({})",
             self.bundle.display(),
             b.part.connection.as_deref().unwrap_or("custom thread"),
             b.part.family().as_str(),
             b.views.len(),
-            b.frame_count()
+            b.frame_count(),
+            memory.peak_mib(),
+            memory.terms.iter().map(|(t, v)| format!("{t} {:.0}", v / 1048576.0)).collect::<Vec<_>>().join(", ")
         );
         Ok(())
     }

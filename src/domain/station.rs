@@ -33,6 +33,43 @@ pub struct Station {
     pub overlap_deg: Option<f64>,
 }
 
+/// The surface the views cover, in object pixels: the circumference by the band along the axis
+/// that the views' axial poses span, widened by the widest frame (image columns run along the
+/// axis). Registration's and fusion's grids scale with it. Also returns the band, mm, and the views
+/// at its two ends.
+pub fn surface_pixels(optics: &Optics, views: &[View], circumference_mm: f64) -> SurfaceBand {
+    let pixel_mm = optics.object_pixel_mm(optics.focus_distance_mm);
+    let axial = |i: usize| views[i].pose.axial_mm;
+    let lo = (0..views.len()).min_by(|&a, &b| axial(a).total_cmp(&axial(b))).unwrap_or(0);
+    let hi = (0..views.len()).max_by(|&a, &b| axial(a).total_cmp(&axial(b))).unwrap_or(0);
+    let frame_mm = views.iter().map(|v| v.format.width).max().unwrap_or(0) as f64 * pixel_mm;
+    let (spread_mm, band_mm) =
+        if views.is_empty() { (0.0, 0.0) } else { (axial(hi) - axial(lo), axial(hi) - axial(lo) + frame_mm) };
+    SurfaceBand {
+        pixels: (circumference_mm / pixel_mm) * (band_mm / pixel_mm),
+        band_mm,
+        spread_mm,
+        frame_mm,
+        lo,
+        hi,
+        pixel_mm,
+    }
+}
+
+/// What [`surface_pixels`] found.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SurfaceBand {
+    pub pixels: f64,
+    pub band_mm: f64,
+    /// How far the views' axial poses spread, and a frame's width along the axis, mm.
+    pub spread_mm: f64,
+    pub frame_mm: f64,
+    /// The views with the lowest and the highest axial pose.
+    pub lo: usize,
+    pub hi: usize,
+    pub pixel_mm: f64,
+}
+
 impl Station {
     /// The station of a recording: its optics, its views and the pipe's radius.
     pub fn of(optics: &Optics, views: &[View], pipe_radius_mm: f64) -> Self {

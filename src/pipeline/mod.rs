@@ -43,6 +43,7 @@ pub mod quality;
 
 pub mod report;
 
+pub mod memory;
 pub mod options;
 pub mod run;
 

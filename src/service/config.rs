@@ -19,6 +19,10 @@ pub struct Settings {
     pub compute_threads: usize,
     /// Largest accepted upload.
     pub max_upload_mb: u64,
+    /// Memory one inspection may take at its peak, MiB (0: sized to the machine, 60% of its
+    /// physical memory shared among the workers). A bundle whose estimated peak
+    /// ([`crate::pipeline::memory`]) is larger is refused at upload (422 `inspection_too_large`).
+    pub worker_memory_mb: u64,
     /// A running job's lease; a worker that stops heartbeating loses it after this long.
     pub lease_seconds: f64,
     /// How often a running job renews its lease and publishes progress.
@@ -43,6 +47,7 @@ impl Default for Settings {
             workers: 1,
             compute_threads: 0,
             max_upload_mb: 4096,
+            worker_memory_mb: 0,
             lease_seconds: 30.0,
             heartbeat_seconds: 2.0,
             max_attempts: 3,
@@ -108,6 +113,37 @@ impl Settings {
     pub fn max_upload_bytes(&self) -> u64 {
         self.max_upload_mb.saturating_mul(1 << 20)
     }
+
+    /// The memory one inspection may take, bytes: the setting, else 60% of the machine's physical
+    /// memory over the workers.
+    pub fn worker_memory_bytes(&self) -> f64 {
+        if self.worker_memory_mb > 0 {
+            return self.worker_memory_mb as f64 * 1048576.0;
+        }
+        0.6 * physical_memory_bytes() / self.workers.max(1) as f64
+    }
+
+    /// The pipeline's compute threads: the setting, else one per core.
+    pub fn compute_threads_resolved(&self) -> usize {
+        if self.compute_threads > 0 {
+            self.compute_threads
+        } else {
+            std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)
+        }
+    }
+}
+
+/// The machine's physical memory (4 GiB where the system does not say).
+fn physical_memory_bytes() -> f64 {
+    #[cfg(unix)]
+    {
+        // SAFETY: sysconf reads system constants; no memory is passed.
+        let (pages, page) = unsafe { (libc::sysconf(libc::_SC_PHYS_PAGES), libc::sysconf(libc::_SC_PAGESIZE)) };
+        if pages > 0 && page > 0 {
+            return pages as f64 * page as f64;
+        }
+    }
+    4.0 * 1024.0 * 1024.0 * 1024.0
 }
 
 #[cfg(test)]

@@ -238,6 +238,9 @@ fn run_job(ctx: &WorkerContext, job: &Claimed, cancel: &AtomicBool, progress: &M
         Ok(b) => b,
         Err(e) => return failure(&e),
     };
+    if let Err(e) = crate::service::queue::check_memory(&bundle, &options.pipeline, &ctx.settings) {
+        return Outcome::Fail(Problem::of(&e));
+    }
     let report_progress = |stage: Stage, fraction: f64| {
         *progress.lock().expect("progress lock") = Some((stage, fraction));
     };

@@ -378,9 +378,12 @@ pub async fn create_inspection(
     let limit = state.settings.max_upload_bytes();
     let files = state.store.files.clone();
     let ingest::Received { file, sha256, size_bytes, .. } = received;
+    let settings = state.settings.clone();
+    let pipeline_options = options.pipeline.clone();
     let (upload, serial, connection, file) = tokio::task::spawn_blocking(move || {
         let limits = crate::service::queue::bundle_limits(limit);
         let bundle = Bundle::open(file.path(), &table, OpenOptions { limits, frame_check: FrameCheck::Headers })?;
+        crate::service::queue::check_memory(&bundle, &pipeline_options, &settings).map_err(|e| ApiError::of(&e))?;
         let serial = bundle.manifest.part.serial.clone();
         let connection = bundle.manifest.part.connection.clone();
         let summary = crate::service::store::UploadInfo {

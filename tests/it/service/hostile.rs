@@ -85,3 +85,90 @@ fn the_document_states_the_ranges_the_server_checks() {
         assert_eq!(node["type"], if r.integer { "integer" } else { "number" }, "{}", r.field);
     }
 }
+
+/// A PNG that is only its signature, header and end: `width`×`height` 8-bit RGB declared, no pixels.
+fn png_header_only(width: u32, height: u32) -> Vec<u8> {
+    fn crc32(bytes: &[u8]) -> u32 {
+        let mut crc = !0u32;
+        for &b in bytes {
+            crc ^= b as u32;
+            for _ in 0..8 {
+                crc = if crc & 1 != 0 { (crc >> 1) ^ 0xEDB8_8320 } else { crc >> 1 };
+            }
+        }
+        !crc
+    }
+    let mut header = width.to_be_bytes().to_vec();
+    header.extend(height.to_be_bytes());
+    header.extend([8, 2, 0, 0, 0]); // 8 bits, RGB, deflate, no filter method, no interlace
+    let mut png = b"\x89PNG\r\n\x1a\n".to_vec();
+    // The header, then an empty image-data chunk and the end.
+    for (kind, data) in [(&b"IHDR"[..], &header[..]), (b"IDAT", &[]), (b"IEND", &[])] {
+        let chunk = [kind, data].concat();
+        png.extend((data.len() as u32).to_be_bytes());
+        png.extend(&chunk);
+        png.extend(crc32(&chunk).to_be_bytes());
+    }
+    png
+}
+
+/// The ci bundle's manifest cut to 3 views, each frame a 3600×3600 header with no pixel data: tens
+/// of KB that declare hundreds of millions of pixels (each view's stack within the bundle reader's
+/// own caps, so the memory budget is what refuses it).
+fn huge_headers_tar() -> Vec<u8> {
+    let mut manifest: Value =
+        serde_json::from_slice(&std::fs::read(ci_bundle().join("manifest.json")).unwrap()).unwrap();
+    let views = manifest["views"].as_array_mut().unwrap();
+    views.truncate(3);
+    let mut builder = tar::Builder::new(Vec::new());
+    let mut add = |name: &str, data: &[u8]| {
+        let mut header = tar::Header::new_ustar();
+        header.set_size(data.len() as u64);
+        header.set_mode(0o644);
+        builder.append_data(&mut header, name, data).unwrap();
+    };
+    for view in views.iter_mut() {
+        for frame in view["frames"].as_array().unwrap() {
+            add(frame["file"].as_str().unwrap(), &png_header_only(3600, 3600));
+        }
+    }
+    add("manifest.json", &serde_json::to_vec(&manifest).unwrap());
+    builder.into_inner().unwrap()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_bundle_over_the_memory_budget_is_refused_before_the_202() {
+    let app = spawn_app_with(|s| {
+        s.workers = 0;
+        s.worker_memory_mb = 2048;
+    })
+    .await;
+    let body = huge_headers_tar();
+    assert!(body.len() < 64 << 10, "{} bytes", body.len());
+    let v = problem(app.submit(body, "").await, StatusCode::UNPROCESSABLE_ENTITY, "inspection_too_large").await;
+    assert_eq!(v["culprit"], "views[].frames", "{v}");
+    let detail = v["detail"].as_str().unwrap();
+    assert!(detail.contains("worker_memory_mb") && detail.contains("2048 MiB"), "{detail}");
+    assert_eq!(app.uploads(), 0);
+    // The ci bundle fits the same budget.
+    assert_eq!(app.submit(ci_tar(), "").await.status(), StatusCode::ACCEPTED);
+    app.stop().await;
+}
+
+/// A job accepted under one budget and run under a smaller one fails cleanly with the budget's
+/// problem; the worker goes on.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_queued_job_over_a_lowered_budget_fails_cleanly() {
+    let dir = tempfile::tempdir().unwrap();
+    let accepting = spawn_app_in(dir.path(), |s| s.workers = 0).await;
+    let response = accepting.submit(ci_tar(), "").await;
+    assert_eq!(response.status(), StatusCode::ACCEPTED);
+    let id = response.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+    accepting.stop().await;
+    let running = spawn_app_in(dir.path(), |s| s.worker_memory_mb = 1).await;
+    let done = running.wait(&id, Duration::from_secs(60)).await;
+    assert_eq!(done["status"], "failed", "{done}");
+    assert_eq!(done["error"]["code"], "inspection_too_large", "{done}");
+    assert!(done["error"]["detail"].as_str().unwrap().contains("worker_memory_mb"), "{done}");
+    running.stop().await;
+}
