@@ -86,6 +86,7 @@ codes! {
     IoError = ("io_error", 500, "I/O error"),
     InternalError = ("internal_error", 500, "Internal error"),
     NotReady = ("not_ready", 503, "Not ready"),
+    InsufficientStorage = ("insufficient_storage", 507, "Insufficient storage"),
 }
 
 impl Code {

@@ -130,6 +130,9 @@ pub enum FrameCheck {
 pub struct OpenOptions {
     pub limits: Limits,
     pub frame_check: FrameCheck,
+    /// How errors name the archive (default: its path). The service says "the upload": its
+    /// temporary file's path is the server's business.
+    pub name: Option<&'static str>,
 }
 
 pub struct Bundle {
@@ -148,7 +151,7 @@ impl std::fmt::Debug for Bundle {
 
 impl Bundle {
     pub fn open(path: &Path, table: &ConnectionTable, options: OpenOptions) -> Result<Self, BundleError> {
-        let source = Source::open(path, options.limits)?;
+        let source = Source::open(path, options.limits, options.name)?;
         source.check_dir_limits()?;
         let manifest_bytes = source.read("manifest.json")?;
         let manifest = parse_manifest(&manifest_bytes)?;

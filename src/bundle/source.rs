@@ -91,8 +91,8 @@ fn io_err(path: &str, e: impl std::fmt::Display) -> BundleError {
 
 impl Source {
     /// Opens a directory, or an archive recognised by its magic bytes (zip) or ustar header (tar).
-    pub fn open(path: &Path, limits: Limits) -> Result<Self, BundleError> {
-        let display = path.display().to_string();
+    pub fn open(path: &Path, limits: Limits, name: Option<&str>) -> Result<Self, BundleError> {
+        let display = name.map_or_else(|| path.display().to_string(), str::to_string);
         let meta = std::fs::metadata(path).map_err(|e| io_err(&display, e))?;
         if meta.is_dir() {
             return Ok(Self { kind: Kind::Dir(path.to_path_buf()), prefix: String::new(), limits, display });

@@ -51,6 +51,10 @@ pub struct ServeArgs {
     /// 60% of physical memory over the workers].
     #[arg(long, env = "CRESTSCAN_WORKER_MEMORY_MB")]
     worker_memory_mb: Option<u64>,
+    /// Free space the data directory keeps, MiB: uploads that would leave less get 507 [default:
+    /// 1024].
+    #[arg(long, env = "CRESTSCAN_MIN_FREE_DISK_MB")]
+    min_free_disk_mb: Option<u64>,
     /// Job lease in seconds [default: 30].
     #[arg(long, env = "CRESTSCAN_LEASE_SECONDS")]
     lease_seconds: Option<f64>,
@@ -90,6 +94,7 @@ impl ServeArgs {
             compute_threads,
             max_upload_mb,
             worker_memory_mb,
+            min_free_disk_mb,
             lease_seconds,
             heartbeat_seconds,
             max_attempts,

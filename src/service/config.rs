@@ -23,6 +23,10 @@ pub struct Settings {
     /// physical memory shared among the workers). A bundle whose estimated peak
     /// ([`crate::pipeline::memory`]) is larger is refused at upload (422 `inspection_too_large`).
     pub worker_memory_mb: u64,
+    /// Free space the data directory keeps, MiB: an upload that would leave less is refused with
+    /// 507 before (or while) it is written, `/readyz` reports not ready below it, and workers
+    /// claim no job until space returns.
+    pub min_free_disk_mb: u64,
     /// A running job's lease; a worker that stops heartbeating loses it after this long.
     pub lease_seconds: f64,
     /// How often a running job renews its lease and publishes progress.
@@ -48,6 +52,7 @@ impl Default for Settings {
             compute_threads: 0,
             max_upload_mb: 4096,
             worker_memory_mb: 0,
+            min_free_disk_mb: 1024,
             lease_seconds: 30.0,
             heartbeat_seconds: 2.0,
             max_attempts: 3,

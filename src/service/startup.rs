@@ -34,7 +34,8 @@ pub struct Application {
 impl Application {
     pub async fn build(settings: Settings) -> Result<Self, StartupError> {
         settings.validate()?;
-        let store = Store::open(&settings.database_path(), &settings.uploads_dir(), &settings.tmp_dir()).await?;
+        let mut store = Store::open(&settings.database_path(), &settings.uploads_dir(), &settings.tmp_dir()).await?;
+        store.files = store.files.with_free_floor(settings.min_free_disk_mb.saturating_mul(1 << 20));
         let cleared = store.files.clear_temporaries(Duration::from_secs(6 * 3600)).map_err(StoreError::Io)?;
         if cleared > 0 {
             tracing::info!(cleared, "removed temporaries of interrupted uploads");

@@ -90,6 +90,20 @@ async fn worker_loop(ctx: WorkerContext, slot: usize, mut shutdown: watch::Recei
         if *shutdown.borrow() {
             return;
         }
+        // Below the free-space floor a job's results could not be stored: claim nothing until space
+        // returns (the jobs wait queued, not wedged in `running`).
+        match ctx.store.files.has_room(0) {
+            Ok((false, free)) => {
+                tracing::warn!(slot, free_bytes = free, "disk under its free-space floor; not claiming");
+                tokio::select! {
+                    _ = tokio::time::sleep(poll.max(Duration::from_secs(1))) => {}
+                    _ = shutdown.changed() => {}
+                }
+                continue;
+            }
+            Ok((true, _)) => {}
+            Err(e) => tracing::warn!(slot, error = %e, "free space unknown"),
+        }
         // A lease names the claim, not only the process: two slots of one process never share one.
         let lease_token = format!("{}/{}", ctx.owner, uuid::Uuid::now_v7());
         match ctx.store.claim(&lease_token, lease).await {
@@ -215,8 +229,14 @@ fn contain(id: &str, run: impl FnOnce() -> Outcome) -> Outcome {
             .map(|s| s.to_string())
             .or_else(|| panic.downcast_ref::<String>().cloned())
             .unwrap_or_else(|| "unknown panic".into());
-        tracing::error!(inspection = %id, %message, "pipeline panicked");
-        Outcome::Fail(problem(Code::PipelinePanic, format!("the pipeline crashed on this bundle: {message}")))
+        // The panic's text names the code, not the input: it goes to the log, under a reference
+        // the client sees.
+        let reference = uuid::Uuid::now_v7();
+        tracing::error!(inspection = %id, %message, %reference, "pipeline panicked");
+        Outcome::Fail(problem(
+            Code::PipelinePanic,
+            format!("the pipeline crashed on this bundle; the server's log has the cause under reference {reference}"),
+        ))
     })
 }
 
@@ -234,7 +254,11 @@ fn run_job(ctx: &WorkerContext, job: &Claimed, cancel: &AtomicBool, progress: &M
         ));
     }
     let limits = crate::service::queue::bundle_limits(ctx.settings.max_upload_bytes());
-    let bundle = match Bundle::open(&path, &ctx.table, OpenOptions { limits, ..OpenOptions::default() }) {
+    let bundle = match Bundle::open(
+        &path,
+        &ctx.table,
+        OpenOptions { limits, name: Some("the upload"), ..OpenOptions::default() },
+    ) {
         Ok(b) => b,
         Err(e) => return failure(&e),
     };
@@ -255,7 +279,11 @@ fn run_job(ctx: &WorkerContext, job: &Claimed, cancel: &AtomicBool, progress: &M
     }
     match encode_results(&inspection) {
         Ok(r) => Outcome::Succeeded(Box::new(r)),
-        Err(e) => Outcome::Retry(problem(Code::IoError, e.to_string())),
+        Err(e) => {
+            let reference = uuid::Uuid::now_v7();
+            tracing::warn!(inspection = %job.id, error = %e, %reference, "encoding the results failed");
+            Outcome::Retry(problem(Code::IoError, format!("encoding the results failed; log reference {reference}")))
+        }
     }
 }
 
@@ -264,7 +292,12 @@ fn run_job(ctx: &WorkerContext, job: &Claimed, cancel: &AtomicBool, progress: &M
 /// operator's business, in the log), as the API shows it.
 fn failure(e: &impl ErrorCode) -> Outcome {
     if e.code().is_transient() {
-        Outcome::Retry(problem(Code::InternalError, e.to_string()))
+        let reference = uuid::Uuid::now_v7();
+        tracing::warn!(error = %e, %reference, "transient failure; the job will be retried");
+        Outcome::Retry(problem(
+            Code::InternalError,
+            format!("the server failed; its log has the cause under reference {reference}"),
+        ))
     } else {
         Outcome::Fail(Problem::of(e))
     }
@@ -306,7 +339,8 @@ mod tests {
         });
         let Outcome::Fail(p) = outcome else { panic!("a panic must fail the job") };
         assert_eq!((p.code.as_str(), p.status), ("pipeline_panic", 500));
-        assert!(p.detail.contains("index out of bounds"), "{}", p.detail);
+        // The panic's text is logged, not shown.
+        assert!(!p.detail.contains("index out of bounds") && p.detail.contains("reference"), "{}", p.detail);
         assert!(matches!(contain("job-2", || Outcome::Canceled), Outcome::Canceled));
     }
 
@@ -317,6 +351,7 @@ mod tests {
             panic!("I/O is retried")
         };
         assert_eq!((p.code.as_str(), p.culprit), ("internal_error", None));
+        assert!(!p.detail.contains("EIO") && !p.detail.contains('/'), "no server detail shown: {}", p.detail);
         let Outcome::Fail(p) = failure(&BundleError::MissingFile { path: "a/0.png".into() }) else { panic!() };
         assert_eq!((p.code.as_str(), p.culprit.as_deref()), ("missing_file", Some("a/0.png")));
         let Outcome::Fail(p) = failure(&pipeline::PipelineError::NoDepth) else { panic!() };

@@ -15,7 +15,7 @@ fn open(path: &Path) -> Result<Bundle, BundleError> {
 }
 
 fn open_with(path: &Path, limits: Limits) -> Result<Bundle, BundleError> {
-    Bundle::open(path, &ConnectionTable::api5b(), OpenOptions { limits, frame_check: FrameCheck::Headers })
+    Bundle::open(path, &ConnectionTable::api5b(), OpenOptions { limits, frame_check: FrameCheck::Headers, name: None })
 }
 
 /// Opens, expects an error with `code`, and checks the message names every `culprit`.

@@ -34,25 +34,48 @@ pub struct Readiness {
     pub status: String,
     pub database: String,
     pub disk: String,
+    /// Free space on the data directory's file system, and the floor kept (`min_free_disk_mb`),
+    /// MiB.
+    pub disk_free_mb: u64,
+    pub disk_floor_mb: u64,
     pub queued: i64,
     pub running: i64,
 }
 
-/// Readiness: the database answers, the data directory takes writes; reports the queue depth.
+/// Readiness: the database answers, the data directory takes writes and has more free space than
+/// its floor; reports the free space and the queue depth.
 #[utoipa::path(get, path = "/readyz", operation_id = "readyz", tag = "operations",
     responses(
         (status = 200, description = "Ready", body = Readiness),
-        (status = 503, description = "Not ready (database or disk)", body = Problem, content_type = "application/problem+json"),
+        (status = 503, description = "Not ready (database, disk not writable, or free space under the floor)", body = Problem, content_type = "application/problem+json"),
     ))]
 pub async fn readyz(State(state): State<AppState>) -> Result<Json<Readiness>, ApiError> {
     state.store.ping().await.map_err(|e| ApiError::new(Code::NotReady, format!("database: {e}")))?;
     let files = state.store.files.clone();
-    tokio::task::spawn_blocking(move || files.check_writable())
-        .await
-        .map_err(ApiError::internal)?
-        .map_err(|e| ApiError::new(Code::NotReady, format!("data directory not writable: {e}")))?;
+    let (room, free) = tokio::task::spawn_blocking(move || {
+        files.check_writable()?;
+        files.has_room(0)
+    })
+    .await
+    .map_err(ApiError::internal)?
+    .map_err(|e| ApiError::new(Code::NotReady, format!("data directory not writable: {e}")))?;
+    let floor_mb = state.store.files.free_floor_bytes() >> 20;
+    if !room {
+        return Err(ApiError::new(
+            Code::NotReady,
+            format!("disk: {} MiB free, under the {floor_mb} MiB floor (min_free_disk_mb)", free >> 20),
+        ));
+    }
     let (queued, running) = state.store.queue_depth().await?;
-    Ok(Json(Readiness { status: "ready".into(), database: "ok".into(), disk: "ok".into(), queued, running }))
+    Ok(Json(Readiness {
+        status: "ready".into(),
+        database: "ok".into(),
+        disk: "ok".into(),
+        disk_free_mb: free >> 20,
+        disk_floor_mb: floor_mb,
+        queued,
+        running,
+    }))
 }
 
 /// Prometheus metrics (text exposition format).

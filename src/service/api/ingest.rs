@@ -82,21 +82,61 @@ struct Upload {
     file: tempfile::NamedTempFile,
     received: u64,
     limit: u64,
+    files: FileStore,
+    /// Received bytes at which the free space is looked at next.
+    next_space_check: u64,
+}
+
+/// How often, in received bytes, a streaming upload checks that the disk stays above its floor.
+const SPACE_CHECK_BYTES: u64 = 32 << 20;
+
+/// 507 unless `incoming` more bytes leave the store above its free-space floor.
+pub fn ensure_room(files: &FileStore, incoming: u64) -> Result<(), ApiError> {
+    let (room, free) = files.has_room(incoming).map_err(ApiError::internal)?;
+    if room {
+        return Ok(());
+    }
+    tracing::warn!(free_bytes = free, floor_bytes = files.free_floor_bytes(), incoming, "upload refused: disk low");
+    Err(ApiError::new(
+        Code::InsufficientStorage,
+        format!(
+            "the server's disk cannot take this upload now: {} MiB free, {} MiB kept free (min_free_disk_mb){}; \
+             retry later",
+            free >> 20,
+            files.free_floor_bytes() >> 20,
+            if incoming > 0 { format!(", {} MiB announced", incoming >> 20) } else { String::new() }
+        ),
+    ))
+}
+
+/// The client-facing error of a failed upload write: 507 when the disk is full, else internal
+/// (logged, with a reference).
+pub fn write_failed(e: &std::io::Error) -> ApiError {
+    if crate::service::store::files::is_storage_full(e) {
+        tracing::warn!(error = %e, "upload failed: disk full");
+        ApiError::new(Code::InsufficientStorage, "the server's disk filled while storing this upload; retry later")
+    } else {
+        ApiError::internal(format!("writing the upload: {e}"))
+    }
 }
 
 impl Upload {
     fn start(files: &FileStore, limit: u64) -> Result<Self, ApiError> {
-        let file = files.temp_file().map_err(ApiError::internal)?;
+        let file = files.temp_file().map_err(|e| write_failed(&e))?;
         let handle = file.reopen().map_err(ApiError::internal)?;
         let (tx, rx) = mpsc::channel(64);
         let writer = tokio::task::spawn_blocking(move || write_loop(handle, rx));
-        Ok(Self { tx, writer, file, received: 0, limit })
+        Ok(Self { tx, writer, file, received: 0, limit, files: files.clone(), next_space_check: SPACE_CHECK_BYTES })
     }
 
     fn count(&mut self, n: usize) -> Result<(), ApiError> {
         self.received += n as u64;
         if self.received > self.limit {
             return Err(too_large(self.limit));
+        }
+        if self.received >= self.next_space_check {
+            self.next_space_check = self.received + SPACE_CHECK_BYTES;
+            ensure_room(&self.files, 0)?;
         }
         Ok(())
     }
@@ -111,7 +151,7 @@ impl Upload {
 
     async fn writer_error(&mut self) -> ApiError {
         match (&mut self.writer).await {
-            Ok(Err(e)) => ApiError::internal(format!("writing the upload: {e}")),
+            Ok(Err(e)) => write_failed(&e),
             Ok(Ok(_)) => ApiError::internal("upload writer stopped early"),
             Err(e) => ApiError::internal(format!("upload writer: {e}")),
         }
@@ -119,11 +159,7 @@ impl Upload {
 
     async fn finish(self, options_part: Option<Vec<u8>>) -> Result<Received, ApiError> {
         drop(self.tx);
-        let (sha256, size_bytes) = self
-            .writer
-            .await
-            .map_err(ApiError::internal)?
-            .map_err(|e| ApiError::internal(format!("writing the upload: {e}")))?;
+        let (sha256, size_bytes) = self.writer.await.map_err(ApiError::internal)?.map_err(|e| write_failed(&e))?;
         Ok(Received { file: self.file, sha256, size_bytes, options_part })
     }
 }
@@ -164,6 +200,14 @@ pub async fn receive(request: Request, files: &FileStore, limit: u64) -> Result<
             drain(request.into_body()).await;
         }
         return Err(too_large(limit));
+    }
+    let announced =
+        request.headers().get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()?.parse::<u64>().ok()).unwrap_or(0);
+    if let Err(e) = ensure_room(files, announced) {
+        if announced <= DRAIN_BYTES {
+            drain(request.into_body()).await;
+        }
+        return Err(e);
     }
     let essence = content_type.split(';').next().unwrap_or("").trim().to_string();
     match essence.as_str() {

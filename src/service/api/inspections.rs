@@ -382,7 +382,11 @@ pub async fn create_inspection(
     let pipeline_options = options.pipeline.clone();
     let (upload, serial, connection, file) = tokio::task::spawn_blocking(move || {
         let limits = crate::service::queue::bundle_limits(limit);
-        let bundle = Bundle::open(file.path(), &table, OpenOptions { limits, frame_check: FrameCheck::Headers })?;
+        let bundle = Bundle::open(
+            file.path(),
+            &table,
+            OpenOptions { limits, frame_check: FrameCheck::Headers, name: Some("the upload") },
+        )?;
         crate::service::queue::check_memory(&bundle, &pipeline_options, &settings).map_err(|e| ApiError::of(&e))?;
         let serial = bundle.manifest.part.serial.clone();
         let connection = bundle.manifest.part.connection.clone();
@@ -394,7 +398,7 @@ pub async fn create_inspection(
         };
         drop(bundle);
         // Durable now; placed under its hash inside the database transaction.
-        files.prepare(&file).map_err(ApiError::internal)?;
+        files.prepare(&file).map_err(|e| ingest::write_failed(&e))?;
         Ok::<_, ApiError>((summary, serial, connection, file))
     })
     .await

@@ -41,9 +41,15 @@ impl ApiError {
         Self { code: e.code(), detail: e.to_string(), culprit: e.culprit() }
     }
 
+    /// A failure of the server's own: logged in full under a fresh reference, which is all the
+    /// client sees (no paths, no library messages).
     pub fn internal(e: impl std::fmt::Display) -> Self {
-        tracing::error!(error = %e, "internal error");
-        Self::new(Code::InternalError, e.to_string())
+        let reference = uuid::Uuid::now_v7();
+        tracing::error!(error = %e, %reference, "internal error");
+        Self::new(
+            Code::InternalError,
+            format!("the server failed on this request; its log has the cause under reference {reference}"),
+        )
     }
 
     pub fn not_found(id: &str) -> Self {
@@ -66,6 +72,10 @@ impl From<StoreError> for ApiError {
         match e.code() {
             // The database's and the file store's own failures are the operator's (logged).
             Code::InternalError => Self::internal(e),
+            Code::InsufficientStorage => {
+                tracing::warn!(error = %e, "storage full");
+                Self::new(Code::InsufficientStorage, "the server's disk is full; retry later")
+            }
             _ => Self::of(&e),
         }
     }

@@ -43,12 +43,28 @@ impl ErrorCode for StoreError {
         match self {
             StoreError::NotFound => Code::NotFound,
             StoreError::IdempotencyConflict { .. } => Code::IdempotencyKeyReused,
+            _ if self.is_storage_full() => Code::InsufficientStorage,
             StoreError::Db(_) | StoreError::Migrate(_) | StoreError::Io(_) => Code::InternalError,
         }
     }
 
     fn culprit(&self) -> Option<String> {
         matches!(self, StoreError::IdempotencyConflict { .. }).then(|| "Idempotency-Key".into())
+    }
+}
+
+impl StoreError {
+    /// The database or the file store found its disk full (SQLITE_FULL, ENOSPC, a quota).
+    pub fn is_storage_full(&self) -> bool {
+        match self {
+            StoreError::Io(e) => files::is_storage_full(e),
+            // SQLITE_FULL is 13; extended codes keep it in their low byte.
+            StoreError::Db(sqlx::Error::Database(db)) => {
+                db.code().and_then(|c| c.parse::<u32>().ok()).is_some_and(|c| c & 0xff == 13)
+            }
+            StoreError::Db(sqlx::Error::Io(e)) => files::is_storage_full(e),
+            _ => false,
+        }
     }
 }
 

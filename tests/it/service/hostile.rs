@@ -172,3 +172,55 @@ async fn a_queued_job_over_a_lowered_budget_fails_cleanly() {
     assert!(done["error"]["detail"].as_str().unwrap().contains("worker_memory_mb"), "{done}");
     running.stop().await;
 }
+
+/// Below the free-space floor: uploads get 507 before anything is written, readiness says why,
+/// workers leave queued jobs queued; once space returns (here: the floor lowered) it all goes on.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_disk_under_its_floor_refuses_uploads_with_507_and_recovers() {
+    let dir = tempfile::tempdir().unwrap();
+    // A job queued while there was room.
+    let roomy = spawn_app_in(dir.path(), |s| s.workers = 0).await;
+    let queued = roomy.submit(ci_tar(), "").await.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+    roomy.stop().await;
+    let uploads_before = walk(&dir.path().join("uploads")).len();
+
+    // No file system has an exbibyte free.
+    let full = spawn_app_in(dir.path(), |s| s.min_free_disk_mb = 1 << 40).await;
+    let v = problem(
+        full.submit(ci_tar(), "?client_reference=late").await,
+        StatusCode::INSUFFICIENT_STORAGE,
+        "insufficient_storage",
+    )
+    .await;
+    assert!(v["detail"].as_str().unwrap().contains("min_free_disk_mb"), "{v}");
+    let ready = full.get("/readyz").await;
+    assert_eq!(ready.status(), StatusCode::SERVICE_UNAVAILABLE);
+    let ready: Value = ready.json().await.unwrap();
+    assert!(ready["detail"].as_str().unwrap().contains("floor"), "{ready}");
+    tokio::time::sleep(Duration::from_millis(600)).await;
+    let job: Value = full.get(&format!("/v1/inspections/{queued}")).await.json().await.unwrap();
+    assert_eq!(job["status"], "queued", "a worker claimed under the floor: {job}");
+    assert_eq!(walk(&dir.path().join("uploads")).len(), uploads_before, "nothing stored");
+    assert_eq!(walk(&dir.path().join("tmp")).len(), 0, "no temporary left");
+    full.stop().await;
+
+    let recovered = spawn_app_in(dir.path(), |s| s.min_free_disk_mb = 0).await;
+    let ready: Value = recovered.get("/readyz").await.json().await.unwrap();
+    assert!(ready["disk_free_mb"].as_u64().unwrap() > 0 && ready["disk_floor_mb"] == 0, "{ready}");
+    assert_eq!(recovered.wait(&queued, Duration::from_secs(120)).await["status"], "succeeded");
+    assert_eq!(recovered.submit(ci_tar(), "?client_reference=late").await.status(), StatusCode::ACCEPTED);
+    recovered.stop().await;
+}
+
+/// A refused archive's problem names it as "the upload", not by the server's temporary path; an
+/// internal error shows a reference, not its cause.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn client_facing_errors_carry_no_server_paths() {
+    let app = spawn_app_with(|s| s.workers = 0).await;
+    let v =
+        problem(app.submit(b"not a tar".to_vec(), "").await, StatusCode::UNPROCESSABLE_ENTITY, "invalid_archive").await;
+    let detail = v["detail"].as_str().unwrap();
+    let data = app.data.to_string_lossy().into_owned();
+    assert!(detail.starts_with("the upload") && !detail.contains(&data) && !detail.contains("/tmp"), "{detail}");
+    app.stop().await;
+}
