@@ -4,12 +4,12 @@
 //! and the worker checks again before it starts: an allocation the machine cannot give ends the
 //! whole process, and would end it again at each re-claim.
 //!
-//! The model counts the buffers the stages hold at once (docs/pipeline.md, "Memory"): per view in
+//! The model counts the buffers the stages hold at once: per view in
 //! flight, the depth stage's focus volume (4 bytes a sample), its held frames (as decoded) and
 //! about a dozen single-precision planes; per view, its depth map, confidence and colour until
 //! fusion; the fused grid's cells with registration's view grids; the mesh. The coefficients are
-//! upper bounds of what those stages allocate, checked against measured peaks (a test and
-//! `docs/notebook/service.md`).
+//! upper bounds of what those stages allocate, checked against measured peaks
+//! (`scripts/memory-check`; figures in docs/notebook/service.md).
 
 use crate::domain::frame::Recording;
 use crate::domain::station::surface_pixels;
