@@ -86,6 +86,8 @@ codes! {
     IoError = ("io_error", 500, "I/O error"),
     InternalError = ("internal_error", 500, "Internal error"),
     NotReady = ("not_ready", 503, "Not ready"),
+    TooManyUploads = ("too_many_uploads", 429, "Too many uploads from this client"),
+    ServerBusy = ("server_busy", 503, "Too many uploads at once"),
     InsufficientStorage = ("insufficient_storage", 507, "Insufficient storage"),
 }
 

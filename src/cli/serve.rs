@@ -55,6 +55,18 @@ pub struct ServeArgs {
     /// 1024].
     #[arg(long, env = "CRESTSCAN_MIN_FREE_DISK_MB")]
     min_free_disk_mb: Option<u64>,
+    /// Seconds an upload may send nothing before it is cut off (408) [default: 30].
+    #[arg(long, env = "CRESTSCAN_UPLOAD_IDLE_SECONDS")]
+    upload_idle_seconds: Option<f64>,
+    /// Average KiB/s an upload must keep once upload_idle_seconds have passed [default: 64].
+    #[arg(long, env = "CRESTSCAN_MIN_UPLOAD_KIB_PER_S")]
+    min_upload_kib_per_s: Option<f64>,
+    /// Uploads received at once, all clients (503 beyond) [default: 32].
+    #[arg(long, env = "CRESTSCAN_MAX_CONCURRENT_UPLOADS")]
+    max_concurrent_uploads: Option<usize>,
+    /// Uploads received at once from one client address (429 beyond) [default: 8].
+    #[arg(long, env = "CRESTSCAN_MAX_UPLOADS_PER_CLIENT")]
+    max_uploads_per_client: Option<usize>,
     /// Job lease in seconds [default: 30].
     #[arg(long, env = "CRESTSCAN_LEASE_SECONDS")]
     lease_seconds: Option<f64>,
@@ -95,6 +107,10 @@ impl ServeArgs {
             max_upload_mb,
             worker_memory_mb,
             min_free_disk_mb,
+            upload_idle_seconds,
+            min_upload_kib_per_s,
+            max_concurrent_uploads,
+            max_uploads_per_client,
             lease_seconds,
             heartbeat_seconds,
             max_attempts,

@@ -27,6 +27,15 @@ pub struct Settings {
     /// 507 before (or while) it is written, `/readyz` reports not ready below it, and workers
     /// claim no job until space returns.
     pub min_free_disk_mb: u64,
+    /// The longest an upload may send nothing, seconds (408 `request_timeout` after).
+    pub upload_idle_seconds: f64,
+    /// Once `upload_idle_seconds` have passed, the average rate an upload must keep, KiB/s.
+    pub min_upload_kib_per_s: f64,
+    /// Uploads received at once, over all clients (503 with Retry-After beyond): each holds a
+    /// writer thread and a file.
+    pub max_concurrent_uploads: usize,
+    /// Uploads received at once from one client address (429 with Retry-After beyond).
+    pub max_uploads_per_client: usize,
     /// A running job's lease; a worker that stops heartbeating loses it after this long.
     pub lease_seconds: f64,
     /// How often a running job renews its lease and publishes progress.
@@ -53,6 +62,10 @@ impl Default for Settings {
             max_upload_mb: 4096,
             worker_memory_mb: 0,
             min_free_disk_mb: 1024,
+            upload_idle_seconds: 30.0,
+            min_upload_kib_per_s: 64.0,
+            max_concurrent_uploads: 32,
+            max_uploads_per_client: 8,
             lease_seconds: 30.0,
             heartbeat_seconds: 2.0,
             max_attempts: 3,
@@ -93,6 +106,15 @@ impl Settings {
         }
         if !(self.lease_seconds >= 2.0 * self.heartbeat_seconds) {
             return invalid("lease_seconds", "must be at least twice heartbeat_seconds, or leases lapse while healthy");
+        }
+        if !(self.upload_idle_seconds > 0.0) {
+            return invalid("upload_idle_seconds", "must be positive");
+        }
+        if !(self.min_upload_kib_per_s >= 0.0) {
+            return invalid("min_upload_kib_per_s", "must be non-negative (0: no floor)");
+        }
+        if self.max_concurrent_uploads == 0 || self.max_uploads_per_client == 0 {
+            return invalid("max_concurrent_uploads", "and max_uploads_per_client must be at least 1");
         }
         if self.max_attempts == 0 {
             return invalid("max_attempts", "must be at least 1");

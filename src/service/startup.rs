@@ -54,6 +54,10 @@ impl Application {
             metrics: metrics.clone(),
             settings: settings.clone(),
             wake: wake.clone(),
+            uploads: Arc::new(crate::service::api::ingest::UploadGate::new(
+                settings.max_concurrent_uploads,
+                settings.max_uploads_per_client,
+            )),
         };
         let worker = WorkerContext {
             store,
@@ -79,6 +83,7 @@ impl Application {
         let sweeper = tokio::spawn(retention_sweep(self.state.clone(), stop_rx.clone()));
         let app = api::router(self.state);
         let mut http_stop = stop_rx.clone();
+        let app = app.into_make_service_with_connect_info::<SocketAddr>();
         let server = axum::serve(self.listener, app).with_graceful_shutdown(async move {
             let _ = http_stop.wait_for(|s| *s).await;
         });

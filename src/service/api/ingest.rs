@@ -85,6 +85,34 @@ struct Upload {
     files: FileStore,
     /// Received bytes at which the free space is looked at next.
     next_space_check: u64,
+    rules: UploadRules,
+    started: std::time::Instant,
+}
+
+/// What an upload may take: its size, and how slowly it may come.
+#[derive(Clone, Copy, Debug)]
+pub struct UploadRules {
+    pub limit: u64,
+    /// The longest wait for the body's next piece.
+    pub idle: std::time::Duration,
+    /// Once `idle` has passed since the upload began, the average rate it must keep, bytes/s (a
+    /// floor on the average, not a total timeout: a large bundle at a steady rate streams on).
+    pub min_bytes_per_s: f64,
+}
+
+impl UploadRules {
+    pub fn of(settings: &crate::service::config::Settings) -> Self {
+        Self {
+            limit: settings.max_upload_bytes(),
+            idle: std::time::Duration::from_secs_f64(settings.upload_idle_seconds),
+            min_bytes_per_s: settings.min_upload_kib_per_s * 1024.0,
+        }
+    }
+}
+
+fn too_slow(detail: String) -> ApiError {
+    tracing::warn!(%detail, "upload cut off");
+    ApiError::new(Code::RequestTimeout, detail)
 }
 
 /// How often, in received bytes, a streaming upload checks that the disk stays above its floor.
@@ -121,12 +149,47 @@ pub fn write_failed(e: &std::io::Error) -> ApiError {
 }
 
 impl Upload {
-    fn start(files: &FileStore, limit: u64) -> Result<Self, ApiError> {
+    fn start(files: &FileStore, rules: UploadRules) -> Result<Self, ApiError> {
+        let limit = rules.limit;
         let file = files.temp_file().map_err(|e| write_failed(&e))?;
         let handle = file.reopen().map_err(ApiError::internal)?;
         let (tx, rx) = mpsc::channel(64);
         let writer = tokio::task::spawn_blocking(move || write_loop(handle, rx));
-        Ok(Self { tx, writer, file, received: 0, limit, files: files.clone(), next_space_check: SPACE_CHECK_BYTES })
+        Ok(Self {
+            tx,
+            writer,
+            file,
+            received: 0,
+            limit,
+            files: files.clone(),
+            next_space_check: SPACE_CHECK_BYTES,
+            rules,
+            started: std::time::Instant::now(),
+        })
+    }
+
+    /// Awaits the body's next piece within the idle limit, then checks the average rate.
+    async fn paced<T>(&self, next: impl std::future::Future<Output = T>) -> Result<T, ApiError> {
+        let Ok(value) = tokio::time::timeout(self.rules.idle, next).await else {
+            return Err(too_slow(format!(
+                "the upload sent nothing for {:.0} s (upload_idle_seconds) after {} bytes",
+                self.rules.idle.as_secs_f64(),
+                self.received
+            )));
+        };
+        let elapsed = self.started.elapsed();
+        if elapsed > self.rules.idle {
+            let rate = self.received as f64 / elapsed.as_secs_f64();
+            if rate < self.rules.min_bytes_per_s {
+                return Err(too_slow(format!(
+                    "the upload came at {:.1} KiB/s over {:.0} s, under the {:.0} KiB/s floor (min_upload_kib_per_s)",
+                    rate / 1024.0,
+                    elapsed.as_secs_f64(),
+                    self.rules.min_bytes_per_s / 1024.0
+                )));
+            }
+        }
+        Ok(value)
     }
 
     fn count(&mut self, n: usize) -> Result<(), ApiError> {
@@ -172,14 +235,20 @@ pub async fn drain(body: Body) {
     drain_stream(body.into_data_stream()).await
 }
 
+/// The longest a refused body is read for: a slow client is not waited on.
+const DRAIN_SECONDS: u64 = 5;
+
 async fn drain_stream(mut stream: axum::body::BodyDataStream) {
-    let mut seen = 0u64;
-    while let Some(Ok(chunk)) = stream.next().await {
-        seen += chunk.len() as u64;
-        if seen > DRAIN_BYTES {
-            break;
+    let read = async {
+        let mut seen = 0u64;
+        while let Some(Ok(chunk)) = stream.next().await {
+            seen += chunk.len() as u64;
+            if seen > DRAIN_BYTES {
+                break;
+            }
         }
-    }
+    };
+    let _ = tokio::time::timeout(std::time::Duration::from_secs(DRAIN_SECONDS), read).await;
 }
 
 fn too_large(limit: u64) -> ApiError {
@@ -187,7 +256,8 @@ fn too_large(limit: u64) -> ApiError {
 }
 
 /// Streams the request body into the file store's temporary area.
-pub async fn receive(request: Request, files: &FileStore, limit: u64) -> Result<Received, ApiError> {
+pub async fn receive(request: Request, files: &FileStore, rules: UploadRules) -> Result<Received, ApiError> {
+    let limit = rules.limit;
     let content_type =
         request.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_ascii_lowercase();
     if let Some(length) =
@@ -211,12 +281,12 @@ pub async fn receive(request: Request, files: &FileStore, limit: u64) -> Result<
     }
     let essence = content_type.split(';').next().unwrap_or("").trim().to_string();
     match essence.as_str() {
-        "multipart/form-data" => receive_multipart(request, files, limit).await,
+        "multipart/form-data" => receive_multipart(request, files, rules).await,
         "application/zip"
         | "application/x-zip-compressed"
         | "application/x-tar"
         | "application/tar"
-        | "application/octet-stream" => receive_raw(request.into_body(), files, limit).await,
+        | "application/octet-stream" => receive_raw(request.into_body(), files, rules).await,
         other => {
             let error = ApiError::new(
             Code::UnsupportedMediaType,
@@ -232,10 +302,10 @@ pub async fn receive(request: Request, files: &FileStore, limit: u64) -> Result<
     }
 }
 
-async fn receive_raw(body: Body, files: &FileStore, limit: u64) -> Result<Received, ApiError> {
-    let mut upload = Upload::start(files, limit)?;
+async fn receive_raw(body: Body, files: &FileStore, rules: UploadRules) -> Result<Received, ApiError> {
+    let mut upload = Upload::start(files, rules)?;
     let mut stream = body.into_data_stream();
-    while let Some(chunk) = stream.next().await {
+    while let Some(chunk) = upload.paced(stream.next()).await? {
         let chunk = chunk.map_err(|e| ApiError::new(Code::BadRequest, format!("reading the body: {e}")))?;
         if let Err(e) = upload.count(chunk.len()) {
             drain_stream(stream).await;
@@ -256,22 +326,26 @@ fn multipart_error(e: axum::extract::multipart::MultipartError) -> ApiError {
     ApiError::new(Code::InvalidMultipart, e.body_text())
 }
 
-async fn receive_multipart(request: Request, files: &FileStore, limit: u64) -> Result<Received, ApiError> {
+async fn receive_multipart(request: Request, files: &FileStore, rules: UploadRules) -> Result<Received, ApiError> {
     let mut multipart = Multipart::from_request(request, &())
         .await
         .map_err(|e| ApiError::new(Code::InvalidMultipart, e.body_text()))?;
-    let result = read_parts(&mut multipart, files, limit).await;
-    if result.is_err() {
+    let result = read_parts(&mut multipart, files, rules).await;
+    // A slow client is not waited for again.
+    if result.as_ref().is_err_and(|e| e.code != Code::RequestTimeout) {
         // As for raw bodies: read (and drop) a moderate rest so the client sees the problem.
-        let mut seen = 0u64;
-        'parts: while let Ok(Some(mut field)) = multipart.next_field().await {
-            while let Ok(Some(chunk)) = field.chunk().await {
-                seen += chunk.len() as u64;
-                if seen > DRAIN_BYTES {
-                    break 'parts;
+        let read = async {
+            let mut seen = 0u64;
+            'parts: while let Ok(Some(mut field)) = multipart.next_field().await {
+                while let Ok(Some(chunk)) = field.chunk().await {
+                    seen += chunk.len() as u64;
+                    if seen > DRAIN_BYTES {
+                        break 'parts;
+                    }
                 }
             }
-        }
+        };
+        let _ = tokio::time::timeout(std::time::Duration::from_secs(DRAIN_SECONDS), read).await;
     }
     result
 }
@@ -285,7 +359,7 @@ async fn read_part(
     too_big: impl FnOnce() -> ApiError,
 ) -> Result<Vec<u8>, ApiError> {
     let mut data = Vec::new();
-    while let Some(chunk) = field.chunk().await.map_err(multipart_error)? {
+    while let Some(chunk) = upload.paced(field.chunk()).await?.map_err(multipart_error)? {
         upload.count(chunk.len())?;
         data.extend_from_slice(&chunk);
         if data.len() as u64 > cap {
@@ -295,11 +369,11 @@ async fn read_part(
     Ok(data)
 }
 
-async fn read_parts(multipart: &mut Multipart, files: &FileStore, limit: u64) -> Result<Received, ApiError> {
-    let mut upload = Upload::start(files, limit)?;
+async fn read_parts(multipart: &mut Multipart, files: &FileStore, rules: UploadRules) -> Result<Received, ApiError> {
+    let mut upload = Upload::start(files, rules)?;
     let mut options = None;
     let (mut archive_part, mut manifest_part, mut frame_parts) = (false, false, 0usize);
-    while let Some(mut field) = multipart.next_field().await.map_err(multipart_error)? {
+    while let Some(mut field) = upload.paced(multipart.next_field()).await?.map_err(multipart_error)? {
         let name = field.name().unwrap_or("").to_string();
         match name.as_str() {
             "options" => {
@@ -319,7 +393,7 @@ async fn read_parts(multipart: &mut Multipart, files: &FileStore, limit: u64) ->
                     .with_culprit("bundle"));
                 }
                 archive_part = true;
-                while let Some(chunk) = field.chunk().await.map_err(multipart_error)? {
+                while let Some(chunk) = upload.paced(field.chunk()).await?.map_err(multipart_error)? {
                     upload.count(chunk.len())?;
                     upload.send(Chunk::Raw(chunk)).await?;
                 }
@@ -375,4 +449,82 @@ async fn read_parts(multipart: &mut Multipart, files: &FileStore, limit: u64) ->
         ));
     }
     upload.finish(options).await
+}
+
+/// Caps on uploads received at once, over all clients and per client address. Each upload holds a
+/// writer thread of the blocking pool and a temporary file while it streams, so without a cap slow
+/// clients could take every thread.
+pub struct UploadGate {
+    global: usize,
+    per_client: usize,
+    open: std::sync::Mutex<(usize, std::collections::HashMap<std::net::IpAddr, usize>)>,
+}
+
+/// An admitted upload; leaving frees its places.
+pub struct UploadPass<'a> {
+    gate: &'a UploadGate,
+    client: std::net::IpAddr,
+}
+
+impl UploadGate {
+    pub fn new(global: usize, per_client: usize) -> Self {
+        Self { global, per_client, open: Default::default() }
+    }
+
+    pub fn enter(&self, client: std::net::IpAddr) -> Result<UploadPass<'_>, ApiError> {
+        let mut open = self.open.lock().expect("gate lock");
+        let (total, by_client) = &mut *open;
+        let mine = by_client.get(&client).copied().unwrap_or(0);
+        if mine >= self.per_client {
+            return Err(ApiError::new(
+                Code::TooManyUploads,
+                format!(
+                    "{mine} uploads from {client} are already being received (max_uploads_per_client); retry when one ends"
+                ),
+            ));
+        }
+        if *total >= self.global {
+            return Err(ApiError::new(
+                Code::ServerBusy,
+                format!("{total} uploads are being received (max_concurrent_uploads); retry shortly"),
+            ));
+        }
+        *total += 1;
+        *by_client.entry(client).or_insert(0) += 1;
+        Ok(UploadPass { gate: self, client })
+    }
+}
+
+impl Drop for UploadPass<'_> {
+    fn drop(&mut self) {
+        let mut open = self.gate.open.lock().expect("gate lock");
+        let (total, by_client) = &mut *open;
+        *total -= 1;
+        if let Some(n) = by_client.get_mut(&self.client) {
+            *n -= 1;
+            if *n == 0 {
+                by_client.remove(&self.client);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod gate_tests {
+    use super::*;
+
+    #[test]
+    fn the_gate_caps_each_client_and_all_of_them_and_frees_places_on_leaving() {
+        let gate = UploadGate::new(3, 2);
+        let (a, b, c): (std::net::IpAddr, std::net::IpAddr, std::net::IpAddr) =
+            ("10.0.0.1".parse().unwrap(), "10.0.0.2".parse().unwrap(), "10.0.0.3".parse().unwrap());
+        let a1 = gate.enter(a).unwrap();
+        let _a2 = gate.enter(a).unwrap();
+        assert_eq!(gate.enter(a).err().unwrap().code, Code::TooManyUploads);
+        let _b1 = gate.enter(b).unwrap();
+        assert_eq!(gate.enter(c).err().unwrap().code, Code::ServerBusy);
+        drop(a1);
+        let _c1 = gate.enter(c).unwrap();
+        assert_eq!(gate.enter(b).err().unwrap().code, Code::ServerBusy);
+    }
 }

@@ -334,12 +334,20 @@ fn accepted(row: InspectionRow, replayed: bool) -> Response {
         (status = 400, description = "Malformed request or multipart body", body = Problem, content_type = "application/problem+json"),
         (status = 413, description = "Body or bundle too large", body = Problem, content_type = "application/problem+json"),
         (status = 415, description = "Unsupported Content-Type", body = Problem, content_type = "application/problem+json"),
-        (status = 422, description = "Invalid bundle, option, or Idempotency-Key reused with another body", body = Problem, content_type = "application/problem+json"),
+        (status = 408, description = "The upload stalled or came too slowly (upload_idle_seconds, min_upload_kib_per_s)", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Invalid bundle, option (out of its range), over the worker's memory budget, or Idempotency-Key reused with another body", body = Problem, content_type = "application/problem+json"),
+        (status = 429, description = "Too many uploads from this client at once", body = Problem, content_type = "application/problem+json",
+            headers(("Retry-After" = String, description = "Seconds to wait"))),
         (status = 500, description = "Server error", body = Problem, content_type = "application/problem+json"),
+        (status = 503, description = "Too many uploads at once", body = Problem, content_type = "application/problem+json",
+            headers(("Retry-After" = String, description = "Seconds to wait"))),
+        (status = 507, description = "The server's disk cannot take the upload", body = Problem, content_type = "application/problem+json",
+            headers(("Retry-After" = String, description = "Seconds to wait"))),
     )
 )]
 pub async fn create_inspection(
     State(state): State<AppState>,
+    axum::extract::ConnectInfo(peer): axum::extract::ConnectInfo<std::net::SocketAddr>,
     query: Result<Query<SubmitOptions>, axum::extract::rejection::QueryRejection>,
     headers: HeaderMap,
     request: Request,
@@ -354,7 +362,16 @@ pub async fn create_inspection(
             return Err(e);
         }
     };
-    let received = ingest::receive(request, &state.store.files, state.settings.max_upload_bytes()).await?;
+    let pass = match state.uploads.enter(peer.ip()) {
+        Ok(pass) => pass,
+        Err(e) => {
+            ingest::drain(request.into_body()).await;
+            return Err(e);
+        }
+    };
+    let received = ingest::receive(request, &state.store.files, ingest::UploadRules::of(&state.settings)).await;
+    drop(pass);
+    let received = received?;
     let (reference, options) = resolve_options(query, received.options_part.as_deref())?;
     let options_json = serde_json::to_string(&options).expect("options serialise");
     let request_sha256 =

@@ -38,6 +38,8 @@ pub struct AppState {
     pub settings: Arc<Settings>,
     /// Wakes idle workers when an inspection is queued.
     pub wake: Arc<Notify>,
+    /// Uploads received at once.
+    pub uploads: Arc<ingest::UploadGate>,
 }
 
 /// An inspection id: a UUID, rendered in its canonical lowercase form.

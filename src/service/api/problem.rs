@@ -91,6 +91,15 @@ impl IntoResponse for ApiError {
         let mut response =
             (status, serde_json::to_vec(&self.problem(None)).expect("problem serialises")).into_response();
         response.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(PROBLEM_JSON));
+        // Refusals that pass with time say when to come back.
+        let retry_after = match self.code {
+            Code::TooManyUploads | Code::ServerBusy => Some("5"),
+            Code::InsufficientStorage => Some("60"),
+            _ => None,
+        };
+        if let Some(seconds) = retry_after {
+            response.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from_static(seconds));
+        }
         // Lets the middleware fill `instance` without re-parsing.
         response.extensions_mut().insert(self);
         response

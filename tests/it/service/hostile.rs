@@ -224,3 +224,85 @@ async fn client_facing_errors_carry_no_server_paths() {
     assert!(detail.starts_with("the upload") && !detail.contains(&data) && !detail.contains("/tmp"), "{detail}");
     app.stop().await;
 }
+
+/// Opens a raw connection and sends a tar upload's head announcing `length` body bytes.
+async fn slow_upload(app: &TestApp, length: usize) -> tokio::net::TcpStream {
+    use tokio::io::AsyncWriteExt;
+    let address = app.base.trim_start_matches("http://").to_string();
+    let mut stream = tokio::net::TcpStream::connect(&address).await.unwrap();
+    let head = format!(
+        "POST /v1/inspections HTTP/1.1\r\nHost: {address}\r\nContent-Type: application/x-tar\r\nContent-Length: {length}\r\n\r\n"
+    );
+    stream.write_all(head.as_bytes()).await.unwrap();
+    stream
+}
+
+/// Reads what the server answered on a raw connection (until it closes or 5 s pass).
+async fn answer(stream: &mut tokio::net::TcpStream) -> String {
+    use tokio::io::AsyncReadExt;
+    let mut buffer = Vec::new();
+    let _ = tokio::time::timeout(Duration::from_secs(5), stream.read_to_end(&mut buffer)).await;
+    String::from_utf8_lossy(&buffer).into_owned()
+}
+
+/// A trickling upload and a stalled one are cut off with 408 within the configured times, while a
+/// normal upload beside them is served; one client's uploads beyond its share get 429.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn slow_uploads_are_cut_off_and_others_are_served() {
+    use tokio::io::AsyncWriteExt;
+    let app = spawn_app_with(|s| {
+        s.workers = 0;
+        s.upload_idle_seconds = 1.0;
+        s.min_upload_kib_per_s = 64.0;
+        s.max_uploads_per_client = 3;
+    })
+    .await;
+    let bundle = ci_tar();
+    let started = Instant::now();
+    // Trickles a byte every 100 ms: never idle for a second, far under 64 KiB/s.
+    let mut trickle = slow_upload(&app, 1 << 20).await;
+    let trickler = tokio::spawn(async move {
+        for _ in 0..100 {
+            if trickle.write_all(b"x").await.is_err() {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        answer(&mut trickle).await
+    });
+    // Sends a little, then nothing.
+    let mut stalled = slow_upload(&app, 1 << 20).await;
+    stalled.write_all(&[0u8; 1000]).await.unwrap();
+    // A third open upload fills this client's share; a fourth is refused.
+    let mut third = slow_upload(&app, 1 << 20).await;
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let refused = app.submit(bundle.clone(), "").await;
+    assert_eq!(refused.status(), StatusCode::TOO_MANY_REQUESTS);
+    assert!(refused.headers().contains_key("retry-after"));
+    assert_eq!(refused.json::<Value>().await.unwrap()["code"], "too_many_uploads");
+    // Another client (another loopback address) is served meanwhile.
+    let other =
+        reqwest::Client::builder().local_address("127.0.0.2".parse::<std::net::IpAddr>().unwrap()).build().unwrap();
+    let served = other
+        .post(app.url("/v1/inspections"))
+        .header("content-type", "application/x-tar")
+        .body(bundle.clone())
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(served.status(), StatusCode::ACCEPTED);
+
+    let stalled_answer = answer(&mut stalled).await;
+    assert!(stalled_answer.starts_with("HTTP/1.1 408"), "{stalled_answer}");
+    assert!(stalled_answer.contains("upload_idle_seconds"), "{stalled_answer}");
+    let trickled = trickler.await.unwrap();
+    assert!(trickled.starts_with("HTTP/1.1 408"), "{trickled}");
+    assert!(trickled.contains("min_upload_kib_per_s"), "{trickled}");
+    assert!(started.elapsed() < Duration::from_secs(15), "cut off late: {:?}", started.elapsed());
+    assert!(answer(&mut third).await.starts_with("HTTP/1.1 408"));
+    // Their places are free again, and nothing of theirs is stored.
+    // (the same bundle as the other client's: one stored file)
+    assert_eq!(app.submit(bundle, "").await.status(), StatusCode::ACCEPTED);
+    assert_eq!(app.uploads(), 1);
+    app.stop().await;
+}
