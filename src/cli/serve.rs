@@ -55,6 +55,9 @@ pub struct ServeArgs {
     /// 1024].
     #[arg(long, env = "CRESTSCAN_MIN_FREE_DISK_MB")]
     min_free_disk_mb: Option<u64>,
+    /// Seconds a connection may take to send a request's head, or sit idle [default: 10].
+    #[arg(long, env = "CRESTSCAN_HEADER_TIMEOUT_SECONDS")]
+    header_timeout_seconds: Option<f64>,
     /// Seconds an upload may send nothing before it is cut off (408) [default: 30].
     #[arg(long, env = "CRESTSCAN_UPLOAD_IDLE_SECONDS")]
     upload_idle_seconds: Option<f64>,
@@ -107,6 +110,7 @@ impl ServeArgs {
             max_upload_mb,
             worker_memory_mb,
             min_free_disk_mb,
+            header_timeout_seconds,
             upload_idle_seconds,
             min_upload_kib_per_s,
             max_concurrent_uploads,
@@ -133,7 +137,11 @@ impl ServeArgs {
         println!("crestscan listening on http://{}", app.address());
         tracing::info!(address = %app.address(), data_dir = %settings.data_dir.display(), workers = settings.workers, "serving");
         app.run_until(crestscan::service::startup::shutdown_signal()).await?;
+        Ok::<_, anyhow::Error>(())
+    })?;
+        // A job that ignored its stop request still holds a blocking thread: the process ends
+        // without it (its lease was released, or lapses).
+        runtime.shutdown_timeout(std::time::Duration::from_secs(1));
         Ok(())
-    })
     }
 }

@@ -27,6 +27,9 @@ pub struct Settings {
     /// 507 before (or while) it is written, `/readyz` reports not ready below it, and workers
     /// claim no job until space returns.
     pub min_free_disk_mb: u64,
+    /// The longest a connection may take to send a request's head (and may sit idle between
+    /// requests), seconds; then it is closed.
+    pub header_timeout_seconds: f64,
     /// The longest an upload may send nothing, seconds (408 `request_timeout` after).
     pub upload_idle_seconds: f64,
     /// Once `upload_idle_seconds` have passed, the average rate an upload must keep, KiB/s.
@@ -62,6 +65,7 @@ impl Default for Settings {
             max_upload_mb: 4096,
             worker_memory_mb: 0,
             min_free_disk_mb: 1024,
+            header_timeout_seconds: 10.0,
             upload_idle_seconds: 30.0,
             min_upload_kib_per_s: 64.0,
             max_concurrent_uploads: 32,
@@ -106,6 +110,9 @@ impl Settings {
         }
         if !(self.lease_seconds >= 2.0 * self.heartbeat_seconds) {
             return invalid("lease_seconds", "must be at least twice heartbeat_seconds, or leases lapse while healthy");
+        }
+        if !(self.header_timeout_seconds > 0.0) {
+            return invalid("header_timeout_seconds", "must be positive");
         }
         if !(self.upload_idle_seconds > 0.0) {
             return invalid("upload_idle_seconds", "must be positive");

@@ -81,10 +81,10 @@ impl Application {
         let (stop_tx, stop_rx) = watch::channel(false);
         let workers = tokio::spawn(worker::run(self.worker.clone(), stop_rx.clone()));
         let sweeper = tokio::spawn(retention_sweep(self.state.clone(), stop_rx.clone()));
+        let header_timeout = Duration::from_secs_f64(self.state.settings.header_timeout_seconds);
         let app = api::router(self.state);
         let mut http_stop = stop_rx.clone();
-        let app = app.into_make_service_with_connect_info::<SocketAddr>();
-        let server = axum::serve(self.listener, app).with_graceful_shutdown(async move {
+        let server = serve(self.listener, app, header_timeout, async move {
             let _ = http_stop.wait_for(|s| *s).await;
         });
         let signal = tokio::spawn(async move {
@@ -99,6 +99,68 @@ impl Application {
         tracing::info!("stopped");
         Ok(())
     }
+}
+
+/// Serves HTTP/1.1 on `listener` until `stop` resolves, then lets open requests finish. Each
+/// connection must send a request's whole head within `header_timeout` (the timer also runs while
+/// a kept-alive connection waits for its next request, so idle connections close after it); the
+/// HTTP layer's own head limits sit far above the router's (`api::MAX_HEADER_BYTES`, …), which
+/// answer with problem+json. Each request carries the peer's address (`ConnectInfo`).
+async fn serve(
+    listener: TcpListener,
+    app: axum::Router,
+    header_timeout: Duration,
+    stop: impl Future<Output = ()> + Send + 'static,
+) -> std::io::Result<()> {
+    use hyper_util::rt::{TokioIo, TokioTimer};
+    use tower::ServiceExt;
+    let (closing_tx, closing_rx) = watch::channel(false);
+    let mut connections = tokio::task::JoinSet::new();
+    tokio::pin!(stop);
+    loop {
+        let (stream, peer) = tokio::select! {
+            accepted = listener.accept() => match accepted {
+                Ok(a) => a,
+                Err(e) => {
+                    // Out of descriptors and the like: back off instead of spinning.
+                    tracing::warn!(error = %e, "accept failed");
+                    tokio::time::sleep(Duration::from_millis(50)).await;
+                    continue;
+                }
+            },
+            _ = &mut stop => break,
+        };
+        let service = app.clone().map_request(move |mut request: axum::http::Request<hyper::body::Incoming>| {
+            request.extensions_mut().insert(axum::extract::ConnectInfo(peer));
+            request.map(axum::body::Body::new)
+        });
+        let service = hyper_util::service::TowerToHyperService::new(service);
+        let mut closing = closing_rx.clone();
+        connections.spawn(async move {
+            let connection = hyper::server::conn::http1::Builder::new()
+                .timer(TokioTimer::new())
+                .header_read_timeout(header_timeout)
+                .max_buf_size(1 << 20)
+                .max_headers(1000)
+                .serve_connection(TokioIo::new(stream), service);
+            tokio::pin!(connection);
+            tokio::select! {
+                result = connection.as_mut() => {
+                    if let Err(e) = result { tracing::debug!(error = %e, "connection ended"); }
+                }
+                _ = async { let _ = closing.wait_for(|c| *c).await; } => {
+                    connection.as_mut().graceful_shutdown();
+                    let _ = connection.as_mut().await;
+                }
+            }
+        });
+        // Reap finished connections so the set stays small.
+        while connections.try_join_next().is_some() {}
+    }
+    drop(listener);
+    let _ = closing_tx.send(true);
+    while connections.join_next().await.is_some() {}
+    Ok(())
 }
 
 /// Deletes uploads of finished inspections older than the retention period, hourly.

@@ -39,6 +39,9 @@ enum Outcome {
     Fail(Problem),
 }
 
+/// How long a job told to stop at the end of the grace period is waited for.
+const STOP_WAIT: Duration = Duration::from_secs(3);
+
 fn problem(code: Code, detail: impl Into<String>) -> Problem {
     Problem::new(code, detail, None)
 }
@@ -170,7 +173,12 @@ async fn process(ctx: &WorkerContext, job: Claimed, lease_token: &str, shutdown:
             _ = tokio::time::sleep_until(deadline), if grace_deadline.is_some() => {
                 tracing::info!(inspection = %job.id, "grace period over: stopping the job and releasing it");
                 cancel.store(true, Ordering::Relaxed);
-                let _ = (&mut task).await;
+                // Every stage checks the flag between steps; one that does not come back within
+                // this is left behind (the process is about to exit), not waited for: SIGTERM is
+                // honoured whatever a job is doing.
+                if tokio::time::timeout(STOP_WAIT, &mut task).await.is_err() {
+                    tracing::warn!(inspection = %job.id, wait_s = STOP_WAIT.as_secs_f64(), "the job did not stop; releasing it anyway");
+                }
                 if let Err(e) = ctx.store.requeue(&job.id, lease_token, Duration::ZERO, None, true).await {
                     tracing::error!(inspection = %job.id, error = %e, "release failed; the lease will lapse");
                 }

@@ -135,8 +135,37 @@ pub fn router(state: AppState) -> Router {
         // Uploads stream to disk under their own limit (max_upload_mb); small bodies are capped where read.
         .layer(DefaultBodyLimit::disable())
         .layer(tower_http::catch_panic::CatchPanicLayer::new())
+        .layer(middleware::from_fn(request_head_limits))
         .layer(middleware::from_fn_with_state(state.clone(), observe))
         .with_state(state)
+}
+
+/// The longest URI, the most header fields and their bytes a request may carry. The HTTP layer's
+/// own limits are set far above these (startup), so what passes them is refused here as
+/// problem+json rather than with the HTTP layer's empty answers.
+pub const MAX_URI_BYTES: usize = 8 << 10;
+pub const MAX_HEADERS: usize = 100;
+pub const MAX_HEADER_BYTES: usize = 64 << 10;
+
+async fn request_head_limits(request: Request, next: Next) -> Response {
+    let uri_bytes = request.uri().to_string().len();
+    if uri_bytes > MAX_URI_BYTES {
+        return ApiError::new(Code::UriTooLong, format!("the URI has {uri_bytes} bytes; at most {MAX_URI_BYTES}"))
+            .into_response();
+    }
+    let headers = request.headers();
+    let bytes: usize = headers.iter().map(|(name, value)| name.as_str().len() + value.len() + 4).sum();
+    if headers.len() > MAX_HEADERS || bytes > MAX_HEADER_BYTES {
+        return ApiError::new(
+            Code::HeadersTooLarge,
+            format!(
+                "{} header fields of {bytes} bytes; at most {MAX_HEADERS} fields and {MAX_HEADER_BYTES} bytes",
+                headers.len()
+            ),
+        )
+        .into_response();
+    }
+    next.run(request).await
 }
 
 async fn route_not_found(request: Request) -> ApiError {

@@ -306,3 +306,51 @@ async fn slow_uploads_are_cut_off_and_others_are_served() {
     assert_eq!(app.uploads(), 1);
     app.stop().await;
 }
+
+/// A URI or a head past the limits gets problem+json (it had empty bodies); a connection that
+/// sends its head slowly, or sits idle, is closed after header_timeout_seconds.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn long_heads_get_problems_and_slow_or_idle_connections_are_closed() {
+    use tokio::io::AsyncWriteExt;
+    let app = spawn_app_with(|s| {
+        s.workers = 0;
+        s.header_timeout_seconds = 1.0;
+    })
+    .await;
+    let long = format!("/v1/inspections?client_reference={}", "x".repeat(10_000));
+    let v = problem(app.get(&long).await, StatusCode::URI_TOO_LONG, "uri_too_long").await;
+    assert!(v["detail"].as_str().unwrap().contains("8192"), "{v}");
+    let mut request = app.client.get(app.url("/v1/inspections"));
+    for i in 0..150 {
+        request = request.header(format!("x-filler-{i}"), "y");
+    }
+    problem(request.send().await.unwrap(), StatusCode::from_u16(431).unwrap(), "headers_too_large").await;
+    let big = app.client.get(app.url("/v1/inspections")).header("x-big", "z".repeat(80_000)).send().await.unwrap();
+    problem(big, StatusCode::from_u16(431).unwrap(), "headers_too_large").await;
+
+    let address = app.base.trim_start_matches("http://").to_string();
+    // Idle: connected, nothing sent.
+    let started = Instant::now();
+    let mut idle = tokio::net::TcpStream::connect(&address).await.unwrap();
+    let idle_answer = answer(&mut idle).await;
+    assert!(started.elapsed() < Duration::from_secs(4), "idle connection held {:?}", started.elapsed());
+    // Slow head: a byte every 200 ms, never finishing.
+    let started = Instant::now();
+    let mut slow = tokio::net::TcpStream::connect(&address).await.unwrap();
+    let closed = tokio::time::timeout(Duration::from_secs(6), async {
+        for byte in b"GET /v1/inspections HTTP/1.1\r\nHost: x\r\nX-Slow: ".iter().cycle() {
+            if slow.write_all(&[*byte]).await.is_err() {
+                return true;
+            }
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        }
+        false
+    })
+    .await
+    .unwrap_or(false);
+    assert!(closed, "a slow head was held for 6 s (idle answer: {idle_answer:?})");
+    assert!(started.elapsed() < Duration::from_secs(4), "slow head held {:?}", started.elapsed());
+    // Others are served throughout.
+    assert_eq!(app.get("/healthz").await.status(), StatusCode::OK);
+    app.stop().await;
+}
