@@ -83,6 +83,7 @@ codes! {
     MeshFailed = ("mesh_failed", 422, "Mesh failed"),
     PipelinePanic = ("pipeline_panic", 500, "Pipeline crashed"),
     AttemptsExhausted = ("attempts_exhausted", 500, "Attempts exhausted"),
+    JobPoisonous = ("job_poisonous", 500, "Job kills its worker"),
     UploadMissing = ("upload_missing", 500, "Upload missing"),
     // Server side.
     IoError = ("io_error", 500, "I/O error"),

@@ -76,9 +76,12 @@ pub struct ServeArgs {
     /// Heartbeat interval in seconds [default: 2].
     #[arg(long, env = "CRESTSCAN_HEARTBEAT_SECONDS")]
     heartbeat_seconds: Option<f64>,
-    /// Claims before a job is failed [default: 3].
+    /// Retryable failures before a job is failed [default: 3].
     #[arg(long, env = "CRESTSCAN_MAX_ATTEMPTS")]
     max_attempts: Option<u32>,
+    /// Deaths of the process running a job before it is failed as poisonous [default: 5].
+    #[arg(long, env = "CRESTSCAN_MAX_INTERRUPTIONS")]
+    max_interruptions: Option<u32>,
     /// Seconds running jobs get to finish at shutdown [default: 30].
     #[arg(long, env = "CRESTSCAN_SHUTDOWN_GRACE_SECONDS")]
     shutdown_grace_seconds: Option<f64>,
@@ -118,6 +121,7 @@ impl ServeArgs {
             lease_seconds,
             heartbeat_seconds,
             max_attempts,
+            max_interruptions,
             shutdown_grace_seconds,
             poll_interval_ms,
             upload_retention_days,

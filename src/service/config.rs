@@ -43,8 +43,12 @@ pub struct Settings {
     pub lease_seconds: f64,
     /// How often a running job renews its lease and publishes progress.
     pub heartbeat_seconds: f64,
-    /// Attempts (claims) before a job that keeps failing retryably, or keeps dying, is failed.
+    /// Attempts that end in a retryable failure before the job is failed (a crash of the process
+    /// running it is not such an attempt).
     pub max_attempts: u32,
+    /// Deaths of the process running a job (its lease lapsed) before the job is failed as
+    /// poisonous (`job_poisonous`): a crash is re-run without blame until it repeats this often.
+    pub max_interruptions: u32,
     /// On shutdown, running jobs get this long to finish before they are released for re-claiming.
     pub shutdown_grace_seconds: f64,
     /// How often idle workers look for work (new uploads also wake them at once).
@@ -73,6 +77,7 @@ impl Default for Settings {
             lease_seconds: 30.0,
             heartbeat_seconds: 2.0,
             max_attempts: 3,
+            max_interruptions: 5,
             shutdown_grace_seconds: 30.0,
             poll_interval_ms: 500,
             upload_retention_days: 30.0,
@@ -122,6 +127,9 @@ impl Settings {
         }
         if self.max_concurrent_uploads == 0 || self.max_uploads_per_client == 0 {
             return invalid("max_concurrent_uploads", "and max_uploads_per_client must be at least 1");
+        }
+        if self.max_interruptions == 0 {
+            return invalid("max_interruptions", "must be at least 1");
         }
         if self.max_attempts == 0 {
             return invalid("max_attempts", "must be at least 1");

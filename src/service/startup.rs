@@ -36,6 +36,7 @@ impl Application {
         settings.validate()?;
         let mut store = Store::open(&settings.database_path(), &settings.uploads_dir(), &settings.tmp_dir()).await?;
         store.files = store.files.with_free_floor(settings.min_free_disk_mb.saturating_mul(1 << 20));
+        store.max_interruptions = settings.max_interruptions as i64;
         let cleared = store.files.clear_temporaries(Duration::from_secs(6 * 3600)).map_err(StoreError::Io)?;
         if cleared > 0 {
             tracing::info!(cleared, "removed temporaries of interrupted uploads");

@@ -111,7 +111,7 @@ async fn worker_loop(ctx: WorkerContext, slot: usize, mut shutdown: watch::Recei
         let lease_token = format!("{}/{}", ctx.owner, uuid::Uuid::now_v7());
         match ctx.store.claim(&lease_token, lease).await {
             Ok(Some(job)) => {
-                tracing::info!(inspection = %job.id, attempt = job.attempts, slot, "claimed");
+                tracing::info!(inspection = %job.id, attempt = job.attempts, interruptions = job.interruptions, slot, "claimed");
                 process(&ctx, job, &lease_token, &mut shutdown).await;
             }
             Ok(None) => {
@@ -208,10 +208,10 @@ async fn process(ctx: &WorkerContext, job: Claimed, lease_token: &str, shutdown:
         }
         Outcome::Retry(p) => {
             let json = serde_json::to_string(&p).expect("problem serialises");
-            let result = if job.attempts >= job.max_attempts {
+            let result = if job.failed_attempts() >= job.max_attempts {
                 ctx.store.complete_without_results(&job.id, lease_token, Status::Failed, Some(&json)).await
             } else {
-                let backoff = Duration::from_secs((1u64 << job.attempts.clamp(0, 6)).min(60));
+                let backoff = Duration::from_secs((1u64 << job.failed_attempts().clamp(0, 6)).min(60));
                 ctx.store.requeue(&job.id, lease_token, backoff, Some(&json), false).await
             };
             ("retry", result)

@@ -116,6 +116,9 @@ impl FromStr for Status {
 pub struct Store {
     pub pool: SqlitePool,
     pub files: FileStore,
+    /// Deaths of the worker's process while running one job before that job is failed as
+    /// poisonous ([`queue`]).
+    pub max_interruptions: i64,
 }
 
 impl Store {
@@ -135,7 +138,7 @@ impl Store {
         let pool = SqlitePoolOptions::new().max_connections(8).connect_with(options).await?;
         MIGRATOR.run(&pool).await?;
         let files = FileStore::open(uploads, tmp)?;
-        Ok(Self { pool, files })
+        Ok(Self { pool, files, max_interruptions: 5 })
     }
 
     pub async fn ping(&self) -> Result<(), StoreError> {

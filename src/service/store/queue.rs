@@ -11,6 +11,16 @@ pub struct Claimed {
     pub options_json: String,
     pub attempts: i64,
     pub max_attempts: i64,
+    /// Claims of this job that ended with its worker's process dying.
+    pub interruptions: i64,
+}
+
+impl Claimed {
+    /// Attempts that ended in a retryable failure (or this one): claims less interruptions. A
+    /// crash of the process is not counted against the job.
+    pub fn failed_attempts(&self) -> i64 {
+        self.attempts - self.interruptions
+    }
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -22,10 +32,13 @@ pub enum Heartbeat {
     Lost,
 }
 
-fn attempts_exhausted_problem() -> String {
+fn poisonous_problem(interruptions: i64) -> String {
     let problem = Problem::new(
-        Code::AttemptsExhausted,
-        "the job's worker stopped (crash or kill) on every attempt; it was not retried again",
+        Code::JobPoisonous,
+        format!(
+            "the worker's process died while running this job {interruptions} times in a row; it is not run again \
+             (max_interruptions)"
+        ),
         None,
     );
     serde_json::to_string(&problem).expect("a problem serialises")
@@ -35,26 +48,41 @@ impl Store {
     /// Atomically claims the oldest available job: queued and due, or running with a lapsed lease.
     pub async fn claim(&self, owner: &str, lease: Duration) -> Result<Option<Claimed>, StoreError> {
         let now = now_ms();
-        // Jobs whose attempts are spent (they kept dying) fail instead of looping forever.
-        sqlx::query(
-            "UPDATE inspections SET status = 'failed', finished_at = ?, updated_at = ?, lease_owner = NULL, \
-             lease_expires_at = NULL, error_json = ? \
-             WHERE status = 'running' AND lease_expires_at < ? AND attempts >= max_attempts",
+        // A lapsed lease means the process running the job died. That is counted as an interruption
+        // (not an attempt); a job whose process died `max_interruptions` times is failed as
+        // poisonous instead of taking the node down again.
+        let poisonous: Vec<(String, i64)> = sqlx::query_as(
+            "SELECT id, interruptions + 1 FROM inspections \
+             WHERE status = 'running' AND cancel_requested = 0 AND lease_expires_at < ? AND interruptions + 1 >= ?",
         )
         .bind(now)
-        .bind(now)
-        .bind(attempts_exhausted_problem())
-        .bind(now)
-        .execute(&self.pool)
+        .bind(self.max_interruptions)
+        .fetch_all(&self.pool)
         .await?;
+        for (id, interruptions) in poisonous {
+            sqlx::query(
+                "UPDATE inspections SET status = 'failed', finished_at = ?, updated_at = ?, lease_owner = NULL, \
+                 lease_expires_at = NULL, interruptions = ?, error_json = ? \
+                 WHERE id = ? AND status = 'running' AND lease_expires_at < ?",
+            )
+            .bind(now)
+            .bind(now)
+            .bind(interruptions)
+            .bind(poisonous_problem(interruptions))
+            .bind(&id)
+            .bind(now)
+            .execute(&self.pool)
+            .await?;
+        }
         let claimed = sqlx::query_as::<_, Claimed>(
-            "UPDATE inspections SET status = 'running', lease_owner = ?, lease_expires_at = ?, \
+            "UPDATE inspections SET interruptions = interruptions + CASE WHEN status = 'running' THEN 1 ELSE 0 END, \
+             status = 'running', lease_owner = ?, lease_expires_at = ?, \
              attempts = attempts + 1, started_at = COALESCE(started_at, ?), updated_at = ?, \
              progress_stage = NULL, progress_fraction = NULL \
              WHERE id = (SELECT id FROM inspections WHERE cancel_requested = 0 AND \
                ((status = 'queued' AND available_at <= ?) OR (status = 'running' AND lease_expires_at < ?)) \
                ORDER BY id LIMIT 1) \
-             RETURNING id, upload_sha256, options_json, attempts, max_attempts",
+             RETURNING id, upload_sha256, options_json, attempts, max_attempts, interruptions",
         )
         .bind(owner)
         .bind(now + lease.as_millis() as i64)

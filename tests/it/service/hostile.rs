@@ -354,3 +354,31 @@ async fn long_heads_get_problems_and_slow_or_idle_connections_are_closed() {
     assert_eq!(app.get("/healthz").await.status(), StatusCode::OK);
     app.stop().await;
 }
+
+/// A claim whose process dies (its lease lapses) is an interruption, not an attempt: the job is
+/// re-run with its retry budget whole, and only a job whose process died `max_interruptions` times
+/// is failed, as poisonous.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn crashes_are_not_counted_against_a_job_until_they_repeat() {
+    let app = spawn_app_with(|s| s.workers = 0).await;
+    let id = app.submit(ci_tar(), "").await.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+    let mut store = app.store().await;
+    store.max_interruptions = 3;
+    // A lease of 1 ms lapses at once: as if the process died right after claiming.
+    let lapse = Duration::from_millis(1);
+    let first = store.claim("dies-1", lapse).await.unwrap().unwrap();
+    assert_eq!((first.attempts, first.interruptions, first.failed_attempts()), (1, 0, 1));
+    tokio::time::sleep(Duration::from_millis(5)).await;
+    let second = store.claim("dies-2", lapse).await.unwrap().unwrap();
+    assert_eq!((second.id.as_str(), second.interruptions, second.failed_attempts()), (id.as_str(), 1, 1));
+    tokio::time::sleep(Duration::from_millis(5)).await;
+    let third = store.claim("dies-3", lapse).await.unwrap().unwrap();
+    assert_eq!((third.interruptions, third.failed_attempts()), (2, 1), "two crashes cost no retry");
+    tokio::time::sleep(Duration::from_millis(5)).await;
+    // The third death: failed as poisonous, not claimed again.
+    assert!(store.claim("dies-4", lapse).await.unwrap().is_none());
+    let v: Value = app.get(&format!("/v1/inspections/{id}")).await.json().await.unwrap();
+    assert_eq!((v["status"].as_str(), v["error"]["code"].as_str()), (Some("failed"), Some("job_poisonous")), "{v}");
+    assert!(v["error"]["detail"].as_str().unwrap().contains("3 times"), "{v}");
+    app.stop().await;
+}
