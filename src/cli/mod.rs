@@ -38,7 +38,7 @@ enum Command {
     /// Print the API 5B connection table.
     Connections(connections::ConnectionsArgs),
     /// Run the HTTP service (REST API, job queue, workers). Settings: flags > CRESTSCAN_* > config file > defaults.
-    Serve(serve::ServeArgs),
+    Serve(Box<serve::ServeArgs>),
     /// Print the OpenAPI document of the HTTP API (JSON).
     Openapi,
     /// Exit 0 when a local service answers /healthz (for container health checks; no curl needed).
