@@ -60,6 +60,7 @@ codes! {
     InspectionNotSucceeded = ("inspection_not_succeeded", 409, "Inspection has no results"),
     InspectionFinished = ("inspection_finished", 409, "Inspection already finished"),
     CmmNotFound = ("cmm_not_found", 404, "No CMM measurements"),
+    ResultExpired = ("result_expired", 410, "Result deleted by retention"),
     UnknownDesignation = ("unknown_designation", 404, "Unknown connection designation"),
     // Bundle validation (the bundle reader's codes).
     UnsupportedFormatVersion = ("unsupported_format_version", 422, "Unsupported bundle format"),

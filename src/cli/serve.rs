@@ -91,6 +91,9 @@ pub struct ServeArgs {
     /// Days uploads of finished inspections are kept; 0 keeps them [default: 30].
     #[arg(long, env = "CRESTSCAN_UPLOAD_RETENTION_DAYS")]
     upload_retention_days: Option<f64>,
+    /// Days meshes and images of finished inspections are kept; 0 keeps them [default: 0].
+    #[arg(long, env = "CRESTSCAN_ARTIFACT_RETENTION_DAYS")]
+    artifact_retention_days: Option<f64>,
     /// Log filter [default: info].
     #[arg(long, env = "CRESTSCAN_LOG")]
     log: Option<String>,
@@ -125,6 +128,7 @@ impl ServeArgs {
             shutdown_grace_seconds,
             poll_interval_ms,
             upload_retention_days,
+            artifact_retention_days,
             log
         );
         s.validate()?;

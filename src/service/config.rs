@@ -55,6 +55,9 @@ pub struct Settings {
     pub poll_interval_ms: u64,
     /// Uploaded bundles of finished inspections are deleted after this many days (0: kept).
     pub upload_retention_days: f64,
+    /// Meshes and images of finished inspections are deleted after this many days (0: kept); the
+    /// reports and thread tables stay.
+    pub artifact_retention_days: f64,
     /// Tracing filter (`info`, `crestscan=debug,tower_http=info`, ...).
     pub log: String,
 }
@@ -81,6 +84,7 @@ impl Default for Settings {
             shutdown_grace_seconds: 30.0,
             poll_interval_ms: 500,
             upload_retention_days: 30.0,
+            artifact_retention_days: 0.0,
             log: "info".into(),
         }
     }
@@ -136,6 +140,9 @@ impl Settings {
         }
         if !(self.shutdown_grace_seconds >= 0.0) {
             return invalid("shutdown_grace_seconds", "must be non-negative");
+        }
+        if !(self.artifact_retention_days >= 0.0) {
+            return invalid("artifact_retention_days", "must be non-negative (0 keeps them)");
         }
         if !(self.upload_retention_days >= 0.0) {
             return invalid("upload_retention_days", "must be non-negative (0 keeps uploads)");

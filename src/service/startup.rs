@@ -166,16 +166,26 @@ async fn serve(
 
 /// Deletes uploads of finished inspections older than the retention period, hourly.
 async fn retention_sweep(state: AppState, mut stop: watch::Receiver<bool>) {
-    let days = state.settings.upload_retention_days;
-    if days <= 0.0 {
+    let (days, artifact_days) = (state.settings.upload_retention_days, state.settings.artifact_retention_days);
+    if days <= 0.0 && artifact_days <= 0.0 {
         return;
     }
     loop {
-        let cutoff = now_ms() - (days * 86_400_000.0) as i64;
-        match state.store.purge_uploads(cutoff).await {
-            Ok(0) => {}
-            Ok(n) => tracing::info!(purged = n, "retention: deleted old uploads"),
-            Err(e) => tracing::warn!(error = %e, "retention sweep failed"),
+        if days > 0.0 {
+            let cutoff = now_ms() - (days * 86_400_000.0) as i64;
+            match state.store.purge_uploads(cutoff).await {
+                Ok(0) => {}
+                Ok(n) => tracing::info!(purged = n, "retention: deleted old uploads"),
+                Err(e) => tracing::warn!(error = %e, "retention sweep failed"),
+            }
+        }
+        if artifact_days > 0.0 {
+            let cutoff = now_ms() - (artifact_days * 86_400_000.0) as i64;
+            match state.store.purge_artifacts(cutoff).await {
+                Ok(0) => {}
+                Ok(n) => tracing::info!(inspections = n, "retention: deleted old meshes and images"),
+                Err(e) => tracing::warn!(error = %e, "artifact retention sweep failed"),
+            }
         }
         tokio::select! {
             _ = tokio::time::sleep(Duration::from_secs(3600)) => {}

@@ -196,6 +196,7 @@ pub async fn get_threads(
         (status = 404, description = "No such inspection", body = Problem, content_type = "application/problem+json"),
         (status = 406, description = "Unsupported format", body = Problem, content_type = "application/problem+json"),
         (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
+        (status = 410, description = "Deleted by the result retention", body = Problem, content_type = "application/problem+json"),
     )
 )]
 pub async fn get_mesh(
@@ -207,7 +208,7 @@ pub async fn get_mesh(
     let id = succeeded(&state, &id).await?;
     let offered = [("ply", "application/x-ply"), ("stl", "model/stl"), ("glb", "model/gltf-binary")];
     let (format, media) = negotiate(&headers, q.format.as_deref(), &offered)?;
-    let a = state.store.artifact(&id.0, if format == "stl" { "mesh.stl" } else { "mesh.ply" }).await?;
+    let a = stored_artifact(&state, &id.0, if format == "stl" { "mesh.stl" } else { "mesh.ply" }).await?;
     let mut response = if format == "glb" {
         // Made from the stored PLY on request (a third stored copy would add as much again per
         // result); its validator follows the PLY's, so a revalidation costs no conversion.
@@ -264,6 +265,28 @@ pub async fn get_image(
         }
     };
     let id = succeeded(&state, &id).await?;
-    let a = state.store.artifact(&id.0, kind).await?;
+    let a = stored_artifact(&state, &id.0, kind).await?;
     Ok(immutable(&headers, &a.etag, &a.content_type, a.body))
+}
+
+/// A stored mesh or image, or 410 when the retention deleted it.
+async fn stored_artifact(
+    state: &AppState,
+    id: &str,
+    kind: &str,
+) -> Result<crate::service::store::StoredArtifact, ApiError> {
+    match state.store.artifact(id, kind).await {
+        Err(crate::service::store::StoreError::NotFound) => match state.store.artifacts_purged_at(id).await? {
+            Some(at) => Err(ApiError::new(
+                Code::ResultExpired,
+                format!(
+                    "the {kind} of this inspection was deleted on {} (artifact_retention_days); its report and thread \
+                     table are kept",
+                    crate::service::api::rfc3339(at)
+                ),
+            )),
+            None => Err(ApiError::not_found(id)),
+        },
+        other => Ok(other?),
+    }
 }

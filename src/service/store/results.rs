@@ -87,6 +87,40 @@ impl Store {
         Ok((threads, heights))
     }
 
+    /// Deletes the meshes and images of inspections that finished before `cutoff_ms`, keeping
+    /// their reports and thread tables; returns how many inspections lost theirs. SQLite reuses
+    /// the freed pages for new results, so the database stops growing by them (the file itself
+    /// shrinks only with VACUUM).
+    pub async fn purge_artifacts(&self, cutoff_ms: i64) -> Result<usize, StoreError> {
+        let mut tx = self.pool.begin().await?;
+        let due: Vec<(String,)> = sqlx::query_as(
+            "SELECT id FROM inspections WHERE finished_at < ? AND artifacts_purged_at IS NULL \
+             AND EXISTS (SELECT 1 FROM artifacts a WHERE a.inspection_id = inspections.id)",
+        )
+        .bind(cutoff_ms)
+        .fetch_all(&mut *tx)
+        .await?;
+        for (id,) in &due {
+            sqlx::query("DELETE FROM artifacts WHERE inspection_id = ?").bind(id).execute(&mut *tx).await?;
+            sqlx::query("UPDATE inspections SET artifacts_purged_at = ? WHERE id = ?")
+                .bind(now_ms())
+                .bind(id)
+                .execute(&mut *tx)
+                .await?;
+        }
+        tx.commit().await?;
+        Ok(due.len())
+    }
+
+    /// When the retention deleted this inspection's meshes and images, if it did.
+    pub async fn artifacts_purged_at(&self, id: &str) -> Result<Option<i64>, StoreError> {
+        let row: Option<(Option<i64>,)> = sqlx::query_as("SELECT artifacts_purged_at FROM inspections WHERE id = ?")
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?;
+        Ok(row.and_then(|r| r.0))
+    }
+
     /// Deletes uploaded bundles whose inspections all finished before `cutoff_ms`.
     pub async fn purge_uploads(&self, cutoff_ms: i64) -> Result<usize, StoreError> {
         let due: Vec<(String,)> = sqlx::query_as(

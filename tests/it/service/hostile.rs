@@ -382,3 +382,38 @@ async fn crashes_are_not_counted_against_a_job_until_they_repeat() {
     assert!(v["error"]["detail"].as_str().unwrap().contains("3 times"), "{v}");
     app.stop().await;
 }
+
+/// The result retention deletes an old inspection's meshes and images, keeps its report and thread
+/// table, answers 410 for what it deleted, and frees the pages for the next results.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_result_retention_frees_meshes_and_images_and_says_so() {
+    let app = spawn_app().await;
+    let id = app.submit(ci_tar(), "").await.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+    assert_eq!(app.wait(&id, Duration::from_secs(300)).await["status"], "succeeded");
+    let store = app.store().await;
+    let pages = |sql: &'static str| {
+        let pool = store.pool.clone();
+        async move { sqlx::query_scalar::<_, i64>(sql).fetch_one(&pool).await.unwrap() }
+    };
+    let artifact_bytes: i64 =
+        sqlx::query_scalar("SELECT SUM(LENGTH(body)) FROM artifacts").fetch_one(&store.pool).await.unwrap();
+    let page_size = pages("PRAGMA page_size").await;
+    let free_before = pages("PRAGMA freelist_count").await;
+    // Nothing is old enough yet.
+    assert_eq!(store.purge_artifacts(0).await.unwrap(), 0);
+    assert_eq!(app.get(&format!("/v1/inspections/{id}/mesh")).await.status(), StatusCode::OK);
+    let now_ms = (std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_millis() + 1) as i64;
+    assert_eq!(store.purge_artifacts(now_ms).await.unwrap(), 1);
+    let freed_bytes = (pages("PRAGMA freelist_count").await - free_before) * page_size;
+    assert!(freed_bytes * 2 >= artifact_bytes, "freed {freed_bytes} B of {artifact_bytes} B of artifacts");
+    let v = problem(app.get(&format!("/v1/inspections/{id}/mesh")).await, StatusCode::GONE, "result_expired").await;
+    assert!(v["detail"].as_str().unwrap().contains("artifact_retention_days"), "{v}");
+    problem(app.get(&format!("/v1/inspections/{id}/images/height-map")).await, StatusCode::GONE, "result_expired")
+        .await;
+    assert_eq!(app.get(&format!("/v1/inspections/{id}/report")).await.status(), StatusCode::OK);
+    assert_eq!(app.get(&format!("/v1/inspections/{id}/threads")).await.status(), StatusCode::OK);
+    // A second purge has nothing to do.
+    assert_eq!(store.purge_artifacts(now_ms).await.unwrap(), 0);
+    eprintln!("retention: {artifact_bytes} B of meshes and images, {freed_bytes} B of pages freed");
+    app.stop().await;
+}
