@@ -36,7 +36,7 @@ fn poisonous_problem(interruptions: i64) -> String {
     let problem = Problem::new(
         Code::JobPoisonous,
         format!(
-            "the worker's process died while running this job {interruptions} times in a row; it is not run again \
+            "the worker's process died while running this job {interruptions} times; it is not run again \
              (max_interruptions)"
         ),
         None,
