@@ -223,6 +223,15 @@ async fn process(ctx: &WorkerContext, job: Claimed, lease_token: &str, shutdown:
             tracing::info!(inspection = %job.id, outcome = label, seconds = elapsed, "job done");
         }
         Ok(false) => tracing::warn!(inspection = %job.id, "job was re-claimed elsewhere; result dropped"),
+        Err(e) if e.is_storage_full() => {
+            // The results do not fit on the disk now: back to the queue (not blamed on the job; the
+            // workers claim nothing until space is over the floor again). If even that small write
+            // fails, the lease lapses and the job is re-run as after a crash.
+            tracing::error!(inspection = %job.id, error = %e, "disk full: results not stored; back to the queue");
+            if let Err(e) = ctx.store.requeue(&job.id, lease_token, Duration::from_secs(30), None, true).await {
+                tracing::error!(inspection = %job.id, error = %e, "requeue failed too; the lease will lapse");
+            }
+        }
         Err(e) => {
             tracing::error!(inspection = %job.id, error = %e, "could not record the outcome; the lease will lapse and the job re-run")
         }
