@@ -284,7 +284,7 @@ pub(super) fn check_work(part: &Part, optics: &Optics, views: &[View], limits: L
     if surface > limits.max_surface_pixels as f64 {
         // The culprit: a pose far from the others when the poses spread over more than a frame, a
         // custom pipe over twice the largest API 5B one (20 in, 508 mm), else the optics' scale.
-        let field = if axial(hi) - axial(lo) > frame_mm {
+        let field = if band.spread_mm > frame_mm {
             let mut by_axial: Vec<f64> = views.iter().map(|v| v.pose.axial_mm).collect();
             by_axial.sort_by(f64::total_cmp);
             let median = by_axial[by_axial.len() / 2];

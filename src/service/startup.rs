@@ -164,7 +164,8 @@ async fn serve(
     Ok(())
 }
 
-/// Deletes uploads of finished inspections older than the retention period, hourly.
+/// Hourly: deletes the uploads, and the meshes and images, of inspections finished longer ago than
+/// their retention periods (`upload_retention_days`, `artifact_retention_days`; 0 keeps them).
 async fn retention_sweep(state: AppState, mut stop: watch::Receiver<bool>) {
     let (days, artifact_days) = (state.settings.upload_retention_days, state.settings.artifact_retention_days);
     if days <= 0.0 && artifact_days <= 0.0 {

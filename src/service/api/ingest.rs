@@ -81,7 +81,6 @@ struct Upload {
     writer: tokio::task::JoinHandle<std::io::Result<(String, u64)>>,
     file: tempfile::NamedTempFile,
     received: u64,
-    limit: u64,
     files: FileStore,
     /// Received bytes at which the free space is looked at next.
     next_space_check: u64,
@@ -150,7 +149,6 @@ pub fn write_failed(e: &std::io::Error) -> ApiError {
 
 impl Upload {
     fn start(files: &FileStore, rules: UploadRules) -> Result<Self, ApiError> {
-        let limit = rules.limit;
         let file = files.temp_file().map_err(|e| write_failed(&e))?;
         let handle = file.reopen().map_err(ApiError::internal)?;
         let (tx, rx) = mpsc::channel(64);
@@ -160,7 +158,6 @@ impl Upload {
             writer,
             file,
             received: 0,
-            limit,
             files: files.clone(),
             next_space_check: SPACE_CHECK_BYTES,
             rules,
@@ -194,8 +191,8 @@ impl Upload {
 
     fn count(&mut self, n: usize) -> Result<(), ApiError> {
         self.received += n as u64;
-        if self.received > self.limit {
-            return Err(too_large(self.limit));
+        if self.received > self.rules.limit {
+            return Err(too_large(self.rules.limit));
         }
         if self.received >= self.next_space_check {
             self.next_space_check = self.received + SPACE_CHECK_BYTES;
@@ -260,8 +257,8 @@ pub async fn receive(request: Request, files: &FileStore, rules: UploadRules) ->
     let limit = rules.limit;
     let content_type =
         request.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_ascii_lowercase();
-    if let Some(length) =
-        request.headers().get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()?.parse::<u64>().ok())
+    let length = request.headers().get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()?.parse::<u64>().ok());
+    if let Some(length) = length
         && length > limit
     {
         // Read (and drop) a moderate excess so that clients without `Expect: 100-continue` see the
@@ -271,8 +268,7 @@ pub async fn receive(request: Request, files: &FileStore, rules: UploadRules) ->
         }
         return Err(too_large(limit));
     }
-    let announced =
-        request.headers().get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()?.parse::<u64>().ok()).unwrap_or(0);
+    let announced = length.unwrap_or(0);
     if let Err(e) = ensure_room(files, announced) {
         if announced <= DRAIN_BYTES {
             drain(request.into_body()).await;

@@ -27,10 +27,14 @@ fn temp_prefix(kind: &str) -> String {
     format!("{kind}-{}-{}-", host_name(), std::process::id())
 }
 
-fn host_name() -> String {
-    std::fs::read_to_string("/proc/sys/kernel/hostname")
-        .map(|h| h.trim().replace(|c: char| !c.is_ascii_alphanumeric(), "_"))
-        .unwrap_or_else(|_| "host".into())
+/// This host's name, read once (every upload's temporary is named with it).
+fn host_name() -> &'static str {
+    static NAME: std::sync::OnceLock<String> = std::sync::OnceLock::new();
+    NAME.get_or_init(|| {
+        std::fs::read_to_string("/proc/sys/kernel/hostname")
+            .map(|h| h.trim().replace(|c: char| !c.is_ascii_alphanumeric(), "_"))
+            .unwrap_or_else(|_| "host".into())
+    })
 }
 
 /// Whether a process with this id runs on this host.
@@ -148,7 +152,7 @@ impl FileStore {
             // `{kind}-{host}-{pid}-{random}`; hosts' names have no '-' (replaced by '_').
             let mut parts = name.splitn(4, '-');
             let (_, entry_host, pid) = (parts.next(), parts.next(), parts.next().and_then(|p| p.parse::<u32>().ok()));
-            let orphaned = entry_host == Some(host.as_str()) && pid.is_some_and(|pid| !process_alive(pid));
+            let orphaned = entry_host == Some(host) && pid.is_some_and(|pid| !process_alive(pid));
             let stale = entry.metadata()?.modified()?.elapsed().is_ok_and(|e| e >= age);
             if !(orphaned || stale) {
                 continue;
