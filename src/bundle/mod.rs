@@ -53,8 +53,9 @@ pub enum BundleError {
     InconsistentFrames { path: String, message: String },
     #[error("{path}: unsafe path: {message}")]
     UnsafePath { path: String, message: String },
+    /// Over one of the [`Limits`]; `culprit` is the bundle file at fault, where one is.
     #[error("bundle too large: {message}")]
-    Limit { message: String },
+    Limit { culprit: Option<String>, message: String },
     /// A well-formed bundle whose inspection would need more memory than the caps allow
     /// ([`Limits::max_stack_samples`] and the two after it); `field` is what makes it large.
     #[error("manifest.json: {field}: {message}")]
@@ -107,8 +108,9 @@ impl ErrorCode for BundleError {
             | BundleError::UnreadableFrame { path, .. }
             | BundleError::InconsistentFrames { path, .. }
             | BundleError::UnsafePath { path, .. } => Some(path.clone()),
+            BundleError::Limit { culprit, .. } => culprit.clone(),
             // The server's own file; not the client's business.
-            BundleError::Limit { .. } | BundleError::Archive { .. } | BundleError::Io { .. } => None,
+            BundleError::Archive { .. } | BundleError::Io { .. } => None,
         }
     }
 }
@@ -153,8 +155,10 @@ impl Bundle {
     pub fn open(path: &Path, table: &ConnectionTable, options: OpenOptions) -> Result<Self, BundleError> {
         let source = Source::open(path, options.limits, options.name)?;
         source.check_dir_limits()?;
-        let manifest_bytes = source.read("manifest.json")?;
+        let manifest_bytes = source.read_manifest()?;
         let manifest = parse_manifest(&manifest_bytes)?;
+        drop(manifest_bytes);
+        check_counts(&manifest, options.limits)?;
         let part = resolve_part(&manifest.part, table)?;
         manifest.optics.validate().map_err(|(field, message)| BundleError::Optics { field: field.into(), message })?;
         let views = validate_views(&manifest, &source, options.frame_check)?;
@@ -206,6 +210,29 @@ impl FrameSource for Bundle {
     fn read_frame(&self, view: usize, frame: usize) -> Result<Frame, FrameError> {
         Bundle::read_frame(self, view, frame).map_err(|e| FrameError::of(&e))
     }
+}
+
+/// Refuses more views, or frames in a view, than the limits allow, before any frame is read.
+fn check_counts(manifest: &Manifest, limits: Limits) -> Result<(), BundleError> {
+    let culprit = |field: String, message: String| BundleError::Limit {
+        culprit: Some(format!("manifest.json: {field}")),
+        message: format!("manifest.json: {field}: {message}"),
+    };
+    if manifest.views.len() > limits.max_views {
+        return Err(culprit(
+            "views".into(),
+            format!("{} views, more than max_views ({})", manifest.views.len(), limits.max_views),
+        ));
+    }
+    if let Some((i, view)) =
+        manifest.views.iter().enumerate().find(|(_, v)| v.frames.len() > limits.max_frames_per_view)
+    {
+        return Err(culprit(
+            format!("views[{i}].frames"),
+            format!("{} frames, more than max_frames_per_view ({})", view.frames.len(), limits.max_frames_per_view),
+        ));
+    }
+    Ok(())
 }
 
 pub fn parse_manifest(bytes: &[u8]) -> Result<Manifest, BundleError> {

@@ -17,6 +17,16 @@ pub struct Limits {
     pub max_files: usize,
     /// Bytes of one file.
     pub max_file_bytes: u64,
+    /// Bytes of manifest.json: parsing holds it as a JSON tree, about ten times its size.
+    pub max_manifest_bytes: u64,
+    /// Views in the manifest.
+    pub max_views: usize,
+    /// Frames of one view.
+    pub max_frames_per_view: usize,
+    /// Uncompressed over compressed size of a zip entry of over 1 MiB. Frames are PNG (already
+    /// deflated) or TIFF, which a zip shrinks a few times at most; a far larger ratio is a bomb that
+    /// would cost the server its inflation before any other check could refuse it.
+    pub max_compression_ratio: u64,
     /// Samples of one view's focal stack (frames × pixels per frame): depth from focus holds the
     /// stack's focus measure, 4 bytes a sample, and its decoded frames, 1 to 12 bytes a sample by
     /// channels and bit depth (3 for 8-bit RGB), for each view in flight.
@@ -38,6 +48,11 @@ impl Default for Limits {
             max_total_bytes: 16 << 30,
             max_files: 200_000,
             max_file_bytes: 512 << 20,
+            // The standard preset's manifest is 60 KB (45 views of 20 frames).
+            max_manifest_bytes: 16 << 20,
+            max_views: 1000,
+            max_frames_per_view: 500,
+            max_compression_ratio: 100,
             max_stack_samples: 1 << 28,
             max_view_pixels: 1 << 28,
             max_surface_pixels: 1 << 28,
@@ -75,6 +90,10 @@ struct TarEntry {
     size: u64,
     regular: bool,
 }
+
+/// Zip entries smaller than this are not held to [`Limits::max_compression_ratio`]: inflating
+/// them costs nothing, and a small manifest of repetitive JSON may shrink far more than a frame.
+const RATIO_CHECKED_BYTES: u64 = 1 << 20;
 
 /// An opened bundle container. Paths given to it are bundle-relative (already checked).
 pub struct Source {
@@ -135,6 +154,19 @@ impl Source {
             total = total.saturating_add(entry.size());
             if entry.size() > limits.max_file_bytes {
                 return Err(file_too_large(&name, entry.size(), limits));
+            }
+            if entry.size() > RATIO_CHECKED_BYTES
+                && entry.size() > limits.max_compression_ratio.saturating_mul(entry.compressed_size())
+            {
+                return Err(BundleError::Limit {
+                    culprit: Some(name.trim_start_matches("./").to_string()),
+                    message: format!(
+                        "{name}: inflates from {} to {} bytes, more than max_compression_ratio ({}:1) allows",
+                        entry.compressed_size(),
+                        entry.size(),
+                        limits.max_compression_ratio
+                    ),
+                });
             }
             if total > limits.max_total_bytes {
                 return Err(too_many_bytes(total, limits));
@@ -201,25 +233,73 @@ impl Source {
 
     /// Reads a whole bundle file (path relative to the bundle root, already checked).
     pub fn read(&self, path: &str) -> Result<Vec<u8>, BundleError> {
+        self.read_capped_at(path, self.limits.max_file_bytes, "max_file_bytes")
+    }
+
+    /// Reads manifest.json, held to [`Limits::max_manifest_bytes`].
+    pub fn read_manifest(&self) -> Result<Vec<u8>, BundleError> {
+        let max = self.limits.max_manifest_bytes.min(self.limits.max_file_bytes);
+        self.read_capped_at("manifest.json", max, "max_manifest_kib")
+    }
+
+    /// The first `len` bytes of a file (fewer if it is shorter): enough for a PNG's header
+    /// without holding its pixels. A zip entry is still inflated to its end (into nothing), so that
+    /// its CRC is checked.
+    pub fn read_head(&self, path: &str, len: usize) -> Result<Vec<u8>, BundleError> {
         let full = format!("{}{}", self.prefix, path);
-        let max = self.limits.max_file_bytes;
+        let mut head = Vec::with_capacity(len);
+        match &self.kind {
+            Kind::Dir(root) => {
+                let file_path = self.dir_path(root, path)?;
+                let file = File::open(&file_path).map_err(|e| missing_or_io(path, e))?;
+                file.take(len as u64).read_to_end(&mut head).map_err(|e| io_err(path, e))?;
+            }
+            Kind::Zip { archive, index } => {
+                let &(i, _) = index.get(&full).ok_or_else(|| BundleError::MissingFile { path: path.into() })?;
+                let mut archive = archive.lock().unwrap_or_else(|p| p.into_inner());
+                let mut entry = archive.by_index(i).map_err(|e| damaged_entry(path, e))?;
+                (&mut entry).take(len as u64).read_to_end(&mut head).map_err(|e| damaged_entry(path, e))?;
+                // The rest is inflated into nothing, so the entry's CRC is checked at upload
+                // (a damaged archive is refused before the 202) without holding the pixels;
+                // max_compression_ratio bounds what that costs.
+                std::io::copy(&mut (&mut entry).take(self.limits.max_file_bytes), &mut std::io::sink())
+                    .map_err(|e| damaged_entry(path, e))?;
+            }
+            Kind::Tar { file, index } => {
+                let entry = index.get(&full).ok_or_else(|| BundleError::MissingFile { path: path.into() })?;
+                if !entry.regular {
+                    return Err(BundleError::UnsafePath { path: path.into(), message: "is not a regular file".into() });
+                }
+                let mut file = file.lock().unwrap_or_else(|p| p.into_inner());
+                file.seek(SeekFrom::Start(entry.data_offset)).map_err(|e| io_err(path, e))?;
+                (&mut *file).take(entry.size.min(len as u64)).read_to_end(&mut head).map_err(|e| io_err(path, e))?;
+            }
+        }
+        Ok(head)
+    }
+
+    fn read_capped_at(&self, path: &str, max: u64, limit: &'static str) -> Result<Vec<u8>, BundleError> {
+        let full = format!("{}{}", self.prefix, path);
         match &self.kind {
             Kind::Dir(root) => {
                 let file_path = self.dir_path(root, path)?;
                 let mut file = File::open(&file_path).map_err(|e| missing_or_io(path, e))?;
-                read_capped(&mut file, max, path, io_err)
+                read_capped(&mut file, max, limit, path, io_err)
             }
             Kind::Zip { archive, index } => {
                 let &(i, _) = index.get(&full).ok_or_else(|| BundleError::MissingFile { path: path.into() })?;
                 let mut archive = archive.lock().unwrap_or_else(|p| p.into_inner());
                 // A damaged entry (bad CRC, broken deflate stream) is the client's archive, not our I/O.
                 let mut entry = archive.by_index(i).map_err(|e| damaged_entry(path, e))?;
-                read_capped(&mut entry, max, path, damaged_entry)
+                read_capped(&mut entry, max, limit, path, damaged_entry)
             }
             Kind::Tar { file, index } => {
                 let entry = index.get(&full).ok_or_else(|| BundleError::MissingFile { path: path.into() })?;
                 if !entry.regular {
                     return Err(BundleError::UnsafePath { path: path.into(), message: "is not a regular file".into() });
+                }
+                if entry.size > max {
+                    return Err(over_cap(path, max, limit));
                 }
                 let mut file = file.lock().unwrap_or_else(|p| p.into_inner());
                 file.seek(SeekFrom::Start(entry.data_offset)).map_err(|e| io_err(path, e))?;
@@ -320,15 +400,23 @@ fn read_up_to(file: &mut File, buf: &mut [u8]) -> std::io::Result<usize> {
 fn read_capped(
     reader: &mut impl Read,
     max: u64,
+    limit: &'static str,
     path: &str,
     on_error: fn(&str, std::io::Error) -> BundleError,
 ) -> Result<Vec<u8>, BundleError> {
     let mut bytes = Vec::new();
     reader.take(max + 1).read_to_end(&mut bytes).map_err(|e| on_error(path, e))?;
     if bytes.len() as u64 > max {
-        return Err(BundleError::Limit { message: format!("{path}: larger than the per-file cap of {max} bytes") });
+        return Err(over_cap(path, max, limit));
     }
     Ok(bytes)
+}
+
+fn over_cap(path: &str, max: u64, limit: &'static str) -> BundleError {
+    BundleError::Limit {
+        culprit: Some(path.to_string()),
+        message: format!("{path}: larger than {max} bytes, the cap {limit} sets"),
+    }
 }
 
 fn damaged_entry(path: &str, e: impl std::fmt::Display) -> BundleError {
@@ -336,17 +424,25 @@ fn damaged_entry(path: &str, e: impl std::fmt::Display) -> BundleError {
 }
 
 fn too_many_files(n: usize, limits: Limits) -> BundleError {
-    BundleError::Limit { message: format!("archive holds more than {} files ({n} seen)", limits.max_files) }
+    BundleError::Limit {
+        culprit: None,
+        message: format!("the archive holds more than {} files ({n} seen)", limits.max_files),
+    }
 }
 
 fn too_many_bytes(total: u64, limits: Limits) -> BundleError {
     BundleError::Limit {
-        message: format!("uncompressed size exceeds the cap of {} bytes ({total} seen)", limits.max_total_bytes),
+        culprit: None,
+        message: format!(
+            "the uncompressed size exceeds {} bytes, the cap max_decompressed_mb sets ({total} seen)",
+            limits.max_total_bytes
+        ),
     }
 }
 
 fn file_too_large(name: &str, size: u64, limits: Limits) -> BundleError {
     BundleError::Limit {
+        culprit: Some(name.trim_start_matches("./").to_string()),
         message: format!(
             "{name}: uncompressed size {size} exceeds the per-file cap of {} bytes",
             limits.max_file_bytes

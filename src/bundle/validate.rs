@@ -115,6 +115,25 @@ pub(super) fn form_error_to_bundle(e: &FormError) -> BundleError {
     thread_err(&field, e.to_string())
 }
 
+/// Bytes of a PNG read for its header: the signature and IHDR take 33, and ancillary chunks
+/// before the first IDAT rarely take more.
+const PNG_HEAD_BYTES: usize = 64 << 10;
+
+/// A frame's format from its header. A PNG's comes from its first bytes, so its pixel data is
+/// not held in memory; a PNG whose header chunks run past them, and every TIFF (whose directory
+/// may sit anywhere), is read whole.
+fn probe_header(source: &Source, file: &str) -> Result<FrameFormat, BundleError> {
+    if !super::decode::is_tiff(file) {
+        let head = source.read_head(file, PNG_HEAD_BYTES)?;
+        match probe(file, &head) {
+            Ok(format) => return Ok(format),
+            Err(_) if head.len() == PNG_HEAD_BYTES => {}
+            Err(e) => return Err(e),
+        }
+    }
+    probe(file, &source.read(file)?)
+}
+
 pub(super) fn validate_views(
     manifest: &Manifest,
     source: &Source,
@@ -205,10 +224,10 @@ pub(super) fn validate_views(
         // Frame formats: every frame readable, one size, bit depth and colour type per view.
         let mut format: Option<(FrameFormat, &str)> = None;
         for frame in &view.frames {
-            let bytes = source.read(&frame.file)?;
             let this = match check {
-                FrameCheck::Headers => probe(&frame.file, &bytes)?,
+                FrameCheck::Headers => probe_header(source, &frame.file)?,
                 FrameCheck::Decode => {
+                    let bytes = source.read(&frame.file)?;
                     let (probed, decoded) = (probe(&frame.file, &bytes)?, decode(&frame.file, &bytes)?);
                     debug_assert_eq!(decoded.width, probed.width);
                     probed

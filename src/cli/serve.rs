@@ -44,9 +44,31 @@ pub struct ServeArgs {
     /// Compute threads for the pipeline [default: 0 = one per core].
     #[arg(long, env = "CRESTSCAN_COMPUTE_THREADS")]
     compute_threads: Option<usize>,
+    /// Nice level (0-19) of the compute threads [default: 10].
+    #[arg(long, env = "CRESTSCAN_COMPUTE_NICE")]
+    compute_nice: Option<i32>,
+    /// Run the compute threads SCHED_IDLE instead of at compute_nice (starves beside any busy
+    /// neighbour) [default: false].
+    #[arg(long, env = "CRESTSCAN_COMPUTE_SCHED_IDLE")]
+    compute_sched_idle: Option<bool>,
     /// Largest upload in MiB [default: 4096].
     #[arg(long, env = "CRESTSCAN_MAX_UPLOAD_MB")]
     max_upload_mb: Option<u64>,
+    /// Uncompressed MiB of all a bundle's files [default: 0 = four times max_upload_mb].
+    #[arg(long, env = "CRESTSCAN_MAX_DECOMPRESSED_MB")]
+    max_decompressed_mb: Option<u64>,
+    /// Uncompressed over compressed size a zip entry of over 1 MiB may have [default: 100].
+    #[arg(long, env = "CRESTSCAN_MAX_COMPRESSION_RATIO")]
+    max_compression_ratio: Option<u64>,
+    /// Largest manifest.json in KiB [default: 16384].
+    #[arg(long, env = "CRESTSCAN_MAX_MANIFEST_KIB")]
+    max_manifest_kib: Option<u64>,
+    /// Views a bundle may have [default: 1000].
+    #[arg(long, env = "CRESTSCAN_MAX_VIEWS")]
+    max_views: Option<usize>,
+    /// Frames one view may have [default: 500].
+    #[arg(long, env = "CRESTSCAN_MAX_FRAMES_PER_VIEW")]
+    max_frames_per_view: Option<usize>,
     /// Memory one inspection may take, MiB; bigger bundles are refused at upload [default: 0 =
     /// 60% of physical memory over the workers].
     #[arg(long, env = "CRESTSCAN_WORKER_MEMORY_MB")]
@@ -113,7 +135,14 @@ impl ServeArgs {
             data_dir,
             workers,
             compute_threads,
+            compute_nice,
+            compute_sched_idle,
             max_upload_mb,
+            max_decompressed_mb,
+            max_compression_ratio,
+            max_manifest_kib,
+            max_views,
+            max_frames_per_view,
             worker_memory_mb,
             min_free_disk_mb,
             header_timeout_seconds,

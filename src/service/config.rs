@@ -1,6 +1,7 @@
 //! Service settings. Precedence: built-in defaults < config file (TOML) < environment
 //! (`CRESTSCAN_*`) < command-line flags; the CLI layer (clap, with `env`) merges the last two.
 
+use crate::bundle::Limits;
 use serde::{Deserialize, Serialize};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -17,8 +18,24 @@ pub struct Settings {
     pub workers: usize,
     /// Threads of the pipeline's compute pool (0: one per core).
     pub compute_threads: usize,
+    /// Nice level of the compute pool's threads (0–19): request handling, at 0, keeps its latency
+    /// while inspections saturate the CPU, and a busy neighbour at the same level shares it fairly.
+    pub compute_nice: i32,
+    /// Schedule the compute pool SCHED_IDLE instead: it then runs only on CPU nothing else wants, so
+    /// any busy neighbour, even one at nice 19, starves inspections (docs/notebook/service.md).
+    pub compute_sched_idle: bool,
     /// Largest accepted upload.
     pub max_upload_mb: u64,
+    /// Uncompressed bytes of all a bundle's files, MiB (0: four times `max_upload_mb`).
+    pub max_decompressed_mb: u64,
+    /// Uncompressed over compressed size of any zip entry of over 1 MiB (a bomb beyond it).
+    pub max_compression_ratio: u64,
+    /// Size of a bundle's manifest.json, KiB: it is parsed in memory, about ten times its size.
+    pub max_manifest_kib: u64,
+    /// Views in a bundle's manifest.
+    pub max_views: usize,
+    /// Frames of one view.
+    pub max_frames_per_view: usize,
     /// Memory one inspection may take at its peak, MiB (0: sized to the machine, 60% of its
     /// physical memory shared among the workers). A bundle whose estimated peak
     /// ([`crate::pipeline::memory`]) is larger is refused at upload (422 `inspection_too_large`).
@@ -69,7 +86,14 @@ impl Default for Settings {
             data_dir: PathBuf::from("crestscan-data"),
             workers: 1,
             compute_threads: 0,
+            compute_nice: 10,
+            compute_sched_idle: false,
             max_upload_mb: 4096,
+            max_decompressed_mb: 0,
+            max_compression_ratio: Limits::default().max_compression_ratio,
+            max_manifest_kib: Limits::default().max_manifest_bytes >> 10,
+            max_views: Limits::default().max_views,
+            max_frames_per_view: Limits::default().max_frames_per_view,
             worker_memory_mb: 0,
             min_free_disk_mb: 1024,
             header_timeout_seconds: 10.0,
@@ -113,6 +137,18 @@ impl Settings {
         let invalid = |field, message: &str| Err(ConfigError::Invalid { field, message: message.into() });
         if self.max_upload_mb == 0 {
             return invalid("max_upload_mb", "must be at least 1");
+        }
+        if self.max_compression_ratio == 0 || self.max_manifest_kib == 0 {
+            return invalid("max_compression_ratio", "and max_manifest_kib must be at least 1");
+        }
+        if self.max_views == 0 || self.max_frames_per_view < crate::bundle::MIN_FRAMES {
+            return invalid(
+                "max_views",
+                &format!("must be at least 1, and max_frames_per_view at least {}", crate::bundle::MIN_FRAMES),
+            );
+        }
+        if !(0..=19).contains(&self.compute_nice) {
+            return invalid("compute_nice", "must be 0 to 19");
         }
         if !(self.heartbeat_seconds > 0.0) {
             return invalid("heartbeat_seconds", "must be positive");
@@ -161,6 +197,20 @@ impl Settings {
     }
     pub fn max_upload_bytes(&self) -> u64 {
         self.max_upload_mb.saturating_mul(1 << 20)
+    }
+
+    /// The caps a bundle is opened with, at ingest and in the worker alike.
+    pub fn bundle_limits(&self) -> Limits {
+        let decompressed_mb =
+            if self.max_decompressed_mb > 0 { self.max_decompressed_mb } else { self.max_upload_mb.saturating_mul(4) };
+        Limits {
+            max_total_bytes: decompressed_mb.saturating_mul(1 << 20),
+            max_manifest_bytes: self.max_manifest_kib.saturating_mul(1 << 10),
+            max_views: self.max_views,
+            max_frames_per_view: self.max_frames_per_view,
+            max_compression_ratio: self.max_compression_ratio,
+            ..Limits::default()
+        }
     }
 
     /// The memory one inspection may take, bytes: the setting, else 60% of the machine's physical
@@ -213,5 +263,33 @@ mod tests {
         assert!(e.contains("wokers"), "{e}");
         let bad = Settings { lease_seconds: 1.0, heartbeat_seconds: 2.0, ..Settings::default() };
         assert!(bad.validate().unwrap_err().to_string().starts_with("lease_seconds"));
+    }
+
+    #[test]
+    fn bundle_limits_follow_the_settings() {
+        let s = Settings::default();
+        let limits = s.bundle_limits();
+        assert_eq!(limits.max_total_bytes, 4 * s.max_upload_bytes());
+        assert_eq!(limits.max_manifest_bytes, Limits::default().max_manifest_bytes);
+        let s = Settings {
+            max_decompressed_mb: 100,
+            max_manifest_kib: 64,
+            max_views: 7,
+            max_frames_per_view: 9,
+            max_compression_ratio: 5,
+            ..Settings::default()
+        };
+        let limits = s.bundle_limits();
+        assert_eq!(limits.max_total_bytes, 100 << 20);
+        assert_eq!(limits.max_manifest_bytes, 64 << 10);
+        assert_eq!((limits.max_views, limits.max_frames_per_view, limits.max_compression_ratio), (7, 9, 5));
+        for bad in [
+            Settings { compute_nice: 20, ..Settings::default() },
+            Settings { compute_nice: -1, ..Settings::default() },
+            Settings { max_frames_per_view: 2, ..Settings::default() },
+            Settings { max_compression_ratio: 0, ..Settings::default() },
+        ] {
+            assert!(bad.validate().is_err(), "{bad:?}");
+        }
     }
 }

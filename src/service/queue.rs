@@ -2,7 +2,6 @@
 //! inspection's stored options are, and the caps a bundle is opened with at ingest and in the
 //! worker alike.
 
-use crate::bundle::Limits;
 use crate::domain::frame::Recording;
 use crate::pipeline::PipelineOptions;
 use crate::problem::{Code, ErrorCode};
@@ -12,11 +11,6 @@ use crate::service::config::Settings;
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct JobOptions {
     pub pipeline: PipelineOptions,
-}
-
-/// The caps a bundle is opened with, at ingest and in the worker alike.
-pub fn bundle_limits(max_upload_bytes: u64) -> Limits {
-    Limits { max_total_bytes: max_upload_bytes.saturating_mul(4), ..Limits::default() }
 }
 
 /// A bundle whose inspection would need more memory than a worker may take.

@@ -64,7 +64,7 @@ impl Application {
             store,
             table,
             metrics,
-            compute: worker::compute_pool(settings.compute_threads),
+            compute: worker::compute_pool(&settings),
             settings: (*settings).clone(),
             wake,
             owner: format!("{}-{}", std::process::id(), uuid::Uuid::now_v7()),

@@ -8,6 +8,7 @@ use crate::domain::thread::ConnectionTable;
 use crate::export::{ply, png, stl};
 use crate::pipeline::{self, Stage};
 use crate::problem::{Code, ErrorCode, Problem};
+use crate::service::config::Settings;
 use crate::service::queue::JobOptions;
 use crate::service::store::{Artifact, Claimed, Heartbeat, JobResults, Status, Store};
 use crate::service::telemetry::Metrics;
@@ -46,30 +47,33 @@ fn problem(code: Code, detail: impl Into<String>) -> Problem {
     Problem::new(code, detail, None)
 }
 
-/// The caps a bundle is opened with, at ingest and in the worker alike.
-pub fn bundle_limits(max_upload_bytes: u64) -> crate::bundle::Limits {
-    crate::bundle::Limits { max_total_bytes: max_upload_bytes.saturating_mul(4), ..crate::bundle::Limits::default() }
+/// Builds the compute pool: one thread per core (or the `compute_threads` setting), each at the
+/// `compute_nice` level, or SCHED_IDLE with `compute_sched_idle` (Linux; elsewhere the default
+/// priority), so that request handling keeps its latency while inspections saturate the CPU.
+pub fn compute_pool(settings: &Settings) -> Arc<rayon::ThreadPool> {
+    let (nice, sched_idle) = (settings.compute_nice, settings.compute_sched_idle);
+    let builder = rayon::ThreadPoolBuilder::new()
+        .num_threads(settings.compute_threads_resolved())
+        .thread_name(|i| format!("compute-{i}"))
+        .start_handler(move |_| lower_priority(nice, sched_idle));
+    Arc::new(builder.build().expect("compute pool starts"))
 }
 
-/// Builds the compute pool: one thread per core (or `threads`), scheduled SCHED_IDLE on Linux so
-/// that request handling keeps its latency while inspections saturate the CPU (the pool takes
-/// whatever CPU the request threads leave).
-pub fn compute_pool(threads: usize) -> Arc<rayon::ThreadPool> {
-    let mut builder = rayon::ThreadPoolBuilder::new().thread_name(|i| format!("compute-{i}")).start_handler(|_| {
-        #[cfg(target_os = "linux")]
-        // SAFETY: plain syscalls on the calling thread with a valid, initialised parameter.
-        unsafe {
-            let param = libc::sched_param { sched_priority: 0 };
-            if libc::sched_setscheduler(0, libc::SCHED_IDLE, &param) != 0 {
-                // Not permitted (some sandboxes): fall back to a lower nice value.
-                libc::setpriority(libc::PRIO_PROCESS, 0, 10);
-            }
+/// Lowers the calling thread's priority (on Linux a nice level is per thread).
+fn lower_priority(nice: i32, sched_idle: bool) {
+    #[cfg(target_os = "linux")]
+    // SAFETY: plain syscalls on the calling thread with a valid, initialised parameter.
+    unsafe {
+        let param = libc::sched_param { sched_priority: 0 };
+        if sched_idle && libc::sched_setscheduler(0, libc::SCHED_IDLE, &param) == 0 {
+            return;
         }
-    });
-    if threads > 0 {
-        builder = builder.num_threads(threads);
+        if libc::setpriority(libc::PRIO_PROCESS, 0, nice) != 0 {
+            tracing::warn!(nice, "could not lower the compute pool's priority");
+        }
     }
-    Arc::new(builder.build().expect("compute pool starts"))
+    #[cfg(not(target_os = "linux"))]
+    let _ = (nice, sched_idle);
 }
 
 /// Runs `settings.workers` worker loops until `shutdown` turns true, then lets running jobs finish
@@ -270,7 +274,7 @@ fn run_job(ctx: &WorkerContext, job: &Claimed, cancel: &AtomicBool, progress: &M
             format!("the uploaded bundle {} is no longer in the store", job.upload_sha256),
         ));
     }
-    let limits = crate::service::queue::bundle_limits(ctx.settings.max_upload_bytes());
+    let limits = ctx.settings.bundle_limits();
     let bundle = match Bundle::open(
         &path,
         &ctx.table,

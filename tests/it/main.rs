@@ -3,6 +3,9 @@
 mod bundle_reader;
 mod common;
 mod depth;
+mod fuzz_corpus;
+#[path = "../../fuzz/src/lib.rs"]
+mod fuzz_targets;
 mod layers;
 mod numeric_props;
 mod pipeline;

@@ -392,13 +392,12 @@ pub async fn create_inspection(
 
     // Validate the whole bundle (manifest, optics, part, every frame's header) before accepting.
     let table = state.table.clone();
-    let limit = state.settings.max_upload_bytes();
+    let limits = state.settings.bundle_limits();
     let files = state.store.files.clone();
     let ingest::Received { file, sha256, size_bytes, .. } = received;
     let settings = state.settings.clone();
     let pipeline_options = options.pipeline.clone();
     let (upload, serial, connection, file) = tokio::task::spawn_blocking(move || {
-        let limits = crate::service::queue::bundle_limits(limit);
         let bundle = Bundle::open(
             file.path(),
             &table,

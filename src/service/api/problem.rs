@@ -132,7 +132,7 @@ mod tests {
     fn bundle_errors_are_client_errors_with_their_own_code_and_culprit() {
         for e in [
             BundleError::FormatVersion { found: "x".into() },
-            BundleError::Limit { message: "x".into() },
+            BundleError::Limit { culprit: None, message: "x".into() },
             BundleError::InspectionTooLarge { field: "views".into(), message: "x".into() },
             BundleError::Archive { message: "x".into() },
             BundleError::MissingFile { path: "views/0/a.png".into() },

@@ -155,6 +155,118 @@ async fn a_bundle_over_the_memory_budget_is_refused_before_the_202() {
     app.stop().await;
 }
 
+/// A tar of `manifest.json` alone.
+fn manifest_only_tar(manifest: &[u8]) -> Vec<u8> {
+    let mut builder = tar::Builder::new(Vec::new());
+    let mut header = tar::Header::new_ustar();
+    header.set_size(manifest.len() as u64);
+    header.set_mode(0o644);
+    builder.append_data(&mut header, "manifest.json", manifest).unwrap();
+    builder.into_inner().unwrap()
+}
+
+/// A manifest over the size cap, one with more views than allowed and one with a view of more
+/// frames than allowed are refused from the manifest alone: no frame is read, nothing is stored.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn huge_manifests_are_refused_by_their_limit_before_any_frame_is_read() {
+    let mut manifest: Value =
+        serde_json::from_slice(&std::fs::read(ci_bundle().join("manifest.json")).unwrap()).unwrap();
+    let view = manifest["views"][0].clone();
+    let frames_per_view = view["frames"].as_array().unwrap().len();
+    let app = spawn_app_with(|s| {
+        s.workers = 0;
+        s.max_manifest_kib = 1024;
+        s.max_frames_per_view = frames_per_view;
+    })
+    .await;
+
+    // Over 1 MiB of views whose frames are not in the archive: the size is what refuses it.
+    let mut big = manifest.clone();
+    let view_bytes = serde_json::to_vec(&view).unwrap().len();
+    big["views"] = Value::from(
+        (0..(2 << 20) / view_bytes)
+            .map(|i| {
+                let mut v = view.clone();
+                v["id"] = Value::from(format!("v{i}"));
+                v
+            })
+            .collect::<Vec<_>>(),
+    );
+    let bytes = serde_json::to_vec(&big).unwrap();
+    assert!(bytes.len() > 1 << 20, "{} bytes", bytes.len());
+    let v = problem(app.submit(manifest_only_tar(&bytes), "").await, StatusCode::PAYLOAD_TOO_LARGE, "bundle_too_large")
+        .await;
+    assert_eq!(v["culprit"], "manifest.json", "{v}");
+    assert!(v["detail"].as_str().unwrap().contains("max_manifest_kib"), "{v}");
+
+    // 1001 views: the count is what refuses it (the default max_views).
+    big["views"] = Value::from(
+        (0..1001)
+            .map(|i| serde_json::json!({"id": format!("v{i}"), "pose": view["pose"], "frames": []}))
+            .collect::<Vec<_>>(),
+    );
+    let v = problem(
+        app.submit(manifest_only_tar(&serde_json::to_vec(&big).unwrap()), "").await,
+        StatusCode::PAYLOAD_TOO_LARGE,
+        "bundle_too_large",
+    )
+    .await;
+    assert_eq!(v["culprit"], "manifest.json: views", "{v}");
+    assert!(v["detail"].as_str().unwrap().contains("1001 views, more than max_views (1000)"), "{v}");
+
+    // A second view with one frame more than allowed.
+    let mut frames = view["frames"].as_array().unwrap().clone();
+    frames.push(frames[0].clone());
+    manifest["views"][1]["frames"] = Value::from(frames);
+    let v = problem(
+        app.submit(manifest_only_tar(&serde_json::to_vec(&manifest).unwrap()), "").await,
+        StatusCode::PAYLOAD_TOO_LARGE,
+        "bundle_too_large",
+    )
+    .await;
+    assert_eq!(v["culprit"], "manifest.json: views[1].frames", "{v}");
+    let expected = format!("max_frames_per_view ({frames_per_view})");
+    assert!(v["detail"].as_str().unwrap().contains(&expected), "{v}");
+    assert_eq!(app.uploads(), 0);
+    app.stop().await;
+}
+
+/// A zip whose frame inflates 1000-fold (a bomb: 32 MiB of zeros in about 32 KB) is refused from
+/// the archive's directory by the compression-ratio cap, naming the entry; the same bytes stored
+/// uncompressed meet the frame check instead.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_inflating_zip_is_refused_by_its_compression_ratio() {
+    use std::io::Write;
+    let app = spawn_app_with(|s| s.workers = 0).await;
+    let manifest = std::fs::read(ci_bundle().join("manifest.json")).unwrap();
+    let parsed: Value = serde_json::from_slice(&manifest).unwrap();
+    let first = parsed["views"][0]["frames"][0]["file"].as_str().unwrap().to_string();
+    let zeros = vec![0u8; 32 << 20];
+    let zip = |method: zip::CompressionMethod| {
+        let mut writer = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+        let options = zip::write::SimpleFileOptions::default().compression_method(method);
+        writer.start_file("manifest.json", options).unwrap();
+        writer.write_all(&manifest).unwrap();
+        writer.start_file(first.as_str(), options).unwrap();
+        writer.write_all(&zeros).unwrap();
+        writer.finish().unwrap().into_inner()
+    };
+    let bomb = zip(zip::CompressionMethod::Deflated);
+    assert!(bomb.len() < 256 << 10, "{} bytes", bomb.len());
+    let send = |body: Vec<u8>| {
+        app.client.post(app.url("/v1/inspections")).header("content-type", "application/zip").body(body).send()
+    };
+    let v = problem(send(bomb).await.unwrap(), StatusCode::PAYLOAD_TOO_LARGE, "bundle_too_large").await;
+    assert_eq!(v["culprit"].as_str(), Some(first.as_str()), "{v}");
+    assert!(v["detail"].as_str().unwrap().contains("max_compression_ratio (100:1)"), "{v}");
+
+    let stored = zip(zip::CompressionMethod::Stored);
+    let v = problem(send(stored).await.unwrap(), StatusCode::UNPROCESSABLE_ENTITY, "unreadable_frame").await;
+    assert_eq!(v["culprit"].as_str(), Some(first.as_str()), "{v}");
+    assert_eq!(app.uploads(), 0);
+    app.stop().await;
+}
+
 /// A job accepted under one budget and run under a smaller one fails cleanly with the budget's
 /// problem; the worker goes on.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
