@@ -8,10 +8,14 @@ use serde::{Deserialize, Serialize};
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct CmmPoint {
     /// Thread number as the contract counts them (1 = nearest the pipe end).
+    #[schema(minimum = 1, maximum = 1000)]
     pub thread: u32,
-    /// Angle around the pipe; absent means the thread's mean height.
+    /// Angle around the pipe, [0, 360); absent means the thread's mean height.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(minimum = 0.0, exclusive_maximum = 360.0)]
     pub angle_deg: Option<f64>,
+    /// [0, 25) mm.
+    #[schema(minimum = 0.0, exclusive_maximum = 25.0)]
     pub height_mm: f64,
 }
 
@@ -21,7 +25,10 @@ pub struct CmmMeasurements {
     pub instrument: Option<String>,
     /// RFC 3339.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(format = DateTime)]
     pub measured_at: Option<String>,
+    /// 1 to 100 000 points.
+    #[schema(min_items = 1, max_items = 100_000)]
     pub points: Vec<CmmPoint>,
 }
 
@@ -38,6 +45,8 @@ fn err(field: impl Into<String>, message: impl Into<String>) -> CmmError {
 }
 
 pub const MAX_POINTS: usize = 100_000;
+/// The highest thread number a point may name (a connection has a few dozen).
+pub const MAX_THREAD: u32 = 1000;
 
 impl CmmMeasurements {
     pub fn from_json(bytes: &[u8]) -> Result<Self, CmmError> {
@@ -99,8 +108,8 @@ impl CmmMeasurements {
                 .map_err(|e| err("measured_at", format!("{t:?} is not an RFC 3339 time: {e}")))?;
         }
         for (i, p) in self.points.iter().enumerate() {
-            if p.thread == 0 {
-                return Err(err(format!("points[{i}].thread"), "threads are numbered from 1"));
+            if p.thread == 0 || p.thread > MAX_THREAD {
+                return Err(err(format!("points[{i}].thread"), format!("threads are numbered 1 to {MAX_THREAD}")));
             }
             if let Some(a) = p.angle_deg
                 && !(a.is_finite() && (0.0..360.0).contains(&a))

@@ -40,7 +40,7 @@ pub struct StoredCmm {
     path = "/v1/inspections/{id}/cmm",
     operation_id = "put_cmm",
     tag = "cmm",
-    params(("id" = String, Path, description = "Inspection id")),
+    params(("id" = uuid::Uuid, Path, description = "Inspection id")),
     request_body(content(
         (CmmMeasurements = "application/json"),
         (String = "text/csv"),
@@ -92,7 +92,7 @@ pub async fn put_cmm(
     path = "/v1/inspections/{id}/cmm",
     operation_id = "get_cmm",
     tag = "cmm",
-    params(("id" = String, Path, description = "Inspection id")),
+    params(("id" = uuid::Uuid, Path, description = "Inspection id")),
     responses(
         (status = 200, description = "Stored measurements", body = StoredCmm),
         (status = 404, description = "No such inspection, or no CMM data yet", body = Problem, content_type = "application/problem+json"),
@@ -126,6 +126,7 @@ async fn stored_cmm(state: &AppState, id: InspectionId) -> Result<StoredCmm, Api
 #[into_params(parameter_in = Query)]
 pub struct ComparisonQuery {
     /// Agreement tolerance in mm (default: one tenth of the thread-height tolerance band).
+    #[param(exclusive_minimum = 0.0)]
     pub tolerance_mm: Option<f64>,
 }
 
@@ -147,7 +148,7 @@ pub struct CmmComparison {
     path = "/v1/inspections/{id}/cmm-comparison",
     operation_id = "get_cmm_comparison",
     tag = "cmm",
-    params(("id" = String, Path, description = "Inspection id"), ComparisonQuery),
+    params(("id" = uuid::Uuid, Path, description = "Inspection id"), ComparisonQuery),
     responses(
         (status = 200, description = "The comparison", body = CmmComparison),
         (status = 400, description = "Invalid tolerance", body = Problem, content_type = "application/problem+json"),

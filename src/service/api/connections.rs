@@ -19,8 +19,12 @@ pub fn router() -> OpenApiRouter<AppState> {
 #[serde(deny_unknown_fields)]
 #[into_params(parameter_in = Query)]
 pub struct ConnectionQuery {
-    /// BC (buttress), LC (long round) or STC (short round).
+    #[param(schema_with = kind_values)]
     pub kind: Option<String>,
+}
+
+fn kind_values() -> utoipa::openapi::schema::Object {
+    super::one_of(&["BC", "LC", "STC"], "BC (buttress), LC (long round) or STC (short round).")
 }
 
 #[derive(Clone, Debug, Serialize, ToSchema)]
@@ -47,7 +51,7 @@ pub async fn list_connections(
     query: Result<Query<ConnectionQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Json<ConnectionList>, ApiError> {
     let Query(q) = query.map_err(|e| ApiError::new(Code::InvalidQuery, e.body_text()))?;
-    let kind = q.kind.map(|k| k.to_ascii_uppercase());
+    let kind = q.kind;
     if let Some(k) = kind.as_deref()
         && !["BC", "LC", "STC"].contains(&k)
     {

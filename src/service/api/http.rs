@@ -78,7 +78,7 @@ pub(super) fn negotiate(
     offered: &[(&'static str, &'static str)],
 ) -> Result<(&'static str, &'static str), ApiError> {
     if let Some(f) = format {
-        return offered.iter().find(|o| o.0.eq_ignore_ascii_case(f)).copied().ok_or_else(|| {
+        return offered.iter().find(|o| o.0 == f).copied().ok_or_else(|| {
             let names: Vec<&str> = offered.iter().map(|o| o.0).collect();
             ApiError::new(Code::NotAcceptable, format!("format {f:?}: offered {}", names.join(", ")))
                 .with_culprit("format")

@@ -142,11 +142,13 @@ impl From<InspectionRow> for Inspection {
 #[serde(deny_unknown_fields)]
 #[into_params(parameter_in = Query)]
 pub struct SubmitOptions {
-    /// Your correlation id (MES order, station run); filterable. At most 200 printable characters.
+    /// Your correlation id (MES order, station run); filterable. 1–200 characters, no control
+    /// characters.
+    #[param(min_length = 1, max_length = 200, pattern = r"^[^\u0000-\u001F\u007F-\u009F]*$")]
+    #[schema(min_length = 1, max_length = 200, pattern = r"^[^\u0000-\u001F\u007F-\u009F]*$")]
     pub client_reference: Option<String>,
-    /// How the buttress 25% limit applies: per_thread (default) or combined.
-    #[param(value_type = Option<String>)]
-    #[schema(value_type = Option<String>)]
+    #[param(schema_with = arc_rule_values)]
+    #[schema(schema_with = arc_rule_values)]
     pub arc_rule: Option<ArcRule>,
     /// Pipeline options to override (JSON object, same shape as the inspection's `options.pipeline`).
     /// Only in the multipart `options` part.
@@ -317,7 +319,7 @@ fn accepted(row: InspectionRow, replayed: bool) -> Response {
     tag = "inspections",
     params(
         SubmitOptions,
-        ("Idempotency-Key" = Option<String>, Header, description = "Retry-safe submission: the same key and body return the same inspection; the same key with another body is 422."),
+        ("Idempotency-Key" = Option<String>, Header, pattern = "^[!-~]{1,255}$", description = "Retry-safe submission: the same key and body return the same inspection; the same key with another body is 422. 1–255 visible ASCII characters."),
     ),
     request_body(
         content(
@@ -446,23 +448,46 @@ pub async fn create_inspection(
 #[serde(deny_unknown_fields)]
 #[into_params(parameter_in = Query)]
 pub struct ListQuery {
-    /// queued, running, succeeded, failed or canceled.
+    #[param(schema_with = status_values)]
     pub status: Option<String>,
-    /// accept or reject.
+    #[param(schema_with = verdict_values)]
     pub verdict: Option<String>,
-    /// true or false: only succeeded inspections whose result does (or does not) need review.
+    #[param(schema_with = boolean_values)]
     pub review_required: Option<String>,
     pub serial: Option<String>,
     pub connection: Option<String>,
     pub client_reference: Option<String>,
     /// RFC 3339; only inspections created after it.
+    #[param(value_type = Option<String>, format = DateTime)]
     pub created_after: Option<String>,
     /// RFC 3339; only inspections created before it.
+    #[param(value_type = Option<String>, format = DateTime)]
     pub created_before: Option<String>,
     /// Page size, 1–200 (default 50).
+    #[param(minimum = 1, maximum = 200)]
     pub limit: Option<u32>,
     /// `next_cursor` of the previous page.
+    #[param(value_type = Option<uuid::Uuid>)]
     pub cursor: Option<String>,
+}
+
+fn status_values() -> utoipa::openapi::schema::Object {
+    super::one_of(&["queued", "running", "succeeded", "failed", "canceled"], "Only inspections in this status.")
+}
+fn verdict_values() -> utoipa::openapi::schema::Object {
+    super::one_of(&["accept", "reject"], "Only inspections with this verdict.")
+}
+fn boolean_values() -> utoipa::openapi::schema::Object {
+    super::one_of(
+        &["true", "false"],
+        "Only succeeded inspections whose result does (true) or does not (false) need review.",
+    )
+}
+fn arc_rule_values() -> utoipa::openapi::schema::Object {
+    super::one_of(
+        &["per_thread", "combined"],
+        "How the buttress 25% limit applies: per thread (default) or over the threads combined.",
+    )
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
@@ -545,7 +570,7 @@ pub async fn list_inspections(
     path = "/v1/inspections/{id}",
     operation_id = "get_inspection",
     tag = "inspections",
-    params(("id" = String, Path, description = "Inspection id")),
+    params(("id" = uuid::Uuid, Path, description = "Inspection id")),
     responses(
         (status = 200, description = "The inspection", body = Inspection),
         (status = 404, description = "No such inspection", body = Problem, content_type = "application/problem+json"),
@@ -566,7 +591,7 @@ pub async fn get_inspection(
     path = "/v1/inspections/{id}/cancel",
     operation_id = "cancel_inspection",
     tag = "inspections",
-    params(("id" = String, Path, description = "Inspection id")),
+    params(("id" = uuid::Uuid, Path, description = "Inspection id")),
     responses(
         (status = 200, description = "Canceled", body = Inspection),
         (status = 202, description = "Cancel requested; the worker stops at its next heartbeat", body = Inspection),

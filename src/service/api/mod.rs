@@ -48,8 +48,13 @@ pub struct InspectionId(pub String);
 
 impl InspectionId {
     pub fn parse(s: &str) -> Result<Self, ApiError> {
-        uuid::Uuid::parse_str(s)
+        // Only the hyphenated form the ids are written in (the document's `format: uuid`);
+        // uuid also reads braced, URN and unhyphenated forms.
+        Some(s)
+            .filter(|s| s.len() == 36)
+            .and_then(|s| uuid::Uuid::parse_str(s).ok())
             .map(|u| Self(u.to_string()))
+            .ok_or(())
             .map_err(|_| ApiError::new(Code::InvalidId, format!("{s:?} is not an inspection id")).with_culprit("id"))
     }
 }
@@ -73,6 +78,17 @@ pub fn parse_rfc3339(s: &str) -> Result<i64, String> {
     time::OffsetDateTime::parse(s, &time::format_description::well_known::Rfc3339)
         .map(|t| (t.unix_timestamp_nanos() / 1_000_000) as i64)
         .map_err(|e| format!("{s:?} is not an RFC 3339 time ({e})"))
+}
+
+/// A string parameter's schema: exactly one of `values` (what the server takes, case and all).
+/// The description lives here because `schema_with` replaces the field's doc comment.
+pub fn one_of(values: &[&str], description: &str) -> utoipa::openapi::schema::Object {
+    use utoipa::openapi::schema::{ObjectBuilder, Type};
+    ObjectBuilder::new()
+        .schema_type(Type::String)
+        .enum_values(Some(values.iter().copied()))
+        .description(Some(description))
+        .build()
 }
 
 /// Raw bytes (a bundle archive, a mesh, a PNG) in the OpenAPI document.

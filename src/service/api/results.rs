@@ -42,7 +42,7 @@ pub(super) async fn succeeded(state: &AppState, id: &str) -> Result<InspectionId
     path = "/v1/inspections/{id}/report",
     operation_id = "get_report",
     tag = "results",
-    params(("id" = String, Path, description = "Inspection id")),
+    params(("id" = uuid::Uuid, Path, description = "Inspection id")),
     responses(
         (status = 200, description = "The report (JSON)", body = Object, headers(("ETag" = String))),
         (status = 304, description = "Not modified"),
@@ -98,8 +98,22 @@ pub struct ThreadTable {
 #[derive(Clone, Debug, Default, Deserialize, IntoParams)]
 #[into_params(parameter_in = Query)]
 pub struct FormatQuery {
-    /// Overrides `Accept`.
+    #[param(schema_with = table_formats)]
     pub format: Option<String>,
+}
+
+#[derive(Clone, Debug, Default, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct MeshFormatQuery {
+    #[param(schema_with = mesh_formats)]
+    pub format: Option<String>,
+}
+
+fn table_formats() -> utoipa::openapi::schema::Object {
+    super::one_of(&["json", "csv"], "Overrides `Accept`.")
+}
+fn mesh_formats() -> utoipa::openapi::schema::Object {
+    super::one_of(&["ply", "stl", "glb"], "Overrides `Accept`.")
 }
 
 /// The per-thread height table: JSON, or CSV (`thread,angle_deg,height_mm,uncertainty_mm`: the
@@ -110,13 +124,14 @@ pub struct FormatQuery {
     path = "/v1/inspections/{id}/threads",
     operation_id = "get_threads",
     tag = "results",
-    params(("id" = String, Path, description = "Inspection id"), FormatQuery),
+    params(("id" = uuid::Uuid, Path, description = "Inspection id"), FormatQuery),
     responses(
         (status = 200, description = "Per-thread table", content(
             (ThreadTable = "application/json"),
             (String = "text/csv"),
         )),
         (status = 404, description = "No such inspection", body = Problem, content_type = "application/problem+json"),
+        (status = 400, description = "Malformed query (format given twice)", body = Problem, content_type = "application/problem+json"),
         (status = 406, description = "Unsupported format", body = Problem, content_type = "application/problem+json"),
         (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
     )
@@ -124,9 +139,10 @@ pub struct FormatQuery {
 pub async fn get_threads(
     State(state): State<AppState>,
     Path(id): Path<String>,
-    Query(q): Query<FormatQuery>,
+    query: Result<Query<FormatQuery>, axum::extract::rejection::QueryRejection>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
+    let Query(q) = query.map_err(|e| ApiError::new(Code::InvalidQuery, e.body_text()))?;
     let id = succeeded(&state, &id).await?;
     let (format, media) =
         negotiate(&headers, q.format.as_deref(), &[("json", "application/json"), ("csv", "text/csv")])?;
@@ -185,7 +201,7 @@ pub async fn get_threads(
     path = "/v1/inspections/{id}/mesh",
     operation_id = "get_mesh",
     tag = "results",
-    params(("id" = String, Path, description = "Inspection id"), FormatQuery),
+    params(("id" = uuid::Uuid, Path, description = "Inspection id"), MeshFormatQuery),
     responses(
         (status = 200, description = "The mesh", content(
             (Binary = "application/x-ply"),
@@ -194,6 +210,7 @@ pub async fn get_threads(
         ), headers(("ETag" = String))),
         (status = 304, description = "Not modified"),
         (status = 404, description = "No such inspection", body = Problem, content_type = "application/problem+json"),
+        (status = 400, description = "Malformed query (format given twice)", body = Problem, content_type = "application/problem+json"),
         (status = 406, description = "Unsupported format", body = Problem, content_type = "application/problem+json"),
         (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
         (status = 410, description = "Deleted by the result retention", body = Problem, content_type = "application/problem+json"),
@@ -202,9 +219,10 @@ pub async fn get_threads(
 pub async fn get_mesh(
     State(state): State<AppState>,
     Path(id): Path<String>,
-    Query(q): Query<FormatQuery>,
+    query: Result<Query<MeshFormatQuery>, axum::extract::rejection::QueryRejection>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
+    let Query(q) = query.map_err(|e| ApiError::new(Code::InvalidQuery, e.body_text()))?;
     let id = succeeded(&state, &id).await?;
     let offered = [("ply", "application/x-ply"), ("stl", "model/stl"), ("glb", "model/gltf-binary")];
     let (format, media) = negotiate(&headers, q.format.as_deref(), &offered)?;
@@ -241,7 +259,7 @@ pub async fn get_mesh(
     operation_id = "get_image",
     tag = "results",
     params(
-        ("id" = String, Path, description = "Inspection id"),
+        ("id" = uuid::Uuid, Path, description = "Inspection id"),
         ("kind" = String, Path, description = "height-map or all-in-focus"),
     ),
     responses(

@@ -57,3 +57,47 @@ async fn capabilities_state_the_envelope_the_figures_were_measured_in() {
     assert!(caps["decision_rule"].as_str().unwrap().starts_with("ISO 14253-1"), "{caps}");
     app.stop().await;
 }
+
+/// Where the document narrows a parameter (enums, bounds, formats), the server refuses what it
+/// excludes, with the field named: the document is not looser than the server, nor the reverse
+/// (scripts/schemathesis checks both ways at scale; these are the cases it first found).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_server_refuses_what_the_document_excludes() {
+    let app = spawn_app().await;
+    let response = app.submit(ci_tar(), "").await;
+    let id = response.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+    assert_eq!(app.wait(&id, Duration::from_secs(300)).await["status"], "succeeded");
+    let base = format!("/v1/inspections/{id}");
+
+    for (path, status, code, culprit) in [
+        ("/v1/connections?kind=bc", 400, "invalid_query", Some("kind")),
+        ("/v1/inspections?status=", 400, "invalid_query", Some("status")),
+        ("/v1/inspections?limit=0", 400, "invalid_query", Some("limit")),
+        (&format!("{base}/threads?format=CSV"), 406, "not_acceptable", Some("format")),
+        (&format!("{base}/mesh?format=ply&format=ply"), 400, "invalid_query", None),
+        (&format!("{base}/cmm-comparison?tolerance_mm=0"), 400, "invalid_query", Some("tolerance_mm")),
+        (&format!("/v1/inspections/{}", id.replace('-', "")), 404, "invalid_id", Some("id")),
+        (&format!("/v1/inspections/{{{id}}}"), 404, "invalid_id", Some("id")),
+    ] {
+        let response = app.get(path).await;
+        assert_eq!(response.status().as_u16(), status, "{path}");
+        let v: Value = response.json().await.unwrap();
+        assert_eq!(v["code"], code, "{path}: {v}");
+        assert_eq!(v["culprit"].as_str(), culprit, "{path}: {v}");
+    }
+    // The exact forms the document gives are taken.
+    for path in
+        ["/v1/connections?kind=BC".to_string(), format!("{base}/threads?format=csv"), format!("{base}/mesh?format=glb")]
+    {
+        assert_eq!(app.get(&path).await.status(), StatusCode::OK, "{path}");
+    }
+    let cmm = |thread: u32| serde_json::json!({ "points": [{ "thread": thread, "height_mm": 1.5 }] });
+    for (thread, status) in [(1001, StatusCode::UNPROCESSABLE_ENTITY), (1000, StatusCode::OK)] {
+        let response = app.client.put(app.url(&format!("{base}/cmm"))).json(&cmm(thread)).send().await.unwrap();
+        assert_eq!(response.status(), status, "thread {thread}");
+    }
+    let response = app.client.put(app.url(&format!("{base}/cmm"))).json(&cmm(1001)).send().await.unwrap();
+    let v: Value = response.json().await.unwrap();
+    assert_eq!(v["culprit"], "points[0].thread", "{v}");
+    app.stop().await;
+}
