@@ -175,9 +175,13 @@ pub(super) fn measure_threads_every(
     let (crest_half, root_half) = windows(form);
     let (before, after) = form.root_centres_mm();
     let z_max = g.z0_mm + g.nz as f64 * g.dz_mm;
+    // Threads whose phase lies inside the grid. The pitch is the form's, validated positive and
+    // held by the station check to several object pixels, so the cap never binds on a bundle the
+    // reader accepted; it keeps this loop bounded whatever it is given.
+    const MAX_THREADS: u32 = 10_000;
     let mut threads: Vec<ThreadMeasure> = Vec::new();
     let mut index = 1u32;
-    while helix.z_h_mm + p * (index - 1) as f64 <= z_max {
+    while index <= MAX_THREADS && helix.z_h_mm + p * (index - 1) as f64 <= z_max {
         threads.push(ThreadMeasure { index, bins: Vec::with_capacity(360) });
         index += 1;
     }
