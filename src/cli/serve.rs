@@ -35,6 +35,13 @@ pub struct ServeArgs {
     /// Listen address [default: 127.0.0.1:8080].
     #[arg(long, env = "CRESTSCAN_BIND")]
     bind: Option<std::net::SocketAddr>,
+    /// Host names besides IP addresses and localhost that requests may be addressed to,
+    /// comma-separated (`*`: any) [default: none].
+    #[arg(long, env = "CRESTSCAN_ALLOWED_HOSTS", value_delimiter = ',')]
+    allowed_hosts: Option<Vec<String>>,
+    /// Origins whose pages may post and read answers (CORS), comma-separated [default: none].
+    #[arg(long, env = "CRESTSCAN_ALLOWED_ORIGINS", value_delimiter = ',')]
+    allowed_origins: Option<Vec<String>>,
     /// Database, uploads and temporaries [default: ./crestscan-data].
     #[arg(long, env = "CRESTSCAN_DATA_DIR")]
     data_dir: Option<PathBuf>,
@@ -132,6 +139,8 @@ impl ServeArgs {
         }
         set!(
             bind,
+            allowed_hosts,
+            allowed_origins,
             data_dir,
             workers,
             compute_threads,

@@ -11,6 +11,13 @@ use std::path::{Path, PathBuf};
 pub struct Settings {
     /// Address the HTTP server listens on.
     pub bind: SocketAddr,
+    /// Host names (besides IP addresses and `localhost`) requests may be addressed to; `*` takes
+    /// any. Other names get 421 `host_not_allowed`: they are how DNS rebinding reaches a service.
+    pub allowed_hosts: Vec<String>,
+    /// Origins (`https://mes.plant.local`) whose pages may change state and read answers
+    /// (CORS); none by default, so only requests without `Origin` (MES, curl, SDKs) and the
+    /// service's own pages may post.
+    pub allowed_origins: Vec<String>,
     /// SQLite database (`crestscan.db`), file store (`uploads/`) and temporary files (`tmp/`).
     pub data_dir: PathBuf,
     /// Inspections run at once. Each already uses every core (rayon), so 1 is right on small machines;
@@ -83,6 +90,8 @@ impl Default for Settings {
     fn default() -> Self {
         Self {
             bind: SocketAddr::from(([127, 0, 0, 1], 8080)),
+            allowed_hosts: Vec::new(),
+            allowed_origins: Vec::new(),
             data_dir: PathBuf::from("crestscan-data"),
             workers: 1,
             compute_threads: 0,

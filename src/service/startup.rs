@@ -59,6 +59,10 @@ impl Application {
                 settings.max_concurrent_uploads,
                 settings.max_uploads_per_client,
             )),
+            browser: Arc::new(crate::service::api::browser::BrowserPolicy::new(
+                &settings.allowed_hosts,
+                &settings.allowed_origins,
+            )),
         };
         let worker = WorkerContext {
             store,

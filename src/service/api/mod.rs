@@ -2,6 +2,7 @@
 //! the same declarations), merged here with the docs, the fallback and the middleware that turns
 //! every error into problem+json and counts requests.
 
+pub mod browser;
 pub mod capabilities;
 pub mod cmm;
 pub mod connections;
@@ -40,6 +41,8 @@ pub struct AppState {
     pub wake: Arc<Notify>,
     /// Uploads received at once.
     pub uploads: Arc<ingest::UploadGate>,
+    /// The hosts and origins browsers may reach the service by.
+    pub browser: Arc<browser::BrowserPolicy>,
 }
 
 /// An inspection id: a UUID, rendered in its canonical lowercase form.
@@ -152,8 +155,25 @@ pub fn router(state: AppState) -> Router {
         .layer(DefaultBodyLimit::disable())
         .layer(tower_http::catch_panic::CatchPanicLayer::new())
         .layer(middleware::from_fn(request_head_limits))
+        .layer(tower::util::option_layer(cors(&state.settings.allowed_origins)))
+        .layer(middleware::from_fn_with_state(state.clone(), browser::guard))
         .layer(middleware::from_fn_with_state(state.clone(), observe))
         .with_state(state)
+}
+
+/// CORS for the `allowed_origins` setting only (none by default: a page elsewhere cannot read
+/// an answer).
+fn cors(origins: &[String]) -> Option<tower_http::cors::CorsLayer> {
+    use tower_http::cors::{AllowOrigin, CorsLayer};
+    let origins: Vec<HeaderValue> =
+        origins.iter().filter_map(|o| HeaderValue::from_str(o.trim().trim_end_matches('/')).ok()).collect();
+    (!origins.is_empty()).then(|| {
+        CorsLayer::new()
+            .allow_origin(AllowOrigin::list(origins))
+            .allow_methods([axum::http::Method::GET, axum::http::Method::POST, axum::http::Method::PUT])
+            .allow_headers([header::AUTHORIZATION, header::CONTENT_TYPE, header::ACCEPT])
+            .expose_headers([header::LOCATION, header::ETAG, header::RETRY_AFTER])
+    })
 }
 
 /// The longest URI, the most header fields and their bytes a request may carry. The HTTP layer's

@@ -1,6 +1,7 @@
 //! The service over real HTTP: the real app on a loopback port with a fresh SQLite file, driven by
 //! reqwest; and the real binary, killed with SIGKILL and restarted.
 
+mod browser;
 mod hostile;
 mod inspections;
 mod openapi;
@@ -39,6 +40,18 @@ impl TestApp {
             .post(self.url(&format!("/v1/inspections{query}")))
             .header("content-type", "application/x-tar")
             .body(body)
+            .send()
+            .await
+            .unwrap()
+    }
+
+    /// Submits the ci bundle as a page of `origin` would.
+    pub async fn submit_from(&self, origin: &str) -> reqwest::Response {
+        self.client
+            .post(self.url("/v1/inspections"))
+            .header("content-type", "application/x-tar")
+            .header("origin", origin)
+            .body(ci_tar())
             .send()
             .await
             .unwrap()
