@@ -73,7 +73,7 @@ pub async fn guard(State(state): State<AppState>, request: Request, next: Next) 
             "Host {h:?} does not name this service: IP addresses and localhost are taken, other names must be \
              listed in allowed_hosts"
         );
-        return secured(ApiError::new(Code::HostNotAllowed, detail).with_culprit("Host").into_response(), "");
+        return refuse(request, ApiError::new(Code::HostNotAllowed, detail).with_culprit("Host")).await;
     }
     if changes_state(request.method()) {
         let origin = headers.get(header::ORIGIN).map(|v| v.to_str().unwrap_or("null").to_string());
@@ -89,11 +89,18 @@ pub async fn guard(State(state): State<AppState>, request: Request, next: Next) 
                 request.method(),
                 origin.as_deref().unwrap_or("(cross-site, none sent)")
             );
-            return secured(ApiError::new(Code::OriginNotAllowed, detail).with_culprit("Origin").into_response(), "");
+            return refuse(request, ApiError::new(Code::OriginNotAllowed, detail).with_culprit("Origin")).await;
         }
     }
     let path = request.uri().path().to_string();
     secured(next.run(request).await, &path)
+}
+
+/// Answers `error`, after reading (a bounded part of) the refused body, so that a client sending
+/// an upload whole reads the problem instead of a reset connection.
+async fn refuse(request: Request, error: ApiError) -> Response {
+    super::ingest::drain(request.into_body()).await;
+    secured(error.into_response(), "")
 }
 
 /// The API browser (Swagger UI) runs its own scripts and styles, some inline; every other answer
