@@ -19,6 +19,8 @@ WORKDIR /var/lib/crestscan
 # SQLite database, uploaded bundles and temporaries. The API browser (/docs) and the OpenAPI
 # document are compiled into the binary: nothing is fetched at run time.
 VOLUME ["/var/lib/crestscan"]
+# Clients that reach the container by a DNS name (crestscan.plant.local, a compose service name)
+# need it listed, or get 421: -e CRESTSCAN_ALLOWED_HOSTS=crestscan.plant.local,crestscan
 ENV CRESTSCAN_BIND=0.0.0.0:8080 \
     CRESTSCAN_DATA_DIR=/var/lib/crestscan
 EXPOSE 8080

@@ -233,7 +233,7 @@ impl Source {
 
     /// Reads a whole bundle file (path relative to the bundle root, already checked).
     pub fn read(&self, path: &str) -> Result<Vec<u8>, BundleError> {
-        self.read_capped_at(path, self.limits.max_file_bytes, "max_file_bytes")
+        self.read_capped_at(path, self.limits.max_file_bytes, "the per-file cap")
     }
 
     /// Reads manifest.json, held to [`Limits::max_manifest_bytes`].
@@ -415,7 +415,7 @@ fn read_capped(
 fn over_cap(path: &str, max: u64, limit: &'static str) -> BundleError {
     BundleError::Limit {
         culprit: Some(path.to_string()),
-        message: format!("{path}: larger than {max} bytes, the cap {limit} sets"),
+        message: format!("{path}: larger than {max} bytes ({limit})"),
     }
 }
 
