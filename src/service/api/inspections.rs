@@ -463,6 +463,10 @@ pub struct ListQuery {
     /// RFC 3339; only inspections created before it.
     #[param(value_type = Option<String>, format = DateTime)]
     pub created_before: Option<String>,
+    /// RFC 3339; only inspections that finished (succeeded, failed, canceled) after it: an MES
+    /// asks for what finished since its last look.
+    #[param(value_type = Option<String>, format = DateTime)]
+    pub finished_after: Option<String>,
     /// Page size, 1–200 (default 50).
     #[param(minimum = 1, maximum = 200)]
     pub limit: Option<u32>,
@@ -551,6 +555,7 @@ pub async fn list_inspections(
         client_reference: q.client_reference,
         created_after_ms: time("created_after", &q.created_after)?,
         created_before_ms: time("created_before", &q.created_before)?,
+        finished_after_ms: time("finished_after", &q.finished_after)?,
         before_id,
         limit: limit + 1,
     };
@@ -570,19 +575,68 @@ pub async fn list_inspections(
     path = "/v1/inspections/{id}",
     operation_id = "get_inspection",
     tag = "inspections",
-    params(("id" = uuid::Uuid, Path, description = "Inspection id")),
+    params(("id" = uuid::Uuid, Path, description = "Inspection id"), WaitQuery),
     responses(
         (status = 200, description = "The inspection", body = Inspection),
+        (status = 400, description = "Malformed wait", body = Problem, content_type = "application/problem+json"),
         (status = 404, description = "No such inspection", body = Problem, content_type = "application/problem+json"),
     )
 )]
 pub async fn get_inspection(
     State(state): State<AppState>,
     Path(id): Path<String>,
+    query: Result<Query<WaitQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Json<Inspection>, ApiError> {
+    let Query(q) = query.map_err(|e| ApiError::new(Code::InvalidQuery, e.body_text()))?;
+    let wait = q.wait.as_deref().map(parse_wait).transpose()?.unwrap_or_default();
     let id = InspectionId::parse(&id)?;
-    let row = state.store.inspection(&id.0).await.map_err(|e| super::missing_inspection(e, &id.0))?;
+    let fetch = || async { state.store.inspection(&id.0).await.map_err(|e| super::missing_inspection(e, &id.0)) };
+    let mut row = fetch().await?;
+    // Long-poll by re-reading the row: the worker may be another process on the same database,
+    // so an in-process notification would miss its changes.
+    let seen = (row.status.clone(), row.progress_stage.clone());
+    let deadline = tokio::time::Instant::now() + wait;
+    let finished = |row: &InspectionRow| row.status.parse::<Status>().is_ok_and(Status::is_terminal);
+    while !finished(&row) && tokio::time::Instant::now() < deadline {
+        tokio::time::sleep(WAIT_POLL.min(deadline - tokio::time::Instant::now())).await;
+        row = fetch().await?;
+        if (&row.status, &row.progress_stage) != (&seen.0, &seen.1) {
+            break;
+        }
+    }
     Ok(Json(row.into()))
+}
+
+/// How often a long-poll re-reads its inspection.
+const WAIT_POLL: std::time::Duration = std::time::Duration::from_millis(200);
+/// The longest a long-poll is held; a longer `wait` is cut to it.
+pub const MAX_WAIT: std::time::Duration = std::time::Duration::from_secs(60);
+
+#[derive(Clone, Debug, Default, Deserialize, IntoParams)]
+#[serde(deny_unknown_fields)]
+#[into_params(parameter_in = Query)]
+pub struct WaitQuery {
+    /// Long-poll: answer as soon as the status or the progress stage changes (at once if the
+    /// inspection is finished), or when this much time has passed: `30s`, `500ms`, or seconds
+    /// (`30`). At most 60 s; a longer wait is cut to 60 s.
+    #[param(pattern = r"^[0-9]{1,6}(ms|s)?$")]
+    pub wait: Option<String>,
+}
+
+fn parse_wait(text: &str) -> Result<std::time::Duration, ApiError> {
+    let (digits, unit_ms) = match text.strip_suffix("ms") {
+        Some(d) => (d, 1u64),
+        None => (text.strip_suffix('s').unwrap_or(text), 1000u64),
+    };
+    let bad = || {
+        ApiError::new(Code::InvalidQuery, format!("wait: {text:?} is not a duration like 30s, 500ms or 30"))
+            .with_culprit("wait")
+    };
+    if digits.is_empty() || digits.len() > 6 || !digits.bytes().all(|b| b.is_ascii_digit()) {
+        return Err(bad());
+    }
+    let ms = digits.parse::<u64>().map_err(|_| bad())?.saturating_mul(unit_ms);
+    Ok(std::time::Duration::from_millis(ms).min(MAX_WAIT))
 }
 
 /// Cancel an inspection: a queued one at once (200), a running one at its next heartbeat (202).

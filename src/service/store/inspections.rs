@@ -83,6 +83,8 @@ pub struct ListFilter {
     pub client_reference: Option<String>,
     pub created_after_ms: Option<i64>,
     pub created_before_ms: Option<i64>,
+    /// Only inspections that finished (succeeded, failed or were canceled) after this time.
+    pub finished_after_ms: Option<i64>,
     /// Only ids strictly older than this one (newest first).
     pub before_id: Option<String>,
     pub limit: u32,
@@ -196,6 +198,9 @@ impl Store {
         }
         if let Some(t) = filter.created_before_ms {
             q.push(" AND i.created_at < ").push_bind(t);
+        }
+        if let Some(t) = filter.finished_after_ms {
+            q.push(" AND i.finished_at > ").push_bind(t);
         }
         if let Some(id) = &filter.before_id {
             q.push(" AND i.id < ").push_bind(id.clone());

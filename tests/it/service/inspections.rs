@@ -237,3 +237,60 @@ async fn cursor_pagination_walks_every_inspection_once() {
     assert_eq!(none["items"].as_array().unwrap().len(), 0);
     app.stop().await;
 }
+
+/// `?wait=` answers as soon as the inspection changes (here: canceled by another client while a
+/// long-poll waits), at once when it is finished, and after the wait when nothing happens;
+/// `finished_after` lists what finished since a time.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn long_polls_answer_on_change_and_the_list_takes_finished_after() {
+    let app = spawn_app_with(|s| s.workers = 0).await;
+    let response = app.submit(ci_tar(), "").await;
+    let id = response.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+    let path = format!("/v1/inspections/{id}");
+
+    // Nothing happens: the wait runs out, and the answer is the queued inspection.
+    let started = Instant::now();
+    let v: Value = app.get(&format!("{path}?wait=700ms")).await.json().await.unwrap();
+    assert_eq!(v["status"], "queued");
+    assert!(started.elapsed() >= Duration::from_millis(650), "{:?}", started.elapsed());
+
+    // A cancel during a 30 s wait ends it at once.
+    let before_cancel = time::OffsetDateTime::now_utc();
+    let waiting = {
+        let (client, url) = (app.client.clone(), app.url(&format!("{path}?wait=30s")));
+        tokio::spawn(async move {
+            let started = Instant::now();
+            let v: Value = client.get(url).send().await.unwrap().json().await.unwrap();
+            (v, started.elapsed())
+        })
+    };
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let cancel = app.client.post(app.url(&format!("{path}/cancel"))).send().await.unwrap();
+    assert_eq!(cancel.status(), StatusCode::OK);
+    let (v, took) = waiting.await.unwrap();
+    assert_eq!(v["status"], "canceled", "{v}");
+    assert!(took < Duration::from_secs(3), "{took:?}");
+
+    // Finished: answered at once however long the wait.
+    let started = Instant::now();
+    let v: Value = app.get(&format!("{path}?wait=60")).await.json().await.unwrap();
+    assert_eq!(v["status"], "canceled");
+    assert!(started.elapsed() < Duration::from_secs(2));
+    for bad in ["soon", "-1s", "1.5s", "1234567s"] {
+        let response = app.get(&format!("{path}?wait={bad}")).await;
+        assert_eq!(response.status(), StatusCode::BAD_REQUEST, "{bad}");
+        assert_eq!(response.json::<Value>().await.unwrap()["culprit"], "wait", "{bad}");
+    }
+
+    let rfc = |t: time::OffsetDateTime| t.format(&time::format_description::well_known::Rfc3339).unwrap();
+    let listed = |v: Value| {
+        v["items"].as_array().unwrap().iter().map(|i| i["id"].as_str().unwrap().to_string()).collect::<Vec<_>>()
+    };
+    let since =
+        app.get(&format!("/v1/inspections?finished_after={}", rfc(before_cancel))).await.json::<Value>().await.unwrap();
+    assert_eq!(listed(since), vec![id.clone()]);
+    let later = rfc(time::OffsetDateTime::now_utc() + time::Duration::seconds(1));
+    let none = app.get(&format!("/v1/inspections?finished_after={later}")).await.json::<Value>().await.unwrap();
+    assert!(listed(none).is_empty());
+    app.stop().await;
+}
