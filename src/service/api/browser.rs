@@ -65,7 +65,8 @@ fn changes_state(method: &Method) -> bool {
 pub async fn guard(State(state): State<AppState>, request: Request, next: Next) -> Response {
     let policy = &state.browser;
     let headers = request.headers();
-    let host = headers.get(header::HOST).and_then(|v| v.to_str().ok()).map(str::to_string);
+    // A Host that is not text names nothing here: refused like a foreign name.
+    let host = headers.get(header::HOST).map(|v| v.to_str().unwrap_or("(not text)").to_string());
     if let Some(h) = host.as_deref()
         && !policy.host_allowed(h)
     {
