@@ -1,6 +1,6 @@
 """What the service proofs under scripts/ share: the release build, the ci bundle as a tar, and a
-server on a loopback port. Imported by schemathesis, mixed-load, priority-check and hostile-peak
-(each runs from any directory)."""
+server on a loopback port. Imported by kill-storm, schemathesis, mixed-load, priority-check and
+hostile-peak (each runs from any directory)."""
 import os, shutil, subprocess, tarfile
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -1,6 +1,6 @@
 //! The queue's vocabulary, shared by the API (which submits) and the workers (which run): what an
-//! inspection's stored options are, and the caps a bundle is opened with at ingest and in the
-//! worker alike.
+//! inspection's stored options are, and the memory budget a bundle is held to at ingest and in
+//! the worker alike (the bundle caps come from `Settings::bundle_limits`).
 
 use crate::domain::frame::Recording;
 use crate::pipeline::PipelineOptions;

@@ -24,6 +24,11 @@ pub enum ArcRule {
     Combined,
 }
 
+impl ArcRule {
+    /// The names as the API and the stored options spell them (serde's).
+    pub const NAMES: [&str; 2] = ["per_thread", "combined"];
+}
+
 /// Fraction of the circumference a buttress black crest may cover.
 pub const BUTTRESS_ARC_LIMIT: f64 = 0.25;
 /// Threads within Lc that may show black crests on buttress.
@@ -93,6 +98,8 @@ pub enum Verdict {
 }
 
 impl Verdict {
+    pub const ALL: [Verdict; 2] = [Verdict::Accept, Verdict::Reject];
+
     pub fn as_str(self) -> &'static str {
         match self {
             Verdict::Accept => "accept",

@@ -246,3 +246,13 @@ fn photometric_and_geometric_arcs_merge() {
     assert_eq!(a.black_threads[0].evidence, BlackCrestEvidence::Both);
     assert!((a.black_threads[0].length_mm - 30.0 / 360.0 * SEED_CIRC).abs() < 1e-9);
 }
+
+#[test]
+fn the_rule_and_verdict_names_are_serdes() {
+    for (rule, name) in [ArcRule::PerThread, ArcRule::Combined].into_iter().zip(ArcRule::NAMES) {
+        assert_eq!(serde_json::to_value(rule).unwrap(), name);
+    }
+    for verdict in Verdict::ALL {
+        assert_eq!(serde_json::to_value(verdict).unwrap(), verdict.as_str());
+    }
+}

@@ -161,7 +161,7 @@ pub async fn get_cmm_comparison(
     Path(id): Path<String>,
     query: Result<Query<ComparisonQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Json<CmmComparison>, ApiError> {
-    let Query(q) = query.map_err(|e| ApiError::new(Code::InvalidQuery, e.body_text()))?;
+    let Query(q) = query?;
     if let Some(t) = q.tolerance_mm
         && !(t.is_finite() && t > 0.0)
     {

@@ -23,8 +23,11 @@ pub struct ConnectionQuery {
     pub kind: Option<String>,
 }
 
+/// The `kind` filter's values: the schema states them and the handler checks them.
+const KINDS: [&str; 3] = ["BC", "LC", "STC"];
+
 fn kind_values() -> utoipa::openapi::schema::Object {
-    super::one_of(&["BC", "LC", "STC"], "BC (buttress), LC (long round) or STC (short round).")
+    super::one_of(KINDS, "BC (buttress), LC (long round) or STC (short round).")
 }
 
 #[derive(Clone, Debug, Serialize, ToSchema)]
@@ -50,10 +53,10 @@ pub async fn list_connections(
     State(state): State<AppState>,
     query: Result<Query<ConnectionQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Json<ConnectionList>, ApiError> {
-    let Query(q) = query.map_err(|e| ApiError::new(Code::InvalidQuery, e.body_text()))?;
+    let Query(q) = query?;
     let kind = q.kind;
     if let Some(k) = kind.as_deref()
-        && !["BC", "LC", "STC"].contains(&k)
+        && !KINDS.contains(&k)
     {
         return Err(ApiError::new(Code::InvalidQuery, format!("kind: {k:?} is not BC, LC or STC")).with_culprit("kind"));
     }

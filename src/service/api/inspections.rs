@@ -4,7 +4,7 @@ use super::ingest;
 use super::problem::{ApiError, Problem};
 use super::{AppState, Binary, InspectionId, parse_rfc3339, rfc3339};
 use crate::bundle::{Bundle, FrameCheck, OpenOptions};
-use crate::domain::rules::ArcRule;
+use crate::domain::rules::{ArcRule, Verdict};
 use crate::pipeline::PipelineOptions;
 use crate::problem::Code;
 use crate::service::queue::JobOptions;
@@ -190,7 +190,7 @@ fn pipeline_options_schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::
                 builder.schema_type(SchemaType::new(kind)).minimum(Some(range.min)).maximum(Some(range.max))
             }
             serde_json::Value::String(_) if path == "arc_rule" => {
-                builder.schema_type(SchemaType::new(Type::String)).enum_values(Some(["per_thread", "combined"]))
+                builder.schema_type(SchemaType::new(Type::String)).enum_values(Some(ArcRule::NAMES))
             }
             _ => builder,
         };
@@ -354,9 +354,7 @@ pub async fn create_inspection(
     headers: HeaderMap,
     request: Request,
 ) -> Result<Response, ApiError> {
-    let early = query
-        .map_err(|e| ApiError::new(Code::InvalidQuery, e.body_text()))
-        .and_then(|q| Ok((q.0, idempotency_key(&headers)?)));
+    let early = query.map_err(ApiError::from).and_then(|q| Ok((q.0, idempotency_key(&headers)?)));
     let (query, key) = match early {
         Ok(ok) => ok,
         Err(e) => {
@@ -476,20 +474,20 @@ pub struct ListQuery {
 }
 
 fn status_values() -> utoipa::openapi::schema::Object {
-    super::one_of(&["queued", "running", "succeeded", "failed", "canceled"], "Only inspections in this status.")
+    super::one_of(Status::ALL.map(Status::as_str), "Only inspections in this status.")
 }
 fn verdict_values() -> utoipa::openapi::schema::Object {
-    super::one_of(&["accept", "reject"], "Only inspections with this verdict.")
+    super::one_of(Verdict::ALL.map(Verdict::as_str), "Only inspections with this verdict.")
 }
 fn boolean_values() -> utoipa::openapi::schema::Object {
     super::one_of(
-        &["true", "false"],
+        ["true", "false"],
         "Only succeeded inspections whose result does (true) or does not (false) need review.",
     )
 }
 fn arc_rule_values() -> utoipa::openapi::schema::Object {
     super::one_of(
-        &["per_thread", "combined"],
+        ArcRule::NAMES,
         "How the buttress 25% limit applies: per thread (default) or over the threads combined.",
     )
 }
@@ -518,14 +516,13 @@ pub async fn list_inspections(
     State(state): State<AppState>,
     query: Result<Query<ListQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Json<InspectionPage>, ApiError> {
-    let Query(q) = query.map_err(|e| ApiError::new(Code::InvalidQuery, e.body_text()))?;
+    let Query(q) = query?;
     let invalid = |field: &str, message: String| {
         ApiError::new(Code::InvalidQuery, format!("{field}: {message}")).with_culprit(field)
     };
     let status = q.status.as_deref().map(str::parse::<Status>).transpose().map_err(|e| invalid("status", e))?;
     if let Some(v) = q.verdict.as_deref()
-        && v != "accept"
-        && v != "reject"
+        && !Verdict::ALL.iter().any(|known| known.as_str() == v)
     {
         return Err(invalid("verdict", format!("{v:?} is neither accept nor reject")));
     }
@@ -587,7 +584,7 @@ pub async fn get_inspection(
     Path(id): Path<String>,
     query: Result<Query<WaitQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Json<Inspection>, ApiError> {
-    let Query(q) = query.map_err(|e| ApiError::new(Code::InvalidQuery, e.body_text()))?;
+    let Query(q) = query?;
     let wait = q.wait.as_deref().map(parse_wait).transpose()?.unwrap_or_default();
     let id = InspectionId::parse(&id)?;
     let fetch = || async { state.store.inspection(&id.0).await.map_err(|e| super::missing_inspection(e, &id.0)) };

@@ -85,13 +85,9 @@ pub fn parse_rfc3339(s: &str) -> Result<i64, String> {
 
 /// A string parameter's schema: exactly one of `values` (what the server takes, case and all).
 /// The description lives here because `schema_with` replaces the field's doc comment.
-pub fn one_of(values: &[&str], description: &str) -> utoipa::openapi::schema::Object {
+pub fn one_of<'a>(values: impl IntoIterator<Item = &'a str>, description: &str) -> utoipa::openapi::schema::Object {
     use utoipa::openapi::schema::{ObjectBuilder, Type};
-    ObjectBuilder::new()
-        .schema_type(Type::String)
-        .enum_values(Some(values.iter().copied()))
-        .description(Some(description))
-        .build()
+    ObjectBuilder::new().schema_type(Type::String).enum_values(Some(values)).description(Some(description)).build()
 }
 
 /// Raw bytes (a bundle archive, a mesh, a PNG) in the OpenAPI document.

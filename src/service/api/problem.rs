@@ -57,6 +57,14 @@ impl ApiError {
     }
 }
 
+/// A query string that does not parse into its operation's parameters (a repeated or unknown
+/// key, a number that is not one).
+impl From<axum::extract::rejection::QueryRejection> for ApiError {
+    fn from(e: axum::extract::rejection::QueryRejection) -> Self {
+        Self::new(Code::InvalidQuery, e.body_text())
+    }
+}
+
 impl From<BundleError> for ApiError {
     fn from(e: BundleError) -> Self {
         match e.code() {

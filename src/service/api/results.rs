@@ -109,11 +109,17 @@ pub struct MeshFormatQuery {
     pub format: Option<String>,
 }
 
+/// What each resource offers (format, media type), the first its default: negotiation picks from
+/// these and the `format` parameter's schema lists them.
+const TABLE_FORMATS: [(&str, &str); 2] = [("json", "application/json"), ("csv", "text/csv")];
+const MESH_FORMATS: [(&str, &str); 3] =
+    [("ply", "application/x-ply"), ("stl", "model/stl"), ("glb", "model/gltf-binary")];
+
 fn table_formats() -> utoipa::openapi::schema::Object {
-    super::one_of(&["json", "csv"], "Overrides `Accept`.")
+    super::one_of(TABLE_FORMATS.map(|f| f.0), "Overrides `Accept`.")
 }
 fn mesh_formats() -> utoipa::openapi::schema::Object {
-    super::one_of(&["ply", "stl", "glb"], "Overrides `Accept`.")
+    super::one_of(MESH_FORMATS.map(|f| f.0), "Overrides `Accept`.")
 }
 
 /// The per-thread height table: JSON, or CSV (`thread,angle_deg,height_mm,uncertainty_mm`: the
@@ -142,10 +148,9 @@ pub async fn get_threads(
     query: Result<Query<FormatQuery>, axum::extract::rejection::QueryRejection>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
-    let Query(q) = query.map_err(|e| ApiError::new(Code::InvalidQuery, e.body_text()))?;
+    let Query(q) = query?;
     let id = succeeded(&state, &id).await?;
-    let (format, media) =
-        negotiate(&headers, q.format.as_deref(), &[("json", "application/json"), ("csv", "text/csv")])?;
+    let (format, media) = negotiate(&headers, q.format.as_deref(), &TABLE_FORMATS)?;
     let (threads, heights) = state.store.threads(&id.0).await?;
     if format == "csv" {
         let mut out = String::from("thread,angle_deg,height_mm,uncertainty_mm\n");
@@ -222,10 +227,9 @@ pub async fn get_mesh(
     query: Result<Query<MeshFormatQuery>, axum::extract::rejection::QueryRejection>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
-    let Query(q) = query.map_err(|e| ApiError::new(Code::InvalidQuery, e.body_text()))?;
+    let Query(q) = query?;
     let id = succeeded(&state, &id).await?;
-    let offered = [("ply", "application/x-ply"), ("stl", "model/stl"), ("glb", "model/gltf-binary")];
-    let (format, media) = negotiate(&headers, q.format.as_deref(), &offered)?;
+    let (format, media) = negotiate(&headers, q.format.as_deref(), &MESH_FORMATS)?;
     let a = stored_artifact(&state, &id.0, if format == "stl" { "mesh.stl" } else { "mesh.ply" }).await?;
     let mut response = if format == "glb" {
         // Made from the stored PLY on request (a third stored copy would add as much again per

@@ -83,6 +83,8 @@ pub enum Status {
 }
 
 impl Status {
+    pub const ALL: [Status; 5] = [Status::Queued, Status::Running, Status::Succeeded, Status::Failed, Status::Canceled];
+
     pub fn as_str(self) -> &'static str {
         match self {
             Status::Queued => "queued",
