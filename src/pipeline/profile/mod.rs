@@ -11,6 +11,7 @@
 
 mod heights;
 mod helix;
+pub mod pitch;
 
 pub use heights::{crest_window_half_mm, measure_threads, survey_threads};
 pub use helix::{estimate_helix, refine_helix};
