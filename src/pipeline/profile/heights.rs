@@ -137,6 +137,39 @@ pub(super) fn fit_line_checked(pts: &[(f64, f64)]) -> Option<(f64, f64)> {
     (pts.len() >= 6 && spread).then(|| fit_line(&x, &r))
 }
 
+/// The fused cells of `columns` whose thread coordinate u = (z − z_h)/p − θ/360 (crest of thread i
+/// at u = i − 1) lies in [lo, hi], as (u, r, gray), column by column, row by row: per column the
+/// rows are found from the range's z span (a row's slack either side), then each checked on u.
+pub(super) fn samples_in_u(
+    map: &UnrolledMap,
+    helix: &Helix,
+    columns: std::ops::Range<usize>,
+    lo: f64,
+    hi: f64,
+) -> Vec<(f64, f64, f32)> {
+    let g = &map.grid;
+    let p = helix.pitch_mm;
+    let mut samples: Vec<(f64, f64, f32)> = Vec::new();
+    for it in columns {
+        let theta = g.theta_deg_at(it);
+        let row_of =
+            |u: f64| ((helix.z_h_mm + p * (u + theta / 360.0) - g.z0_mm) / g.dz_mm - 0.5).clamp(-1.0, g.nz as f64);
+        let first = (row_of(lo).floor() - 1.0).max(0.0) as usize;
+        let last = ((row_of(hi).ceil() + 1.0).max(0.0) as usize).min(g.nz.saturating_sub(1));
+        for iz in first..=last {
+            let i = map.index(iz, it);
+            let r = map.radius_mm[i];
+            if r.is_finite() {
+                let u = (g.z_at(iz) - helix.z_h_mm) / p - theta / 360.0;
+                if u >= lo && u <= hi {
+                    samples.push((u, r as f64, map.gray(i)));
+                }
+            }
+        }
+    }
+    samples
+}
+
 /// Heights of every thread whose crest line starts within the map, per 1° bin.
 pub fn measure_threads(
     map: &UnrolledMap,
@@ -200,26 +233,7 @@ pub(super) fn measure_threads_every(
     // window's z range, then each one checked on u itself), sorted by u; ties keep the order of
     // the columns, then the rows.
     let window = |columns: std::ops::Range<usize>, centre_u: f64, half_mm: f64| -> Vec<(f64, f64, f32)> {
-        let (lo, hi) = (centre_u - half_mm / p, centre_u + half_mm / p);
-        let mut samples: Vec<(f64, f64, f32)> = Vec::new();
-        for it in columns {
-            let theta = g.theta_deg_at(it);
-            // Rows whose centre z is in the window's z range, a row's slack either side.
-            let row_of =
-                |u: f64| ((helix.z_h_mm + p * (u + theta / 360.0) - g.z0_mm) / g.dz_mm - 0.5).clamp(-1.0, g.nz as f64);
-            let first = (row_of(lo).floor() - 1.0).max(0.0) as usize;
-            let last = ((row_of(hi).ceil() + 1.0).max(0.0) as usize).min(g.nz.saturating_sub(1));
-            for iz in first..=last {
-                let i = map.index(iz, it);
-                let r = map.radius_mm[i];
-                if r.is_finite() {
-                    let u = (g.z_at(iz) - helix.z_h_mm) / p - theta / 360.0;
-                    if u >= lo && u <= hi {
-                        samples.push((u, r as f64, map.gray(i)));
-                    }
-                }
-            }
-        }
+        let mut samples = samples_in_u(map, helix, columns, centre_u - half_mm / p, centre_u + half_mm / p);
         samples.sort_by(|a, b| a.0.total_cmp(&b.0));
         samples.into_iter().map(|(u, r, g)| ((u - centre_u) * p, r, g)).collect()
     };

@@ -29,12 +29,6 @@ pub struct PitchProfile {
     pub filled_share: f64,
 }
 
-/// z of slot `k`'s centre relative to the crest centre, mm.
-pub fn slot_offset_mm(form: &ThreadForm, k: usize) -> f64 {
-    let (before, after) = form.root_centres_mm();
-    before + (after - before) * (k as f64 + 0.5) / PITCH_SAMPLES as f64
-}
-
 /// Slot index ranges of the crest window and the two root windows (their halves inside the
 /// pitch), as [`super::heights`] fits them.
 pub fn window_slots(form: &ThreadForm) -> [std::ops::Range<usize>; 3] {
@@ -109,22 +103,12 @@ pub fn pitch_profiles(
             let bin = &threads[t].bins[k];
             let u_crest = (threads[t].index - 1) as f64;
             let (lo, hi) = (u_crest + before / p, u_crest + after / p);
-            let mut samples: Vec<(f64, f64)> = Vec::new();
             let bin_index = (bin.angle_deg - 0.5).round().clamp(0.0, 359.0) as usize;
-            for it in g.bin_columns(bin_index) {
-                let theta = g.theta_deg_at(it);
-                let row_of =
-                    |u: f64| ((helix.z_h_mm + p * (u + theta / 360.0) - g.z0_mm) / g.dz_mm).clamp(0.0, g.nz as f64);
-                let first = (row_of(lo).floor() as usize).saturating_sub(1);
-                let last = (row_of(hi).ceil() as usize + 1).min(g.nz);
-                for iz in first..last {
-                    let r = map.radius_mm[map.index(iz, it)];
-                    let u = (g.z_at(iz) - helix.z_h_mm) / p - theta / 360.0;
-                    if r.is_finite() && u >= lo && u < hi {
-                        samples.push(((u - u_crest) * p, r as f64));
-                    }
-                }
-            }
+            // A sample at u = hi falls past the last slot, which resample leaves out.
+            let samples: Vec<(f64, f64)> = heights::samples_in_u(map, helix, g.bin_columns(bin_index), lo, hi)
+                .into_iter()
+                .map(|(u, r, _)| ((u - u_crest) * p, r))
+                .collect();
             let (values, mean_mm, filled_share) = resample(form, &samples)?;
             Some(PitchProfile { thread: t, bin: k, samples: values, mean_mm, scale_mm: form.height_mm, filled_share })
         })
@@ -150,6 +134,12 @@ pub fn height_change_mm(form: &ThreadForm, input: &[f32], corrected: &[f32], sca
 mod pitch_tests {
     use super::*;
     use crate::domain::thread::ConnectionTable;
+
+    /// z of slot `k`'s centre relative to the crest centre, mm.
+    fn slot_offset_mm(form: &ThreadForm, k: usize) -> f64 {
+        let (before, after) = form.root_centres_mm();
+        before + (after - before) * (k as f64 + 0.5) / PITCH_SAMPLES as f64
+    }
 
     fn buttress() -> ThreadForm {
         let table = ConnectionTable::api5b();
