@@ -112,6 +112,8 @@ mod tests {
                 peak_ratio: vec![2.0; w * rows],
                 all_in_focus: vec![0.5; 3 * w * rows],
                 end_edges: Vec::new(),
+                frame_noise: None,
+                prefiltered: false,
             };
             let pose = ViewPose { angle_deg: 231.7, axial_mm: 12.5, lens_radius_mm: 277.3 };
             let points: Vec<SurfacePoint> = points_of(&optics, &pose, &depth).collect();
@@ -138,6 +140,8 @@ mod tests {
             peak_ratio: vec![2.0; 9],
             all_in_focus: vec![0.5; 27],
             end_edges: Vec::new(),
+            frame_noise: None,
+            prefiltered: false,
         };
         let pose = ViewPose { angle_deg: 90.0, axial_mm: 10.0, lens_radius_mm: 277.0 };
         let points: Vec<SurfacePoint> = points_of(&optics, &pose, &depth).collect();

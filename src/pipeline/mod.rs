@@ -197,6 +197,8 @@ fn run_stages(recording: &dyn Recording, options: &PipelineOptions, mut run: Run
         registration: registered.registration,
         end_face: registered.end_face,
         depth_coverage,
+        frame_noise: crate::numeric::stats::median(&mut depth_maps.iter().filter_map(|d| d.frame_noise).collect::<Vec<_>>()),
+        depth_prefiltered_views: depth_maps.iter().filter(|d| d.prefiltered).count(),
         map_coverage: map.coverage(),
         map_implausible_share,
         timings: run.into_timings(),

@@ -84,6 +84,8 @@ pub const RANGES: &[OptionRange] = &[
     count("depth.row_step", 1.0, 8.0),
     count("depth.edge_window_radius_px", 0.0, 10.0),
     range("depth.speckle_min_windows", 0.0, 100.0),
+    range("depth.prefilter_sigma_px", 0.0, 4.0),
+    range("depth.prefilter_min_noise", 0.0, 1.0),
     range("crest.dark_fraction", 0.0, 1.0),
     range("crest.dark_sigmas", 0.0, 50.0),
     range("crest.dark_run_sigmas", 0.0, 50.0),

@@ -16,6 +16,7 @@
 //! says which peak (and colour) is the pixel's own ([`DepthOptions::edge_window_radius_px`]).
 
 pub mod measure;
+pub mod noise;
 mod peak;
 mod phase;
 mod resample;
@@ -83,6 +84,23 @@ pub struct DepthOptions {
     /// The least area of a region that is kept, in focus windows ((2r + 1)² pixels each).
     #[serde(default = "speckle_min_windows")]
     pub speckle_min_windows: f64,
+    /// Standard deviation, pixels, of the Gaussian pre-filter the focus measure takes in views
+    /// whose frames are noisy ([`noise`]; 0: never). Options stored before this existed load
+    /// with the default.
+    #[serde(default = "prefilter_sigma_px")]
+    pub prefilter_sigma_px: f64,
+    /// The frames' noise, relative to their mean brightness ([`noise::relative_noise`], read on
+    /// each view's first frame), above which the pre-filter runs (0: always).
+    #[serde(default = "prefilter_min_noise")]
+    pub prefilter_min_noise: f64,
+}
+
+fn prefilter_sigma_px() -> f64 {
+    DepthOptions::default().prefilter_sigma_px
+}
+
+fn prefilter_min_noise() -> f64 {
+    DepthOptions::default().prefilter_min_noise
 }
 
 fn speckle_min_windows() -> f64 {
@@ -125,6 +143,10 @@ impl Default for DepthOptions {
             edge_window_radius_px: 1,
             drop_speckles: true,
             speckle_min_windows: 0.25,
+            // Chosen on the tuning stations (docs/notebook/accuracy.md, "Stations: noisy
+            // frames"): the standard station's frames read 0.65%, the noisiest stations' 5–11%.
+            prefilter_sigma_px: 0.7,
+            prefilter_min_noise: 0.015,
         }
     }
 }
@@ -159,6 +181,10 @@ pub struct DepthMap {
     pub all_in_focus: Vec<f32>,
     /// The end face's silhouette in each frame that shows it (for [`crate::pipeline::register::anchor`]).
     pub end_edges: Vec<FrameEdge>,
+    /// The first frame's noise relative to its mean brightness ([`noise::relative_noise`]).
+    pub frame_noise: Option<f64>,
+    /// Whether the focus measure took the Gaussian pre-filter ([`DepthOptions::prefilter_sigma_px`]).
+    pub prefiltered: bool,
 }
 
 impl DepthMap {
@@ -200,6 +226,9 @@ pub struct DepthScratch {
     best_edge: Vec<f32>,
     best_edge_frame: Vec<u32>,
     edge_row: Vec<f32>,
+    /// The pre-filtered frame and the blur's intermediate ([`noise::blur`]).
+    filtered: Vec<f32>,
+    filter_scratch: Vec<f32>,
 }
 
 /// `buffer` holding `len` copies of `value` (its allocation kept).
@@ -239,6 +268,8 @@ pub fn depth_from_focus_in(
         best_edge,
         best_edge_frame,
         edge_row,
+        filtered,
+        filter_scratch,
     } = buffers;
     let edge_radius = options.edge_window_radius_px;
     let edge_aware = edge_radius > 0;
@@ -263,6 +294,8 @@ pub fn depth_from_focus_in(
     // at each frame that was its sharpest so far, and the search for those pixels scanned the
     // frame: 10% of an inspection, against 2.5% once per pixel.
     let mut held: Vec<HeldFrame> = Vec::with_capacity(n);
+    // Decided on the first frame, for the whole stack: a pixel's focus curve needs one measure.
+    let (mut frame_noise, mut prefilter) = (None, None::<Vec<f32>>);
     for (k, entry) in view.frames.iter().enumerate() {
         if cancelled() {
             return Ok(None);
@@ -273,8 +306,20 @@ pub fn depth_from_focus_in(
             Projection::Telecentric => 1.0,
         };
         frame.gray_into(gray);
+        if k == 0 {
+            frame_noise = noise::relative_noise(gray, w, h);
+            let noisy = frame_noise.is_some_and(|n| n > options.prefilter_min_noise);
+            prefilter = (noisy && options.prefilter_sigma_px > 0.0).then(|| noise::gaussian_taps(options.prefilter_sigma_px));
+        }
+        let measured: &[f32] = match &prefilter {
+            Some(taps) => {
+                noise::blur(gray, w, h, taps, filter_scratch, filtered);
+                &filtered[..]
+            }
+            None => &gray[..],
+        };
         let edge = edge_aware.then_some((edge_radius, &mut native_edge[..]));
-        focus_measures(gray, w, h, options.window_radius_px, scratch, native, edge);
+        focus_measures(measured, w, h, options.window_radius_px, scratch, native, edge);
         end_edges.extend(frame_edge(gray, w, h, entry.offset_mm));
         let taps = Taps { xs: axis_taps(w, principal[0], scale), ys: axis_taps(h, principal[1], scale) };
         let (spans, fxs) = (tap_spans(&taps.xs), taps.xs.iter().map(|t| t.2).collect::<Vec<f32>>());
@@ -374,7 +419,17 @@ pub fn depth_from_focus_in(
                 }
             }
         });
-    let mut map = DepthMap { width: w, height: h, row_step: step, depth_mm, peak_ratio, all_in_focus, end_edges };
+    let mut map = DepthMap {
+        width: w,
+        height: h,
+        row_step: step,
+        depth_mm,
+        peak_ratio,
+        all_in_focus,
+        end_edges,
+        frame_noise,
+        prefiltered: prefilter.is_some(),
+    };
     if options.drop_speckles {
         let link_mm = 0.5 * optics.depth_of_field_mm(crate::domain::station::IN_FOCUS_BLUR_PX);
         let window = (2 * options.window_radius_px + 1) as f64;

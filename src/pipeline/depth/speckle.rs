@@ -73,6 +73,8 @@ mod tests {
             peak_ratio: vec![2.0; w * h],
             all_in_focus: vec![0.5; 3 * w * h],
             end_edges: Vec::new(),
+            frame_noise: None,
+            prefiltered: false,
         }
     }
 

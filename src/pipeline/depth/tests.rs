@@ -399,6 +399,8 @@ fn phase_equalisation_removes_an_odd_sub_frame_bias() {
         peak_ratio: vec![5.0; w * h],
         all_in_focus: vec![0.5; 3 * w * h],
         end_edges: Vec::new(),
+        frame_noise: None,
+        prefiltered: false,
     };
     let worst = |maps: &[DepthMap]| {
         (0..w * h).map(|i| (maps[0].depth_mm[i] as f64 - (big_f - true_offset(i))).abs()).fold(0.0, f64::max)
