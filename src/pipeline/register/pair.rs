@@ -142,8 +142,11 @@ pub(super) fn measure_pair(
     })
 }
 
-/// How far apart, in footprint half-widths, two views may stand and still be taken to overlap.
-pub(super) const NEIGHBOUR_REACH: f64 = 1.7;
+/// How far apart, in footprint half-widths, two views may stand and still be taken to overlap:
+/// two, so that every pair whose footprints overlap at the encoder poses is a candidate, however
+/// narrow the overlap (a station may overlap its views by 3° of a 25° footprint). Whether the
+/// overlap suffices is the measurement's to say, and the report's to show (`too_small`).
+pub(super) const NEIGHBOUR_REACH: f64 = 2.0;
 
 /// Pairs of views whose footprints overlap: same axial row and adjacent in angle, or same angle and
 /// adjacent in z, judged from the encoder poses and the footprint sizes.

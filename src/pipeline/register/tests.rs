@@ -192,3 +192,20 @@ fn neighbours_include_the_wrap_around_pair() {
     assert_eq!(pairs.len(), 8);
     assert!(pairs.contains(&(0, 7)));
 }
+
+#[test]
+fn views_overlapping_narrowly_are_still_candidates() {
+    // 16 views 22.5° apart with footprints of 25.5°: neighbours share 3° (12% of a footprint),
+    // the least overlap a station may have; views two apart share nothing.
+    let poses: Vec<ViewPose> =
+        (0..16).map(|i| ViewPose { angle_deg: i as f64 * 22.5, axial_mm: 10.0, lens_radius_mm: 200.0 }).collect();
+    let pairs = overlapping_pairs(&poses, 25.5 / 2.0, 15.0);
+    assert_eq!(pairs.len(), 16, "{pairs:?}");
+    assert!(pairs.iter().all(|&(a, b)| b - a == 1 || (a, b) == (0, 15)), "{pairs:?}");
+    // Footprints that just miss each other are not.
+    assert!(overlapping_pairs(&poses, 22.0 / 2.0, 15.0).is_empty());
+    // Two axial rows 28 mm apart with 30 mm footprints along the axis overlap by 2 mm.
+    let rows: Vec<ViewPose> =
+        [0.0, 28.0].iter().map(|&z| ViewPose { angle_deg: 0.0, axial_mm: z, lens_radius_mm: 200.0 }).collect();
+    assert_eq!(overlapping_pairs(&rows, 12.75, 15.0), vec![(0, 1)]);
+}
