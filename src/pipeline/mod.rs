@@ -143,7 +143,12 @@ fn run_stages(recording: &dyn Recording, options: &PipelineOptions, mut run: Run
     let (mesh, helix, mut threads) = mesh_and_profile(recording, options, &map, map_implausible_share, &mut run)?;
     let (assessment, crest, rule_input) = crest_and_rules(recording, options, &helix, &threads, &mut run);
     let part = recording.part();
-    let station = domain::station::Station::of(recording.optics(), recording.views(), part.pipe_od_mm / 2.0);
+    let station = domain::station::Station {
+        frame_noise_percent: crate::numeric::stats::median(
+            &mut depth_maps.iter().filter_map(|d| d.frame_noise).map(|n| 100.0 * n).collect::<Vec<_>>(),
+        ),
+        ..domain::station::Station::of(recording.optics(), recording.views(), part.pipe_od_mm / 2.0)
+    };
     let quality = quality::assess(
         &station,
         &registered.registration,
@@ -197,7 +202,6 @@ fn run_stages(recording: &dyn Recording, options: &PipelineOptions, mut run: Run
         registration: registered.registration,
         end_face: registered.end_face,
         depth_coverage,
-        frame_noise: crate::numeric::stats::median(&mut depth_maps.iter().filter_map(|d| d.frame_noise).collect::<Vec<_>>()),
         depth_prefiltered_views: depth_maps.iter().filter(|d| d.prefiltered).count(),
         map_coverage: map.coverage(),
         map_implausible_share,

@@ -107,11 +107,8 @@ pub struct Report {
     #[serde(default)]
     pub end_face: Option<EndFace>,
     pub depth_coverage: f64,
-    /// The frames' noise relative to their brightness, the median over the views' first frames
-    /// (absent in reports written before it was read), and how many views' focus measure took
-    /// the noise pre-filter for it (docs/pipeline.md, 1. Depth from focus).
-    #[serde(default)]
-    pub frame_noise: Option<f64>,
+    /// How many views' focus measure took the noise pre-filter (docs/pipeline.md, 1. Depth from
+    /// focus; the frames' noise is the station's `frame_noise_percent`).
     #[serde(default)]
     pub depth_prefiltered_views: usize,
     pub map_coverage: f64,
@@ -259,7 +256,6 @@ pub struct Findings<'a> {
     pub registration: Registration,
     pub end_face: Option<EndFace>,
     pub depth_coverage: f64,
-    pub frame_noise: Option<f64>,
     pub depth_prefiltered_views: usize,
     pub map_coverage: f64,
     pub map_implausible_share: f64,
@@ -335,7 +331,6 @@ impl Report {
             registration: f.registration,
             end_face: f.end_face,
             depth_coverage: f.depth_coverage,
-            frame_noise: f.frame_noise,
             depth_prefiltered_views: f.depth_prefiltered_views,
             map_coverage: f.map_coverage,
             map_implausible_share: f.map_implausible_share,

@@ -610,6 +610,7 @@ mod tests {
             axial_rows: 1,
             view_spacing_deg: Some(8.0),
             overlap_deg: Some(5.0),
+            frame_noise_percent: Some(0.84),
         }
     }
 
