@@ -13,16 +13,12 @@ pub(super) struct Refusal {
 
 /// The strongest correlation of the coarse search away from its peak (more than two coarse cells
 /// from it along either axis, beyond the peak's own width), as a fraction of the peak's: a second
-/// alignment nearly as good as the best one means the texture does not decide between them. Only
-/// shifts that keep at least half the peak's overlap count: two unrelated textures correlate by
-/// about 1/√cells, so the slivers of overlap at the search's far shifts reach high values by
-/// chance (at a station whose views overlap by 3° of a 25° footprint they posed as rivals at 70–75%
-/// of a true peak). `surface` holds (ncc, cells, ds, dz).
-pub(super) fn rival_ratio(surface: &[(f64, usize, i64, i64)], best: (f64, usize, i64, i64)) -> f64 {
+/// alignment nearly as good as the best one means the texture does not decide between them.
+fn rival_ratio(surface: &[(f64, i64, i64)], best: (f64, i64, i64)) -> f64 {
     let rival = surface
         .iter()
-        .filter(|&&(_, cells, ds, dz)| ((ds - best.2).abs() > 2 || (dz - best.3).abs() > 2) && 2 * cells >= best.1)
-        .map(|&(c, ..)| c)
+        .filter(|&&(_, ds, dz)| (ds - best.1).abs() > 2 || (dz - best.2).abs() > 2)
+        .map(|&(c, _, _)| c)
         .fold(-1.0, f64::max);
     if best.0 > 0.0 { rival / best.0 } else { 1.0 }
 }
@@ -53,21 +49,21 @@ pub(super) fn measure_pair(
     // content onto a's: a's cell c meets b's cell c − d.
     let rs = (lattice.radius_ref_mm * options.max_angle_deg.to_radians() / lattice.cell_arc_mm / 2.0).ceil() as i64;
     let rz = (options.max_axial_mm / lattice.cell_z_mm / 2.0).ceil() as i64;
-    let mut best = (f64::MIN, 0usize, 0i64, 0i64);
+    let mut best = (f64::MIN, 0i64, 0i64);
     let mut surface = Vec::with_capacity(((2 * rs + 1) * (2 * rz + 1)) as usize);
     for dz in -rz..=rz {
         for ds in -rs..=rs {
             // Every other cell of the overlap is plenty to find the peak at this level.
-            let (c, cells) = StrideTwo::ncc(
+            let (c, _) = StrideTwo::ncc(
                 &va.coarse,
                 &vb.coarse,
                 a_coarse_s0 - ds - b_coarse_s0,
                 a_coarse_z0 - dz - b_coarse_z0,
                 70,
             );
-            surface.push((c, cells, ds, dz));
+            surface.push((c, ds, dz));
             if c > best.0 {
-                best = (c, cells, ds, dz);
+                best = (c, ds, dz);
             }
         }
     }
@@ -76,7 +72,7 @@ pub(super) fn measure_pair(
     fine.1.sample(&pb.gray, pb.ns, pb.nz, 1, 0, 0);
     let (fine_a, fine_b) = (&fine.0, &fine.1);
     let ncc = |ds: i64, dz: i64| ncc_grids(fine_a, fine_b, pa.s0 - ds - b_s0, pa.z0 - dz - pb.z0, 220);
-    let (cs, cz) = (2 * best.2, 2 * best.3);
+    let (cs, cz) = (2 * best.1, 2 * best.2);
     let mut fine = (f64::MIN, cs, cz);
     for dz in cz - 2..=cz + 2 {
         for ds in cs - 2..=cs + 2 {

@@ -209,16 +209,3 @@ fn views_overlapping_narrowly_are_still_candidates() {
         [0.0, 28.0].iter().map(|&z| ViewPose { angle_deg: 0.0, axial_mm: z, lens_radius_mm: 200.0 }).collect();
     assert_eq!(overlapping_pairs(&rows, 12.75, 15.0), vec![(0, 1)]);
 }
-
-#[test]
-fn a_sliver_of_overlap_does_not_pose_as_a_rival() {
-    // The peak over 1000 cells; a shift at the search's edge that leaves 80 cells correlates
-    // nearly as well by chance; a genuine second alignment over 900 cells at 40% of the peak.
-    let peak = (0.5, 1000, 0, 0);
-    let surface = [peak, (0.48, 1000, 1, 0), (0.45, 80, 20, 0), (0.2, 900, -10, 0)];
-    let ratio = super::pair::rival_ratio(&surface, peak);
-    assert!((ratio - 0.4).abs() < 1e-12, "{ratio}");
-    // A rival over as many cells as the peak counts in full.
-    let surface = [peak, (0.45, 800, 20, 0)];
-    assert!((super::pair::rival_ratio(&surface, peak) - 0.9).abs() < 1e-12);
-}
