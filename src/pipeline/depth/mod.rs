@@ -14,6 +14,8 @@
 //! are recognised rather than trusted. The all-in-focus image keeps each pixel's sharpest colour.
 //! At a steep edge, where the box holds two surfaces and the curve peaks at both, a small box
 //! says which peak (and colour) is the pixel's own ([`DepthOptions::edge_window_radius_px`]).
+//! The first frame's pixel noise is read ([`noise`]) for the report and the envelope, and, as an
+//! option, decides a Gaussian pre-filter for noisy views.
 
 pub mod measure;
 pub mod noise;
@@ -85,8 +87,8 @@ pub struct DepthOptions {
     #[serde(default = "speckle_min_windows")]
     pub speckle_min_windows: f64,
     /// Standard deviation, pixels, of the Gaussian pre-filter the focus measure takes in views
-    /// whose frames are noisy ([`noise`]; 0: never). Options stored before this existed load
-    /// with the default.
+    /// whose frames are noisy ([`noise`]; 0, the default: never). Options stored before this
+    /// existed load with the default.
     #[serde(default = "prefilter_sigma_px")]
     pub prefilter_sigma_px: f64,
     /// The frames' noise, relative to their mean brightness ([`noise::relative_noise`], read on
@@ -143,9 +145,11 @@ impl Default for DepthOptions {
             edge_window_radius_px: 1,
             drop_speckles: true,
             speckle_min_windows: 0.25,
-            // Chosen on the tuning stations (docs/notebook/accuracy.md, "Stations: noisy
-            // frames"): the standard station's frames read 0.65%, the noisiest stations' 5–11%.
-            prefilter_sigma_px: 0.7,
+            // Off: σ 0.7 px above 1.5% was chosen on the tuning stations, and on the station
+            // suite, which chose nothing, it made heights better at 6 stations and worse at 14
+            // (docs/notebook/accuracy.md, "Stations: noisy frames"). The standard station's
+            // frames read 0.65–0.84%, the noisiest random stations' 5–11%.
+            prefilter_sigma_px: 0.0,
             prefilter_min_noise: 0.015,
         }
     }
