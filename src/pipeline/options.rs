@@ -86,6 +86,7 @@ pub const RANGES: &[OptionRange] = &[
     range("depth.speckle_min_windows", 0.0, 100.0),
     range("depth.prefilter_sigma_px", 0.0, 4.0),
     range("depth.prefilter_min_noise", 0.0, 1.0),
+    range("depth.prefilter_max_pixel_mm", 0.0, 1.0),
     range("crest.dark_fraction", 0.0, 1.0),
     range("crest.dark_sigmas", 0.0, 50.0),
     range("crest.dark_run_sigmas", 0.0, 50.0),

@@ -357,7 +357,7 @@ fn a_view_the_texture_cannot_place_is_placed_axially_by_the_end_face() {
 /// The frames' noise is read off the frames themselves, and a noisy sensor (a 250 e⁻ full well
 /// behind the same optics) puts the station outside the envelope the accuracy figures were
 /// measured in (nothing measured them on such a sensor), so the result needs review. The noise
-/// pre-filter, an option, runs on the noisy views only.
+/// pre-filter runs on the noisy views only, at object pixels up to its bound.
 #[test]
 fn a_noisy_sensor_is_read_off_its_frames_and_flagged() {
     use crestscan::pipeline::quality::QualityCode;
@@ -376,8 +376,7 @@ fn a_noisy_sensor_is_read_off_its_frames_and_flagged() {
     let noise_of = |report: &crestscan::pipeline::report::Report| {
         report.station.as_ref().and_then(|s| s.frame_noise_percent).unwrap()
     };
-    let mut filtering = PipelineOptions::default();
-    filtering.depth.prefilter_sigma_px = 0.7;
+    let filtering = PipelineOptions::default();
     let (quiet, _) = inspect(ci_bundle(), &filtering);
     assert!(noise_of(&quiet) > 0.3 && noise_of(&quiet) < 1.5, "{}", noise_of(&quiet));
     assert_eq!(quiet.depth_prefiltered_views, 0);
@@ -394,19 +393,26 @@ fn a_noisy_sensor_is_read_off_its_frames_and_flagged() {
     assert!(names_noise(&noisy), "{:?}", noisy.quality);
     assert!(noisy.review_required);
     assert_eq!(noisy.decision, crestscan::pipeline::uncertainty::Decision::Indeterminate);
-    // By default no view takes the pre-filter, and the noise is still read and named.
-    match pipeline::inspect(
-        &Bundle::open(dir.path(), &ConnectionTable::api5b(), OpenOptions::default()).unwrap(),
-        &PipelineOptions::default(),
-        &|_, _| {},
-        &AtomicBool::new(false),
-    ) {
-        Ok(Some(inspection)) => {
-            assert_eq!(inspection.report.depth_prefiltered_views, 0);
-            assert!(names_noise(&inspection.report), "{:?}", inspection.report.quality);
+    // At σ 0, or past the object pixel bound (ci's is 0.041 mm), no view takes the pre-filter, and
+    // the noise is still read and named.
+    let mut off = PipelineOptions::default();
+    off.depth.prefilter_sigma_px = 0.0;
+    let mut coarse_only = PipelineOptions::default();
+    coarse_only.depth.prefilter_max_pixel_mm = 0.03;
+    for options in [off, coarse_only] {
+        match pipeline::inspect(
+            &Bundle::open(dir.path(), &ConnectionTable::api5b(), OpenOptions::default()).unwrap(),
+            &options,
+            &|_, _| {},
+            &AtomicBool::new(false),
+        ) {
+            Ok(Some(inspection)) => {
+                assert_eq!(inspection.report.depth_prefiltered_views, 0);
+                assert!(names_noise(&inspection.report), "{:?}", inspection.report.quality);
+            }
+            // Unfiltered, the noisy frames may leave no thread to find: a refusal, not a report.
+            Err(e) => assert!(e.to_string().contains("no thread found"), "{e}"),
+            Ok(None) => panic!("not cancelled"),
         }
-        // Unfiltered, the noisy frames may leave no thread to find: a refusal, not a report.
-        Err(e) => assert!(e.to_string().contains("no thread found"), "{e}"),
-        Ok(None) => panic!("not cancelled"),
     }
 }

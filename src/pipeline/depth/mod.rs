@@ -87,14 +87,18 @@ pub struct DepthOptions {
     #[serde(default = "speckle_min_windows")]
     pub speckle_min_windows: f64,
     /// Standard deviation, pixels, of the Gaussian pre-filter the focus measure takes in views
-    /// whose frames are noisy ([`noise`]; 0, the default: never). Options stored before this
-    /// existed load with the default.
+    /// whose frames are noisy ([`noise`]; 0: never). Options stored before this existed load with
+    /// the default.
     #[serde(default = "prefilter_sigma_px")]
     pub prefilter_sigma_px: f64,
     /// The frames' noise, relative to their mean brightness ([`noise::relative_noise`], read on
     /// each view's first frame), above which the pre-filter runs (0: always).
     #[serde(default = "prefilter_min_noise")]
     pub prefilter_min_noise: f64,
+    /// The largest object pixel, mm, at which the pre-filter runs (0: any). Options stored before
+    /// this existed load with the default.
+    #[serde(default = "prefilter_max_pixel_mm")]
+    pub prefilter_max_pixel_mm: f64,
 }
 
 fn prefilter_sigma_px() -> f64 {
@@ -103,6 +107,10 @@ fn prefilter_sigma_px() -> f64 {
 
 fn prefilter_min_noise() -> f64 {
     DepthOptions::default().prefilter_min_noise
+}
+
+fn prefilter_max_pixel_mm() -> f64 {
+    DepthOptions::default().prefilter_max_pixel_mm
 }
 
 fn speckle_min_windows() -> f64 {
@@ -145,12 +153,14 @@ impl Default for DepthOptions {
             edge_window_radius_px: 1,
             drop_speckles: true,
             speckle_min_windows: 0.25,
-            // Off: σ 0.7 px above 1.5% was chosen on the tuning stations, and on the station
-            // suite, which chose nothing, it made heights better at 6 stations and worse at 14
-            // (docs/notebook/accuracy.md, "Stations: noisy frames"). The standard station's
-            // frames read 0.65–0.84%, the noisiest random stations' 5–11%.
-            prefilter_sigma_px: 0.0,
+            // σ 0.7 px above 1.5% noise was chosen on the tuning stations; the station suite (which
+            // had chosen nothing) showed it helping at object pixels up to 0.08 mm and hurting above,
+            // and the bound was checked on stations 141–150, rendered after it was set
+            // (docs/notebook/accuracy.md, "Stations: noisy frames"). The standard station's frames
+            // read 0.65–0.84%: it never runs there.
+            prefilter_sigma_px: 0.7,
             prefilter_min_noise: 0.015,
+            prefilter_max_pixel_mm: 0.08,
         }
     }
 }
@@ -312,7 +322,9 @@ pub fn depth_from_focus_in(
         frame.gray_into(gray);
         if k == 0 {
             frame_noise = noise::relative_noise(gray, w, h);
-            let noisy = frame_noise.is_some_and(|n| n > options.prefilter_min_noise);
+            let pixel_mm = optics.object_pixel_mm(big_f);
+            let fine = options.prefilter_max_pixel_mm <= 0.0 || pixel_mm <= options.prefilter_max_pixel_mm;
+            let noisy = fine && frame_noise.is_some_and(|n| n > options.prefilter_min_noise);
             prefilter = (noisy && options.prefilter_sigma_px > 0.0).then(|| noise::gaussian_taps(options.prefilter_sigma_px));
         }
         let measured: &[f32] = match &prefilter {

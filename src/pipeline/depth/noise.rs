@@ -7,10 +7,10 @@
 //! hides the texture's focus peak, and the peaks that remain belong to the strong edges. A light
 //! Gaussian pre-filter removes most of the noise's power above the texture's band and keeps the
 //! texture's. Where the noise is low (the standard station) it would only widen the focus curve,
-//! so it runs only above a noise level, read from the view's first frame. It is an option, off by
-//! default: on the station suite it helped at fine object pixels and hurt at coarse ones
-//! (docs/notebook/accuracy.md, "Stations: noisy frames"). The noise itself is read on every view:
-//! the report states it and the measured envelope bounds it.
+//! so it runs only above a noise level, read from the view's first frame, and only at object
+//! pixels up to 0.08 mm: at coarser ones it made heights worse on every station suite case it
+//! touched (docs/notebook/accuracy.md, "Stations: noisy frames"). The noise itself is read on every
+//! view: the report states it and the measured envelope bounds it.
 
 /// The standard deviation of a frame's pixel noise relative to its mean brightness (Immerkær,
 /// "Fast noise variance estimation", 1996: the mean absolute response to the difference of two
