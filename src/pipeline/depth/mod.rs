@@ -322,10 +322,11 @@ pub fn depth_from_focus_in(
         frame.gray_into(gray);
         if k == 0 {
             frame_noise = noise::relative_noise(gray, w, h);
-            let pixel_mm = optics.object_pixel_mm(big_f);
-            let fine = options.prefilter_max_pixel_mm <= 0.0 || pixel_mm <= options.prefilter_max_pixel_mm;
-            let noisy = fine && frame_noise.is_some_and(|n| n > options.prefilter_min_noise);
-            prefilter = (noisy && options.prefilter_sigma_px > 0.0).then(|| noise::gaussian_taps(options.prefilter_sigma_px));
+            let noisy = frame_noise.is_some_and(|n| n > options.prefilter_min_noise);
+            let bound = options.prefilter_max_pixel_mm;
+            let fine_pixels = bound <= 0.0 || optics.object_pixel_mm(big_f) <= bound;
+            let wanted = noisy && fine_pixels && options.prefilter_sigma_px > 0.0;
+            prefilter = wanted.then(|| noise::gaussian_taps(options.prefilter_sigma_px));
         }
         let measured: &[f32] = match &prefilter {
             Some(taps) => {
