@@ -425,3 +425,11 @@ fn phase_equalisation_removes_an_odd_sub_frame_bias() {
     equalize_sub_frame_phase(&mut untouched, &[uneven], big_f);
     assert_eq!(untouched[0].depth_mm, map.depth_mm);
 }
+
+#[test]
+fn the_envelope_ends_where_the_noise_pre_filter_starts() {
+    // The domain layer cannot read the depth stage's options, so the bound is written twice: the
+    // suites measured unfiltered depth only, and a bundle the pre-filter would take is outside.
+    let bound = crate::domain::station::MEASURED.frame_noise_percent.1;
+    assert_eq!(bound, 100.0 * DepthOptions::default().prefilter_min_noise);
+}

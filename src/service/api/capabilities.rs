@@ -69,14 +69,16 @@ pub async fn get_capabilities() -> Json<Capabilities> {
             overlap: range(MEASURED.overlap_deg, "deg"),
             frame_noise: range(MEASURED.frame_noise_percent, "% of the brightness"),
         },
-        description: "Every accuracy figure so far was measured at one station design (the simulator's presets): \
-                      this envelope is that station ±10% on each parameter of its optics and layout, with frames \
-                      no noisier than 1.5% of their brightness (its sensor's read 0.65–0.84%, measured on the \
-                      frames by the depth stage). Stations outside it are inspected \
-                      and their results flagged for review: on the station benchmark's random stations \
-                      (object pixels 0.03–0.15 mm) crestscan does not yet measure within its targets \
-                      (docs/benchmark.md, Stations)."
-            .into(),
+        description: format!(
+            "Every accuracy figure so far was measured at one station design (the simulator's presets): \
+             this envelope is that station ±10% on each parameter of its optics and layout, with frames \
+             no noisier than {}% of their brightness (its sensor's read 0.65–0.84%, measured on the \
+             frames by the depth stage). Stations outside it are inspected \
+             and their results flagged for review: on the station benchmark's random stations \
+             (object pixels 0.03–0.15 mm) crestscan does not yet measure within its targets \
+             (docs/benchmark.md, Stations).",
+            MEASURED.frame_noise_percent.1
+        ),
         coverage_factor: crate::pipeline::uncertainty::UncertaintyOptions::default().coverage_factor,
         decision_rule: "ISO 14253-1: the black-crest rules applied again with every measured value moved by its \
                         uncertainty toward reject and toward accept (black arcs lengthened or shortened at each end, \
