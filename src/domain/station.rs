@@ -274,7 +274,10 @@ mod tests {
         let quiet = Station { frame_noise_percent: Some(0.8), ..standard.clone() };
         assert!(quiet.outside(&envelope).is_empty());
         let noisy = Station { frame_noise_percent: Some(5.75), ..standard };
-        assert_eq!(noisy.outside(&envelope), vec!["frame noise 5.750% of the brightness (measured: 0–1.5% of the brightness)"]);
+        assert_eq!(
+            noisy.outside(&envelope),
+            vec!["frame noise 5.750% of the brightness (measured: 0–1.5% of the brightness)"]
+        );
         assert!(noisy.optics_outside(&envelope));
     }
 }

@@ -371,7 +371,11 @@ fn a_noisy_sensor_is_read_off_its_frames_and_flagged() {
         (report, views)
     };
     let names_noise = |report: &crestscan::pipeline::report::Report| {
-        report.quality.reasons.iter().any(|r| r.code == QualityCode::StationUnmeasured && r.message.contains("frame noise"))
+        report
+            .quality
+            .reasons
+            .iter()
+            .any(|r| r.code == QualityCode::StationUnmeasured && r.message.contains("frame noise"))
     };
     let noise_of = |report: &crestscan::pipeline::report::Report| {
         report.station.as_ref().and_then(|s| s.frame_noise_percent).unwrap()

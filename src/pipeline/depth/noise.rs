@@ -99,7 +99,8 @@ mod tests {
     fn reads_the_noise_on_flat_and_sloped_frames() {
         for (sigma, base) in [(0.01f32, 0.5f32), (0.04, 0.5), (0.02, 0.25)] {
             let flat = noisy(300, 200, sigma, 1, |_, _| base);
-            let ramp = noisy(300, 200, sigma, 2, |x, y| base + 0.3 * (x as f32 / 300.0 - 0.5) + 0.1 * (y as f32 / 200.0));
+            let ramp =
+                noisy(300, 200, sigma, 2, |x, y| base + 0.3 * (x as f32 / 300.0 - 0.5) + 0.1 * (y as f32 / 200.0));
             for frame in [flat, ramp] {
                 let got = relative_noise(&frame, 300, 200).unwrap();
                 let mean = frame.iter().map(|&v| v as f64).sum::<f64>() / frame.len() as f64;
