@@ -65,10 +65,16 @@ pub struct UncertaintyBudget {
     pub method_um: f64,
     pub registration_um: f64,
     pub noise_median_um: Option<f64>,
-    /// The floor each height's standard uncertainty was raised to because the measurement failed
-    /// its quality checks ([`measurement_failed`]), µm; 0 otherwise.
+    /// Where the measurement failed its checks ([`measurement_failed`]) and the method's Type B
+    /// term is unknown, two standard uncertainties every height carries besides the others, µm
+    /// (0 otherwise): the heights' RMS departure from their thread's median along the helix
+    /// (Type A), and the departure of all heights' median from the nominal height (Type B: a bias
+    /// common to the whole part, which no scatter shows; it includes the part's own departure,
+    /// which makes it cautious).
     #[serde(default)]
-    pub failure_floor_um: f64,
+    pub along_helix_um: f64,
+    #[serde(default)]
+    pub from_nominal_um: f64,
     /// Bins along the helix that share a focus window: noise is correlated over this many.
     pub noise_correlation_bins: f64,
     /// The median expanded uncertainty of a bin's height, µm.
@@ -86,18 +92,18 @@ pub struct Scales<'a> {
     /// Half size of the depth stage's focus window, pixels.
     pub focus_window_radius_px: usize,
     pub pipe_radius_mm: f64,
+    /// The thread form's nominal height, mm.
+    pub nominal_height_mm: f64,
     pub registration: &'a Registration,
     pub end_face: Option<&'a EndFace>,
-    /// RMS of the nominal form at the measured helix against the surface, µm.
-    pub helix_fit_rms_um: f64,
 }
 
 /// Whether the measurement cannot vouch for its own uncertainty: the quality checks say it failed
 /// (too little was measured, the helix does not fit the surface, or depth from focus trusted too
 /// few pixels), or the station's optics lie outside the envelope the method's uncertainty was
 /// measured in (its Type B term is known only there: on the random stations' optics heights were
-/// off by tens to hundreds of µm that no local scatter shows). Such a result's heights may be
-/// wrong by far more than their scatter says, and no decision is made on it.
+/// off by tens to hundreds of µm that no local scatter shows). Such a result's heights carry the
+/// dispersion along the helix besides their local scatter, and no decision is made on it.
 pub fn measurement_failed(quality: &Quality, station: &Station) -> bool {
     quality.status == QualityStatus::Insufficient
         || quality
@@ -122,10 +128,21 @@ pub fn heights(
     // A focus window spans (2r + 1) pixels along the arc: bins within it share depth errors.
     let correlation = ((2 * scales.focus_window_radius_px + 1) as f64 * pixel_mm / bin_arc_mm).max(1.0);
     let method_mm = options.method_px * pixel_mm;
-    // Where the measurement failed its checks, its errors are those of the surface departing from
-    // the thread form, which the helix's fit residual measures: each height's standard
-    // uncertainty is at least that.
-    let failure_mm = if measurement_failed(quality, scales.station) { 1e-3 * scales.helix_fit_rms_um } else { 0.0 };
+    // Where the measurement failed its checks, its errors vary along the helix on scales the local
+    // scatter does not see (a view's depth bias, a misplaced view): a machined thread's height is
+    // constant along the helix to within its tolerance, so the heights' departure from their
+    // thread's median measures those errors (with the true variation, which makes it cautious).
+    let failed = measurement_failed(quality, scales.station);
+    let along_mm = if failed { along_helix_rms(threads) } else { 0.0 };
+    // The same heights can all be off together (the focus window or a depth-of-field comparable
+    // to the thread's height compressing every profile: at one random station, 0.35 mm of a
+    // 1.0 mm thread): the median height's distance from nominal bounds that.
+    let from_nominal_mm = if failed {
+        let mut all: Vec<f64> = threads.iter().flat_map(|t| t.bins.iter().filter_map(|b| b.height_mm)).collect();
+        median(&mut all).map_or(0.0, |m| (m - scales.nominal_height_mm).abs())
+    } else {
+        0.0
+    };
     // RMS over the measured pairs of one of their residuals (0 without pairs).
     let pairs = &scales.registration.pairs;
     let pairs_rms = |residual_mm: &dyn Fn(&PairMeasure) -> f64| {
@@ -140,8 +157,14 @@ pub fn heights(
     // A bin's noise `s`, correlated over `correlation` bins, in a mean of `m` bins: neighbour
     // differences see 1/L of the variance, and the mean averages m/L independent ones (at most m).
     let noise_of = |s: f64, m: f64| s * (correlation * (correlation / m).min(1.0)).sqrt();
-    let expanded_of =
-        |noise_mm: f64| k * (noise_mm.powi(2) + method_mm.powi(2) + registration_mm.powi(2)).sqrt().max(failure_mm);
+    let expanded_of = |noise_mm: f64| {
+        k * (noise_mm.powi(2)
+            + method_mm.powi(2)
+            + registration_mm.powi(2)
+            + along_mm.powi(2)
+            + from_nominal_mm.powi(2))
+        .sqrt()
+    };
     let raw: Vec<Option<f64>> = threads.iter().flat_map(|t| t.bins.iter().map(|b| b.raw_height_mm)).collect();
     let noise = local_noise(&raw, options.noise_half_bins, 10);
     // Where too few neighbours were measured to read the noise, the part's median stands in.
@@ -186,7 +209,8 @@ pub fn heights(
         method_um: 1e3 * method_mm,
         registration_um: 1e3 * registration_mm,
         noise_median_um: part_noise.map(|s| 1e3 * s),
-        failure_floor_um: 1e3 * failure_mm,
+        along_helix_um: 1e3 * along_mm,
+        from_nominal_um: 1e3 * from_nominal_mm,
         noise_correlation_bins: correlation,
         expanded_median_um: median(&mut expanded).map(|u| 1e3 * u),
         crest_deficit_um: k * crest_scatter_um.unwrap_or(0.0),
@@ -194,6 +218,24 @@ pub fn heights(
         z_mm: k * z_mm,
     };
     (budget, means)
+}
+
+/// RMS over the measured bins of each height's departure from its thread's median (threads with
+/// fewer than 5 measured bins left out), mm; 0 without such a thread. A thread's mean carries it
+/// whole: the errors it measures are shared by the bins one view saw, so they do not average out
+/// along the helix.
+fn along_helix_rms(threads: &[ThreadMeasure]) -> f64 {
+    let (mut sum_sq, mut n) = (0.0, 0usize);
+    for t in threads {
+        let mut heights: Vec<f64> = t.bins.iter().filter_map(|b| b.height_mm).collect();
+        if heights.len() < 5 {
+            continue;
+        }
+        let Some(centre) = median(&mut heights) else { continue };
+        sum_sq += heights.iter().map(|h| (h - centre).powi(2)).sum::<f64>();
+        n += heights.len();
+    }
+    if n == 0 { 0.0 } else { (sum_sq / n as f64).sqrt() }
 }
 
 /// The decision per ISO 14253-1 on the black-crest rules.
@@ -294,8 +336,8 @@ pub fn decide(
         reasons.push(
             "no decision: the measurement failed its quality checks or its station's optics lie outside the \
              envelope its uncertainty was measured in (the quality reasons say which); its heights and black \
-             crests may be wrong by more than their scatter shows, and each height's uncertainty is at least \
-             the helix fit's residual"
+             crests may be wrong by more than their local scatter shows, and each height's uncertainty \
+             includes the heights' dispersion along the helix"
                 .to_string(),
         );
     }
@@ -511,7 +553,8 @@ mod tests {
             method_um: 2.0,
             registration_um: 0.0,
             noise_median_um: Some(3.0),
-            failure_floor_um: 0.0,
+            along_helix_um: 0.0,
+            from_nominal_um: 0.0,
             noise_correlation_bins: 1.0,
             expanded_median_um: Some(8.0),
             crest_deficit_um: 10.0,
@@ -637,7 +680,7 @@ mod tests {
     }
 
     #[test]
-    fn every_height_gets_the_combined_uncertainty_and_a_failed_measurement_its_floor() {
+    fn every_height_gets_the_combined_uncertainty_and_a_failed_measurement_its_dispersion() {
         let registration = Registration {
             corrections: vec![],
             pairs: vec![],
@@ -649,17 +692,17 @@ mod tests {
             closure: None,
         };
         let st = station(0.04);
-        let scales = |helix_fit_rms_um| Scales {
+        let scales = Scales {
             station: &st,
             focus_window_radius_px: 5,
             pipe_radius_mm: 57.15,
+            nominal_height_mm: 1.575,
             registration: &registration,
             end_face: None,
-            helix_fit_rms_um,
         };
         let options = UncertaintyOptions::default();
         let mut threads = noisy(0.004);
-        let (budget, means) = heights(&mut threads, &scales(175.0), Some(3.0), &ok(), &options);
+        let (budget, means) = heights(&mut threads, &scales, Some(3.0), &ok(), &options);
         // Neighbours differ by 8 µm: σ = 1.4826 · 8/√2 µm (the robust scale of the differences,
         // normal-consistent); 11 pixels of 0.04 mm span 0.44 bins (L = 1); the mean of 7 divides
         // it by √7; the method adds 0.05 × 40 µm = 2 µm.
@@ -667,26 +710,49 @@ mod tests {
         let expected_um = 2.0 * (noise * noise + 2.0 * 2.0).sqrt();
         let u = 1e3 * threads[1].bins[100].uncertainty_mm.unwrap();
         assert!((u - expected_um).abs() < 0.05, "{u} against {expected_um}");
-        assert!((budget.method_um - 2.0).abs() < 1e-9 && budget.failure_floor_um == 0.0, "{budget:?}");
+        assert!((budget.method_um - 2.0).abs() < 1e-9 && budget.along_helix_um == 0.0, "{budget:?}");
         // A thread's mean averages 360 bins of noise, not the method's part.
         let mean_u = 1e3 * means[1].1.unwrap();
         assert!(mean_u < u && mean_u > 2.0 * 2.0, "{mean_u}");
         // Four times the scatter: about four times the noise part.
         let mut louder = noisy(0.016);
-        heights(&mut louder, &scales(175.0), Some(3.0), &ok(), &options);
+        heights(&mut louder, &scales, Some(3.0), &ok(), &options);
         assert!(1e3 * louder[1].bins[100].uncertainty_mm.unwrap() > 3.0 * u);
-        // A measurement that failed its checks: a standard uncertainty of at least the helix
-        // residual, so U = 2 × 0.45 mm.
+        // A measurement that failed its checks: every height also carries the heights' RMS
+        // departure from their thread's median (a quarter of each thread 40 µm high: 20 µm) and
+        // their median's from nominal (here none).
         let failed = Quality {
             status: QualityStatus::Degraded,
             reasons: vec![QualityReason { code: QualityCode::DepthCoverageLow, message: String::new() }],
         };
-        let (budget, _) = heights(&mut threads, &scales(450.0), Some(3.0), &failed, &options);
-        assert_eq!(budget.failure_floor_um, 450.0);
-        assert!((threads[1].bins[100].uncertainty_mm.unwrap() - 0.9).abs() < 1e-9);
+        let mut wandering = noisy(0.004);
+        for t in &mut wandering {
+            for b in &mut t.bins[..90] {
+                b.height_mm = Some(1.615);
+            }
+        }
+        let (budget, means) = heights(&mut wandering, &scales, Some(3.0), &failed, &options);
+        assert!((budget.along_helix_um - 20.0).abs() < 1e-6 && budget.from_nominal_um < 1e-9, "{budget:?}");
+        let expected_um = 2.0 * (noise * noise + 2.0 * 2.0 + 20.0 * 20.0).sqrt();
+        let u = 1e3 * wandering[1].bins[100].uncertainty_mm.unwrap();
+        assert!((u - expected_um).abs() < 0.05, "{u} against {expected_um}");
+        // A thread's mean keeps it whole: the views' errors do not average along the helix.
+        assert!(1e3 * means[1].1.unwrap() > 2.0 * 20.0);
+        // All heights 30 µm under nominal, evenly: the bias shows only against nominal.
+        let mut low = noisy(0.004);
+        for b in low.iter_mut().flat_map(|t| t.bins.iter_mut()) {
+            b.height_mm = Some(1.545);
+        }
+        let (budget, _) = heights(&mut low, &scales, Some(3.0), &failed, &options);
+        assert!(budget.along_helix_um < 1e-9 && (budget.from_nominal_um - 30.0).abs() < 1e-6, "{budget:?}");
+        let expected_um = 2.0 * (noise * noise + 2.0 * 2.0 + 30.0 * 30.0).sqrt();
+        assert!((1e3 * low[1].bins[100].uncertainty_mm.unwrap() - expected_um).abs() < 0.05);
+        // The same heights in a measurement that passed its checks: neither term.
+        let (budget, _) = heights(&mut low, &scales, Some(3.0), &ok(), &options);
+        assert_eq!((budget.along_helix_um, budget.from_nominal_um), (0.0, 0.0));
         // No height, no uncertainty.
         threads[0].bins[5].height_mm = None;
-        heights(&mut threads, &scales(175.0), Some(3.0), &ok(), &options);
+        heights(&mut threads, &scales, Some(3.0), &ok(), &options);
         assert_eq!(threads[0].bins[5].uncertainty_mm, None);
     }
 
