@@ -4,8 +4,8 @@ use super::{DepthArgs, open_bundle};
 use anyhow::{Context, Result};
 use crestscan::bundle::OpenOptions;
 use crestscan::domain::rules::ArcRule;
-use crestscan::export::{glb, ply, png, stl};
-use crestscan::pipeline::mesh::Mesh;
+use crestscan::export::{glb, html, ply, png, stl};
+use crestscan::pipeline::mesh::{Mesh, MeshOptions};
 use crestscan::pipeline::profile::ProfileOptions;
 use crestscan::pipeline::{self, PipelineOptions};
 use std::io::BufWriter;
@@ -15,7 +15,8 @@ use std::sync::atomic::AtomicBool;
 #[derive(clap::Args)]
 pub struct InspectArgs {
     bundle: PathBuf,
-    /// Write report.json, height-map.png, all-in-focus.png, mesh.ply, mesh.stl and mesh.glb here.
+    /// Write report.json, report.html (the report as one self-contained page), height-map.png,
+    /// all-in-focus.png, mesh.ply, mesh.stl and mesh.glb here.
     #[arg(long)]
     out: Option<PathBuf>,
     /// Print the report as JSON instead of the summary.
@@ -64,8 +65,37 @@ impl InspectArgs {
             let report_path = dir.join("report.json");
             std::fs::write(&report_path, serde_json::to_vec_pretty(&inspection.report)?)
                 .with_context(|| format!("writing {}", report_path.display()))?;
-            png::write_height_map(&inspection.map, &dir.join("height-map.png"))?;
-            png::write_mosaic(&inspection.map, &dir.join("all-in-focus.png"))?;
+            let height_map = png::height_map_png(&inspection.map)?;
+            let mosaic = png::mosaic_png(&inspection.map)?;
+            let (mosaic_preview, height_map_preview) = (
+                png::preview_png(&mosaic, html::IMAGE_WIDTH_PX)?,
+                png::preview_png(&height_map, html::IMAGE_WIDTH_PX)?,
+            );
+            // The page's 3D view takes a lighter mesh than the files: inlined, it is the page's
+            // bulk (the standard ring's full mesh is 14 MB of GLB).
+            let light = crestscan::pipeline::mesh::build(
+                &inspection.map,
+                &MeshOptions { max_vertices: html::VIEWER_MAX_VERTICES, ..options.mesh.clone() },
+            )?;
+            let mut light_glb = Vec::new();
+            glb::write(&light, &mut light_glb)?;
+            let html = html::report_page(
+                &inspection.report,
+                &html::PageInputs {
+                    mosaic_png: Some(&mosaic_preview),
+                    height_map_png: Some(&height_map_preview),
+                    mesh: Some(html::MeshSource::Inline(&light_glb)),
+                    ..Default::default()
+                },
+            );
+            for (name, bytes) in [
+                ("height-map.png", &height_map[..]),
+                ("all-in-focus.png", &mosaic[..]),
+                ("report.html", html.as_bytes()),
+            ] {
+                let path = dir.join(name);
+                std::fs::write(&path, bytes).with_context(|| format!("writing {}", path.display()))?;
+            }
             type Writer = fn(&Mesh, BufWriter<std::fs::File>) -> std::io::Result<()>;
             for (name, write) in
                 [("mesh.ply", ply::write as Writer), ("mesh.stl", stl::write), ("mesh.glb", glb::write)]
@@ -81,7 +111,7 @@ impl InspectArgs {
             println!("{}", inspection.report.summary());
             if let Some(dir) = &out {
                 println!(
-                    "  wrote report.json, height-map.png, all-in-focus.png, mesh.ply, mesh.stl and mesh.glb ({} vertices, {} triangles) to {}",
+                    "  wrote report.json, report.html, height-map.png, all-in-focus.png, mesh.ply, mesh.stl and mesh.glb ({} vertices, {} triangles) to {}",
                     inspection.mesh.vertices.len(),
                     inspection.mesh.triangles.len(),
                     dir.display()

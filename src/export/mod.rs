@@ -1,6 +1,8 @@
-//! The output edge: the mesh as PLY, STL and GLB, the unrolled maps as PNG.
+//! The output edge: the mesh as PLY, STL and GLB, the unrolled maps as PNG, the report as a
+//! self-contained HTML page.
 
 pub mod glb;
+pub mod html;
 pub mod ply;
 pub mod png;
 pub mod stl;

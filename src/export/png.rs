@@ -2,17 +2,12 @@
 //! gray, z down the rows, θ across) and the unrolled all-in-focus mosaic (8-bit RGB).
 
 use crate::pipeline::surface::UnrolledMap;
-use std::path::Path;
 
 #[derive(Debug, thiserror::Error)]
 #[error("{path}: {message}")]
 pub struct ImageError {
     path: String,
     message: String,
-}
-
-fn save(path: &Path, image: image::DynamicImage) -> Result<(), ImageError> {
-    image.save(path).map_err(|e| ImageError { path: path.display().to_string(), message: e.to_string() })
 }
 
 fn png_bytes(image: image::DynamicImage) -> Result<Vec<u8>, ImageError> {
@@ -23,20 +18,28 @@ fn png_bytes(image: image::DynamicImage) -> Result<Vec<u8>, ImageError> {
     Ok(out.into_inner())
 }
 
-pub fn write_height_map(map: &UnrolledMap, path: &Path) -> Result<(), ImageError> {
-    save(path, height_map(map))
-}
-
 pub fn height_map_png(map: &UnrolledMap) -> Result<Vec<u8>, ImageError> {
     png_bytes(height_map(map))
 }
 
-pub fn write_mosaic(map: &UnrolledMap, path: &Path) -> Result<(), ImageError> {
-    save(path, mosaic(map))
-}
-
 pub fn mosaic_png(map: &UnrolledMap) -> Result<Vec<u8>, ImageError> {
     png_bytes(mosaic(map))
+}
+
+/// A smaller copy of one of these PNGs for a page, at most `max_width` pixels wide (its aspect
+/// kept) and 8 bits deep: the full mosaic of a ring is megabytes, too much to inline.
+pub fn preview_png(png: &[u8], max_width: u32) -> Result<Vec<u8>, ImageError> {
+    let image = image::load_from_memory_with_format(png, image::ImageFormat::Png)
+        .map_err(|e| ImageError { path: "(memory)".into(), message: e.to_string() })?;
+    let image = if image.width() > max_width {
+        let height = ((image.height() as f64 * max_width as f64 / image.width() as f64).round() as u32).max(1);
+        image.resize_exact(max_width, height, image::imageops::FilterType::Triangle)
+    } else {
+        image
+    };
+    let image: image::DynamicImage =
+        if image.color().has_color() { image.to_rgb8().into() } else { image.to_luma8().into() };
+    png_bytes(image)
 }
 
 /// Radius relative to its range, 16-bit; unseen cells are 0.

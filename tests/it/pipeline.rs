@@ -179,6 +179,12 @@ fn cli_inspect_writes_the_report_in_the_contract_shape() {
         let decoded = image::open(out.path().join(image)).unwrap();
         assert!(decoded.width() >= 360, "{image}");
     }
+    // The same report as one self-contained page: its plots, one per thread, and both images.
+    let page = std::fs::read_to_string(out.path().join("report.html")).unwrap();
+    assert!(page.starts_with("<!DOCTYPE html>") && page.contains("id=\"surface\""));
+    assert_eq!(page.matches("<figure><figcaption>thread ").count(), report["threads"].as_array().unwrap().len());
+    assert_eq!(page.matches("src=\"data:image/png;base64,").count(), 2);
+    assert!(!page.contains("src=\"http") && !page.contains("href=\"http"));
 }
 
 /// `inspect --options` takes a pipeline options file (bad keys named), and `compare` reads the

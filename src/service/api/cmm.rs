@@ -121,6 +121,36 @@ async fn stored_cmm(state: &AppState, id: InspectionId) -> Result<StoredCmm, Api
     })
 }
 
+/// The report page's CMM panel, where CMM data was uploaded for the inspection (at the default
+/// agreement tolerance).
+pub(super) async fn comparison_if_uploaded(
+    state: &AppState,
+    id: &InspectionId,
+    report: &Report,
+) -> Result<Option<crate::export::html::CmmPanel>, ApiError> {
+    let stored = match stored_cmm(state, id.clone()).await {
+        Ok(stored) => stored,
+        Err(e) if e.code == Code::CmmNotFound => return Ok(None),
+        Err(e) => return Err(e),
+    };
+    let measurements = CmmMeasurements {
+        instrument: stored.instrument.clone(),
+        measured_at: stored.measured_at,
+        points: stored.points,
+    };
+    let c = cmm::compare(report, &measurements, cmm::default_tolerance_mm(report));
+    Ok(Some(crate::export::html::CmmPanel {
+        instrument: stored.instrument,
+        points: c.points.iter().filter_map(|p| Some((p.cmm_height_mm, p.crestscan_height_mm?))).collect(),
+        unmatched: c.agreement.unmatched,
+        bias_mm: c.agreement.bias_mm,
+        rms_mm: c.agreement.rms_mm,
+        limits_of_agreement_mm: c.agreement.limits_of_agreement_mm,
+        tolerance_mm: c.agreement.tolerance_mm,
+        within_tolerance: c.agreement.within_tolerance,
+    }))
+}
+
 #[derive(Clone, Debug, Default, Deserialize, IntoParams)]
 #[serde(deny_unknown_fields)]
 #[into_params(parameter_in = Query)]

@@ -6,6 +6,7 @@ pub mod browser;
 pub mod capabilities;
 pub mod cmm;
 pub mod connections;
+pub mod dashboard;
 pub mod health;
 mod http;
 pub mod ingest;
@@ -146,6 +147,7 @@ pub fn router(state: AppState) -> Router {
     let (routes, _) = api_routes().split_for_parts();
     routes
         .merge(SwaggerUi::new("/docs").url("/openapi.json", openapi()))
+        .route("/", axum::routing::get(dashboard::dashboard))
         .fallback(route_not_found)
         // Uploads stream to disk under their own limit (max_upload_mb); small bodies are capped where read.
         .layer(DefaultBodyLimit::disable())

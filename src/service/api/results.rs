@@ -8,7 +8,7 @@ use crate::problem::Code;
 use crate::service::store::Status;
 use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, header};
-use axum::response::Response;
+use axum::response::{IntoResponse, Response};
 use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 use utoipa_axum::router::OpenApiRouter;
@@ -36,28 +36,95 @@ pub(super) async fn succeeded(state: &AppState, id: &str) -> Result<InspectionId
 }
 
 /// The inspection report: verdict, reasons, per-thread heights and black crests, registration,
-/// timings (the result shape of docs/bundle.md plus measures).
+/// timings (the result shape of docs/bundle.md plus measures). With `Accept: text/html` or
+/// `?format=html`, the same as one self-contained page for a person (plots, images and, once CMM
+/// data is uploaded, crestscan against the CMM); it loads nothing from anywhere.
 #[utoipa::path(
     get,
     path = "/v1/inspections/{id}/report",
     operation_id = "get_report",
     tag = "results",
-    params(("id" = uuid::Uuid, Path, description = "Inspection id")),
+    params(("id" = uuid::Uuid, Path, description = "Inspection id"), ReportFormatQuery),
     responses(
-        (status = 200, description = "The report (JSON)", body = Object, headers(("ETag" = String))),
+        (status = 200, description = "The report: JSON (with an ETag), or an HTML page", content(
+            (Object = "application/json"),
+            (String = "text/html"),
+        ), headers(("ETag" = String))),
         (status = 304, description = "Not modified"),
         (status = 404, description = "No such inspection", body = Problem, content_type = "application/problem+json"),
+        (status = 406, description = "Unsupported format", body = Problem, content_type = "application/problem+json"),
         (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
     )
 )]
 pub async fn get_report(
     State(state): State<AppState>,
     Path(id): Path<String>,
+    query: Result<Query<ReportFormatQuery>, axum::extract::rejection::QueryRejection>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
+    let Query(q) = query?;
     let id = succeeded(&state, &id).await?;
+    let (format, _) = negotiate(&headers, q.format.as_deref(), &REPORT_FORMATS)?;
     let (json, etag) = state.store.report(&id.0).await?;
-    Ok(immutable(&headers, &etag, "application/json", json))
+    if format == "json" {
+        return Ok(immutable(&headers, &etag, "application/json", json));
+    }
+    let report: crate::pipeline::report::Report = serde_json::from_str(&json).map_err(ApiError::internal)?;
+    let cmm = super::cmm::comparison_if_uploaded(&state, &id, &report).await?;
+    // Images the retention deleted are left out; the rest of the page stands.
+    let image = |kind: &'static str| {
+        let state = state.clone();
+        let id = id.0.clone();
+        async move { state.store.artifact(&id, kind).await.ok().map(|a| a.body) }
+    };
+    let (mosaic, height_map) = (image("all-in-focus.png").await, image("height-map.png").await);
+    let inspection_id = id.0.clone();
+    // Reducing the images decodes megabytes of PNG: off the async threads.
+    let page = tokio::task::spawn_blocking(move || {
+        use crate::export::{html, png};
+        let preview =
+            |png_bytes: Option<Vec<u8>>| png_bytes.and_then(|b| png::preview_png(&b, html::IMAGE_WIDTH_PX).ok());
+        let (mosaic, height_map) = (preview(mosaic), preview(height_map));
+        html::report_page(
+            &report,
+            &html::PageInputs {
+                inspection_id: Some(&inspection_id),
+                mosaic_png: mosaic.as_deref(),
+                height_map_png: height_map.as_deref(),
+                cmm,
+                mesh: Some(html::MeshSource::Url(format!("/v1/inspections/{inspection_id}/mesh?format=glb"))),
+            },
+        )
+    })
+    .await
+    .map_err(ApiError::internal)?;
+    // The page changes when CMM data is uploaded: revalidated, not cached as immutable.
+    Ok((
+        [
+            (header::CONTENT_TYPE, HeaderValue::from_static("text/html; charset=utf-8")),
+            (header::CACHE_CONTROL, HeaderValue::from_static("no-cache")),
+            (header::VARY, HeaderValue::from_static("Accept")),
+            (
+                header::CONTENT_SECURITY_POLICY,
+                HeaderValue::from_str(&crate::export::html::content_security_policy()).map_err(ApiError::internal)?,
+            ),
+        ],
+        page,
+    )
+        .into_response())
+}
+
+#[derive(Clone, Debug, Default, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct ReportFormatQuery {
+    #[param(schema_with = report_formats)]
+    pub format: Option<String>,
+}
+
+const REPORT_FORMATS: [(&str, &str); 2] = [("json", "application/json"), ("html", "text/html")];
+
+fn report_formats() -> utoipa::openapi::schema::Object {
+    super::one_of(REPORT_FORMATS.map(|f| f.0), "Overrides `Accept`.")
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]

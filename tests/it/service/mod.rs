@@ -6,6 +6,7 @@ mod hostile;
 mod inspections;
 mod openapi;
 mod queue;
+mod report_page;
 mod results;
 
 use crate::common::{ci_bundle, walk};

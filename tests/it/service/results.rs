@@ -56,6 +56,21 @@ async fn round_trip_on_the_ci_preset() {
         app.client.get(app.url(&format!("{location}/report"))).header("if-none-match", &etag).send().await.unwrap();
     assert_eq!(again.status(), StatusCode::NOT_MODIFIED);
 
+    // The same report as a page for a person: every section, the images inline, nothing loaded
+    // from anywhere, and no CMM panel before CMM data exists.
+    let page = html_report(&app, &location, "").await;
+    for section in ["summary", "surface", "heights", "threads-table", "black-crests", "images", "provenance"] {
+        assert!(page.contains(&format!("id=\"{section}\"")), "section {section} missing");
+    }
+    assert!(!page.contains("id=\"cmm\""));
+    assert!(page.contains(&format!("verdict: {}", truth.verdict.as_str())));
+    assert!(page.contains(&id));
+    assert_eq!(page.matches("src=\"data:image/png;base64,").count(), 2);
+    assert_eq!(page.matches("<figure><figcaption>thread ").count(), report.threads.len());
+    assert_eq!(html_report(&app, &location, "?format=html").await, page);
+    problem(app.get(&format!("{location}/report?format=pdf")).await, StatusCode::NOT_ACCEPTABLE, "not_acceptable")
+        .await;
+
     // Per-thread table: JSON and CSV carry the same heights.
     let table: Value = app.get(&format!("{location}/threads")).await.json().await.unwrap();
     let threads = table["threads"].as_array().unwrap();
@@ -194,6 +209,12 @@ async fn round_trip_on_the_ci_preset() {
     assert_eq!(strict["agreement"]["within_tolerance"], false);
     let loose: Value = app.get(&format!("{location}/cmm-comparison?tolerance_mm=1")).await.json().await.unwrap();
     assert_eq!(loose["agreement"]["within_tolerance"], true);
+    // The page now shows crestscan against the CMM, with the comparison's own figures.
+    let page = html_report(&app, &location, "").await;
+    assert!(page.contains("id=\"cmm\""));
+    assert!(page.contains(&format!("{} points compared", devs.len())));
+    assert!(page.contains(&format!("bias {:+.1} µm", 1e3 * agreement["bias_mm"].as_f64().unwrap())));
+    assert!(page.contains("aria-label=\"Bland–Altman\""));
 
     // The list finds it by its client reference; metrics counted the polls by route.
     let page: Value = app.get("/v1/inspections?client_reference=MES-4711&status=succeeded").await.json().await.unwrap();
@@ -208,4 +229,26 @@ async fn round_trip_on_the_ci_preset() {
     assert!(metrics.contains(r#"route="/v1/inspections/{id}",status="200""#), "{metrics}");
     assert!(metrics.contains("crestscan_jobs_finished_total{outcome=\"succeeded\"} 1"), "{metrics}");
     app.stop().await;
+}
+
+/// The report as HTML (`Accept: text/html`, plus `query`): a page that loads nothing from anywhere
+/// (no external URL, no script or style file), under a policy that allows no other origin.
+async fn html_report(app: &TestApp, location: &str, query: &str) -> String {
+    let response = app
+        .client
+        .get(app.url(&format!("{location}/report{query}")))
+        .header("accept", "text/html")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(response.status(), StatusCode::OK);
+    assert_eq!(response.headers()["content-type"], "text/html; charset=utf-8");
+    let csp = response.headers()["content-security-policy"].to_str().unwrap().to_string();
+    assert!(csp.starts_with("default-src 'none'") && csp.contains("script-src 'sha256-"), "{csp}");
+    let page = response.text().await.unwrap();
+    assert!(page.starts_with("<!DOCTYPE html>"));
+    for external in ["src=\"http", "href=\"http", "<link", "<script src", "url(http", "@import"] {
+        assert!(!page.contains(external), "the page refers outside itself: {external}");
+    }
+    page
 }

@@ -1,0 +1,117 @@
+//! The pages in a real browser: Chromium (Debian's package; `CRESTSCAN_CHROMIUM` names another
+//! binary) headless against the real service. The dashboard lists a submitted inspection with a
+//! link to its report; the report renders every section and its 3D viewer draws the inspection's
+//! mesh (it reads its first frame back and marks itself `drawn`); on both the console stays empty
+//! and every request the page makes goes to the service (Chromium's own network log).
+
+use super::*;
+
+fn chromium() -> String {
+    std::env::var("CRESTSCAN_CHROMIUM").unwrap_or_else(|_| "chromium".to_string())
+}
+
+/// Loads `url` headless and returns the DOM after its scripts ran, the browser's log and its
+/// network log (JSON).
+async fn browse(url: &str) -> (String, String, Value) {
+    let dir = tempfile::tempdir().unwrap();
+    let net_log = dir.path().join("net.json");
+    let (profile, log_path, url) = (dir.path().join("profile"), net_log.clone(), url.to_string());
+    // The browser runs for seconds: off the runtime's threads, which serve its requests.
+    let output = tokio::task::spawn_blocking(move || {
+        std::process::Command::new(chromium())
+            .args([
+                "--headless",
+                // CI runs as root, where Chromium's sandbox cannot start.
+                "--no-sandbox",
+                // WebGL on the CPU: the machines have no GPU.
+                "--use-angle=swiftshader",
+                "--enable-unsafe-swiftshader",
+                "--no-first-run",
+                "--disable-background-networking",
+                "--disable-component-update",
+                "--enable-logging=stderr",
+                "--log-level=0",
+                "--window-size=1200,2000",
+                // Virtual time runs the page's timers and waits for its fetches, up to this long.
+                "--virtual-time-budget=60000",
+            ])
+            .arg(format!("--user-data-dir={}", profile.display()))
+            .arg(format!("--log-net-log={}", log_path.display()))
+            .args(["--dump-dom", &url])
+            .output()
+            .unwrap_or_else(|e| panic!("{} could not be started ({e}): install Debian's chromium", chromium()))
+    })
+    .await
+    .unwrap();
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let log: Value = serde_json::from_slice(&std::fs::read(&net_log).unwrap()).unwrap();
+    (String::from_utf8(output.stdout).unwrap(), String::from_utf8_lossy(&output.stderr).into_owned(), log)
+}
+
+/// The URLs of the requests the page made: those started in its site (the browser's own traffic,
+/// updates and the like, belongs to no page).
+fn page_requests(net_log: &Value, site: &str) -> Vec<String> {
+    let start_job = net_log["constants"]["logEventTypes"]["URL_REQUEST_START_JOB"].as_u64().unwrap();
+    net_log["events"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|e| e["type"].as_u64() == Some(start_job))
+        .filter(|e| {
+            let p = &e["params"];
+            p["initiator"].as_str().is_some_and(|i| i.contains(site))
+                || p["site_for_cookies"].as_str().is_some_and(|s| s.contains(site))
+        })
+        .filter_map(|e| e["params"]["url"].as_str().map(str::to_string))
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_dashboard_and_the_report_page_work_in_a_real_browser() {
+    let app = spawn_app().await;
+    let response = app.submit(ci_tar(), "").await;
+    assert_eq!(response.status(), StatusCode::ACCEPTED);
+    let id = response.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+    let done = app.wait(&id, Duration::from_secs(300)).await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+
+    let url = app.url(&format!("/v1/inspections/{id}/report?format=html"));
+    let (dom, log, net_log) = browse(&url).await;
+    for section in ["summary", "surface", "heights", "threads-table", "black-crests", "images", "viewer", "provenance"]
+    {
+        assert!(dom.contains(&format!("id=\"{section}\"")), "section {section} missing");
+    }
+    // The viewer fetched the mesh, drew it, and found its frame not blank.
+    let viewer = dom.split("class=\"viewer\"").nth(1).expect("the viewer").split('>').next().unwrap().to_string();
+    assert!(viewer.contains("data-state=\"drawn\""), "viewer: {viewer}");
+    let triangles: usize =
+        viewer.split("data-triangles=\"").nth(1).unwrap().split('"').next().unwrap().parse().unwrap();
+    assert!(triangles > 1000, "{triangles}");
+    // Nothing on the console: no script error, no refused load (a refusal by the page's policy
+    // is a console error too).
+    let console: Vec<&str> = log.lines().filter(|l| l.contains(":CONSOLE")).collect();
+    assert!(console.is_empty(), "console: {console:#?}");
+    // The page's requests: the page itself and its mesh, both from the service.
+    let origin = app.url("");
+    let origin = origin.trim_end_matches('/');
+    let host = origin.trim_start_matches("http://").split(':').next().unwrap().to_string();
+    let requests = page_requests(&net_log, &host);
+    assert!(requests.iter().any(|u| u.contains("/mesh?format=glb")), "{requests:?}");
+    for request in &requests {
+        assert!(request.starts_with(origin), "the page requested {request}, outside {origin}");
+    }
+
+    // The dashboard lists it, with a link to that page, through the public API.
+    let (dom, log, net_log) = browse(&app.url("/")).await;
+    let listed = dom.split(&format!("data-id=\"{id}\"")).nth(1).expect("the inspection listed");
+    let listed = listed.split("</tr>").next().unwrap();
+    assert!(listed.contains("succeeded") && listed.contains("BC 4-1/2"), "{listed}");
+    assert!(listed.contains(&format!("href=\"/v1/inspections/{id}/report?format=html\"")), "{listed}");
+    let console: Vec<&str> = log.lines().filter(|l| l.contains(":CONSOLE")).collect();
+    assert!(console.is_empty(), "console: {console:#?}");
+    let requests = page_requests(&net_log, &host);
+    assert!(requests.iter().any(|u| u.contains("/v1/inspections?")), "{requests:?}");
+    for request in &requests {
+        assert!(request.starts_with(origin), "the dashboard requested {request}, outside {origin}");
+    }
+}
