@@ -32,6 +32,9 @@ pub struct BenchArgs {
     options: Option<PathBuf>,
     #[command(flatten)]
     depth: DepthArgs,
+    /// No progress bar (it is drawn only on a terminal in any case).
+    #[arg(long)]
+    quiet: bool,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -57,7 +60,7 @@ impl From<SuiteArg> for Suite {
 
 impl BenchArgs {
     pub fn run(self) -> Result<()> {
-        let Self { suite, work, only, json, repeat, options: options_file, depth } = self;
+        let Self { suite, work, only, json, repeat, options: options_file, depth, quiet } = self;
         let suite = Suite::from(suite);
         let work = work.unwrap_or_else(|| PathBuf::from(suite.default_work_dir()));
         if let Some(o) = only.iter().find(|o| !suite.cases().iter().any(|c| c.matches(o))) {
@@ -70,17 +73,25 @@ impl BenchArgs {
         // At a random station the pipeline may find no depth or no thread: that case is an
         // inspection refused, counted and shown, not the end of the benchmark.
         let mut refused: Vec<(String, String)> = Vec::new();
-        for case in suite.cases().iter().filter(|c| only.is_empty() || only.iter().any(|o| c.matches(o))) {
-            eprintln!("bench: {} (seed {})", case.name(), case.seed);
+        let cases: Vec<_> =
+            suite.cases().into_iter().filter(|c| only.is_empty() || only.iter().any(|o| c.matches(o))).collect();
+        let bar = super::progress::bar(cases.len() as u64, "bench", quiet);
+        // The log lines are printed whether or not the bar is drawn (a redirected run keeps them).
+        let log = |line: String| bar.suspend(|| eprintln!("{line}"));
+        for case in &cases {
+            log(format!("bench: {} (seed {})", case.name(), case.seed));
+            bar.set_message(case.name());
             match eval::run_case(case, &work, repeat, &options) {
                 Ok(r) => results.push(r),
                 Err(eval::BenchError::Pipeline(e)) if stations => {
-                    eprintln!("bench: {}: the pipeline refused: {e}", case.name());
+                    log(format!("bench: {}: the pipeline refused: {e}", case.name()));
                     refused.push((case.name(), e.to_string()));
                 }
                 Err(e) => return Err(e.into()),
             }
+            bar.inc(1);
         }
+        bar.finish_and_clear();
         if stations {
             println!("{}", eval::table::station_table(&results, &refused));
         } else {

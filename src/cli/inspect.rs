@@ -36,6 +36,9 @@ pub struct InspectArgs {
     options: Option<PathBuf>,
     #[command(flatten)]
     depth: DepthArgs,
+    /// No progress bar (it is drawn only on a terminal in any case).
+    #[arg(long)]
+    quiet: bool,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -46,7 +49,7 @@ enum ArcRuleArg {
 
 impl InspectArgs {
     pub fn run(self) -> Result<()> {
-        let Self { bundle, out, json, arc_rule, height_window_half_bins, options: options_file, depth } = self;
+        let Self { bundle, out, json, arc_rule, height_window_half_bins, options: options_file, depth, quiet } = self;
         let b = open_bundle(&bundle, OpenOptions::default())?;
         let options = PipelineOptions {
             arc_rule: match arc_rule {
@@ -59,7 +62,22 @@ impl InspectArgs {
         };
         let options = super::options_over(options, options_file)?;
         let cancel = AtomicBool::new(false);
-        let inspection = pipeline::inspect(&b, &options, &|_, _| {}, &cancel)?.context("cancelled")?;
+        let bar = super::progress::stages("inspect", quiet);
+        // Stages in order, each a share of the bar by its usual part of the time.
+        let progress = |stage: pipeline::Stage, fraction: f64| {
+            let (start, share) = match stage {
+                pipeline::Stage::Depth => (0.0, 0.6),
+                pipeline::Stage::Register => (0.6, 0.1),
+                pipeline::Stage::Fuse => (0.7, 0.15),
+                pipeline::Stage::Mesh | pipeline::Stage::Profile => (0.85, 0.1),
+                pipeline::Stage::Rules => (0.95, 0.05),
+            };
+            bar.set_message(stage.as_str());
+            bar.set_position((1000.0 * (start + share * fraction.clamp(0.0, 1.0))) as u64);
+        };
+        let inspection = pipeline::inspect(&b, &options, &progress, &cancel);
+        bar.finish_and_clear();
+        let inspection = inspection?.context("cancelled")?;
         if let Some(dir) = &out {
             std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
             let report_path = dir.join("report.json");

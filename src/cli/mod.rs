@@ -4,6 +4,7 @@ mod bench;
 mod compare;
 mod connections;
 mod inspect;
+mod progress;
 mod serve;
 mod simulate;
 mod validate;

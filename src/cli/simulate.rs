@@ -37,6 +37,9 @@ pub struct SimulateArgs {
     /// Render this specification (JSON, as --print-spec writes it) instead of a preset's.
     #[arg(long, conflicts_with = "preset")]
     spec: Option<PathBuf>,
+    /// No progress bar (it is drawn only on a terminal in any case).
+    #[arg(long)]
+    quiet: bool,
 }
 
 impl SimulateArgs {
@@ -52,6 +55,7 @@ impl SimulateArgs {
             station_seed,
             print_spec,
             spec: spec_file,
+            quiet,
         } = self;
         if list {
             for p in sim::PRESETS {
@@ -103,7 +107,11 @@ impl SimulateArgs {
             println!("{}: {}", truth.verdict.as_str(), truth.reasons.join(" | "));
             return Ok(());
         }
-        let summary = sim::simulate(&spec, seed, &out).with_context(|| format!("simulating {name}"))?;
+        let bar = super::progress::bar((spec.views.len() * spec.offsets_mm.len()) as u64, "simulate", quiet);
+        bar.set_message("frames");
+        let summary = sim::simulate_with_progress(&spec, seed, &out, &|_done| bar.inc(1));
+        bar.finish_and_clear();
+        let summary = summary.with_context(|| format!("simulating {name}"))?;
         println!(
             "{name} seed {seed}: {} frames, {} files, {:.1} MB in {:.1} s → {}; truth verdict {}",
             summary.frames,

@@ -227,7 +227,19 @@ pub fn write_truth(spec: &SimSpec, seed: u64, out: &Path) -> Result<Truth, SimEr
 
 /// Renders the whole bundle into `out` (created if needed).
 pub fn simulate(spec: &SimSpec, seed: u64, out: &Path) -> Result<SimSummary, SimError> {
+    simulate_with_progress(spec, seed, out, &|_| {})
+}
+
+/// [`simulate`], calling `progress` with the number of frames written so far after each frame
+/// (from the rendering threads, in no particular order).
+pub fn simulate_with_progress(
+    spec: &SimSpec,
+    seed: u64,
+    out: &Path,
+    progress: &(dyn Fn(usize) + Sync),
+) -> Result<SimSummary, SimError> {
     let started = Instant::now();
+    let written = std::sync::atomic::AtomicUsize::new(0);
     std::fs::create_dir_all(out).map_err(io(out))?;
     let truth = write_truth(spec, seed, out)?;
     let manifest_path = out.join("manifest.json");
@@ -277,7 +289,9 @@ pub fn simulate(spec: &SimSpec, seed: u64, out: &Path) -> Result<SimSummary, Sim
             mix(seed, v as u64 + 1, k as u64 + 1),
         );
         let path = out.join(frame_path(&spec.views[v].id, k));
-        write_png(&path, spec.width, spec.height, &spec.sensor, &samples)
+        write_png(&path, spec.width, spec.height, &spec.sensor, &samples)?;
+        progress(written.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1);
+        Ok(())
     })?;
 
     let (files, bytes) = dir_size(out).map_err(io(out))?;

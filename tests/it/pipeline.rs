@@ -149,6 +149,8 @@ fn cli_inspect_writes_the_report_in_the_contract_shape() {
     assert!(status.status.success(), "{}", String::from_utf8_lossy(&status.stderr));
     let summary = String::from_utf8(status.stdout).unwrap();
     assert!(summary.contains("ACCEPT") || summary.contains("REJECT"), "{summary}");
+    // Piped, no progress bar: no terminal control sequence on stderr.
+    assert!(!String::from_utf8_lossy(&status.stderr).contains('\u{1b}'), "{}", String::from_utf8_lossy(&status.stderr));
     let report: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.path().join("report.json")).unwrap()).unwrap();
     for field in [

@@ -145,16 +145,40 @@
   form.addEventListener('submit', function (e) {
     e.preventDefault();
     if (!chosen) return;
-    var params = new URLSearchParams();
     var reference = document.getElementById('client-reference').value.trim();
     var rule = document.getElementById('arc-rule').value;
-    if (reference) params.set('client_reference', reference);
-    if (rule) params.set('arc_rule', rule);
+    var pipelineText = document.getElementById('pipeline-options').value.trim();
+    var pipeline = null;
+    if (pipelineText) {
+      try {
+        pipeline = JSON.parse(pipelineText);
+      } catch (err) {
+        status.className = 'error';
+        status.textContent = 'Pipeline options: not JSON (' + err.message + ')';
+        return;
+      }
+    }
     var xhr = new XMLHttpRequest();
-    xhr.open('POST', '/v1/inspections' + (params.toString() ? '?' + params.toString() : ''));
-    var name = chosen.name.toLowerCase();
-    xhr.setRequestHeader('Content-Type', name.endsWith('.zip') ? 'application/zip' :
-      name.endsWith('.tar') ? 'application/x-tar' : 'application/octet-stream');
+    var body;
+    if (pipeline) {
+      // Pipeline options travel only in a multipart `options` part, with the bundle beside it.
+      var options = { pipeline: pipeline };
+      if (reference) options.client_reference = reference;
+      if (rule) options.arc_rule = rule;
+      body = new FormData();
+      body.append('options', new Blob([JSON.stringify(options)], { type: 'application/json' }));
+      body.append('bundle', chosen, chosen.name);
+      xhr.open('POST', '/v1/inspections');
+    } else {
+      var params = new URLSearchParams();
+      if (reference) params.set('client_reference', reference);
+      if (rule) params.set('arc_rule', rule);
+      xhr.open('POST', '/v1/inspections' + (params.toString() ? '?' + params.toString() : ''));
+      var name = chosen.name.toLowerCase();
+      xhr.setRequestHeader('Content-Type', name.endsWith('.zip') ? 'application/zip' :
+        name.endsWith('.tar') ? 'application/x-tar' : 'application/octet-stream');
+      body = chosen;
+    }
     xhr.setRequestHeader('Accept', 'application/json');
     bar.hidden = false;
     bar.value = 0;
@@ -181,7 +205,7 @@
       load(false);
       follow(created.id);
     };
-    xhr.send(chosen);
+    xhr.send(body);
   });
 
   load(false);
