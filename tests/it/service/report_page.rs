@@ -1,5 +1,5 @@
 //! The pages in a real browser: Chromium (Debian's package; `CRESTSCAN_CHROMIUM` names another
-//! binary) headless against the real service. The dashboard lists a submitted inspection with a
+//! binary) headless against the real binary, `crestscan serve` on a loopback port. The dashboard lists a submitted inspection with a
 //! link to its report; the report renders every section and its 3D viewer draws the inspection's
 //! mesh (it reads its first frame back and marks itself `drawn`); on both the console stays empty
 //! and every request the page makes goes to the service (Chromium's own network log).
@@ -66,16 +66,61 @@ fn page_requests(net_log: &Value, site: &str) -> Vec<String> {
         .collect()
 }
 
+/// The real binary on a loopback port over a fresh data directory, killed when dropped.
+struct Served {
+    child: std::process::Child,
+    base: String,
+    _data: tempfile::TempDir,
+}
+
+impl Drop for Served {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn serve_binary() -> Served {
+    let data = tempfile::tempdir().unwrap();
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_crestscan"))
+        .args(["serve", "--bind", "127.0.0.1:0", "--log", "warn", "--data-dir"])
+        .arg(data.path())
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    std::io::BufRead::read_line(&mut std::io::BufReader::new(child.stdout.take().unwrap()), &mut line).unwrap();
+    let address = line.trim().rsplit("http://").next().unwrap().to_string();
+    Served { child, base: format!("http://{address}"), _data: data }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_dashboard_and_the_report_page_work_in_a_real_browser() {
-    let app = spawn_app().await;
-    let response = app.submit(ci_tar(), "").await;
+    let served = serve_binary();
+    let base = served.base.clone();
+    let client = reqwest::Client::new();
+    let response = client
+        .post(format!("{base}/v1/inspections"))
+        .header("content-type", "application/x-tar")
+        .body(ci_tar())
+        .send()
+        .await
+        .unwrap();
     assert_eq!(response.status(), StatusCode::ACCEPTED);
     let id = response.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
-    let done = app.wait(&id, Duration::from_secs(300)).await;
+    // The long poll answers at each change of status or stage: ask again until it has ended.
+    let deadline = std::time::Instant::now() + Duration::from_secs(300);
+    let done = loop {
+        let v: Value =
+            client.get(format!("{base}/v1/inspections/{id}?wait=30s")).send().await.unwrap().json().await.unwrap();
+        if v["status"] != "queued" && v["status"] != "running" {
+            break v;
+        }
+        assert!(std::time::Instant::now() < deadline, "not finished: {v}");
+    };
     assert_eq!(done["status"], "succeeded", "{done}");
 
-    let url = app.url(&format!("/v1/inspections/{id}/report?format=html"));
+    let url = format!("{base}/v1/inspections/{id}/report?format=html");
     let (dom, log, net_log) = browse(&url).await;
     for section in ["summary", "surface", "heights", "threads-table", "black-crests", "images", "viewer", "provenance"]
     {
@@ -92,8 +137,7 @@ async fn the_dashboard_and_the_report_page_work_in_a_real_browser() {
     let console: Vec<&str> = log.lines().filter(|l| l.contains(":CONSOLE")).collect();
     assert!(console.is_empty(), "console: {console:#?}");
     // The page's requests: the page itself and its mesh, both from the service.
-    let origin = app.url("");
-    let origin = origin.trim_end_matches('/');
+    let origin = base.as_str();
     let host = origin.trim_start_matches("http://").split(':').next().unwrap().to_string();
     let requests = page_requests(&net_log, &host);
     assert!(requests.iter().any(|u| u.contains("/mesh?format=glb")), "{requests:?}");
@@ -102,7 +146,7 @@ async fn the_dashboard_and_the_report_page_work_in_a_real_browser() {
     }
 
     // The dashboard lists it, with a link to that page, through the public API.
-    let (dom, log, net_log) = browse(&app.url("/")).await;
+    let (dom, log, net_log) = browse(&format!("{base}/")).await;
     let listed = dom.split(&format!("data-id=\"{id}\"")).nth(1).expect("the inspection listed");
     let listed = listed.split("</tr>").next().unwrap();
     assert!(listed.contains("succeeded") && listed.contains("BC 4-1/2"), "{listed}");
