@@ -148,6 +148,23 @@ pub async fn spawn_app() -> TestApp {
     spawn_app_with(|_| {}).await
 }
 
+/// The real binary, `crestscan serve` on a loopback port over `data` with `extra` arguments: the
+/// child and its base URL (read off the line it prints when listening).
+pub fn start_binary(data: &Path, extra: &[&str]) -> (std::process::Child, String) {
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_crestscan"))
+        .args(["serve", "--bind", "127.0.0.1:0", "--log", "warn"])
+        .args(extra)
+        .arg("--data-dir")
+        .arg(data)
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    std::io::BufRead::read_line(&mut std::io::BufReader::new(child.stdout.take().unwrap()), &mut line).unwrap();
+    let address = line.trim().rsplit("http://").next().unwrap().to_string();
+    (child, format!("http://{address}"))
+}
+
 /// The ci bundle (without truth/) as a tar archive.
 pub fn ci_tar() -> Vec<u8> {
     bundle_tar(ci_bundle(), &|_| true)

@@ -42,29 +42,7 @@ async fn finished_uploads_are_purged_and_shared_ones_kept() {
 async fn kill_9_loses_no_accepted_inspection() {
     let data = tempfile::tempdir().unwrap();
     let start = |data: &Path| {
-        let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_crestscan"))
-            .args([
-                "serve",
-                "--bind",
-                "127.0.0.1:0",
-                "--lease-seconds",
-                "1",
-                "--heartbeat-seconds",
-                "0.2",
-                "--poll-interval-ms",
-                "50",
-                "--log",
-                "warn",
-            ])
-            .arg("--data-dir")
-            .arg(data)
-            .stdout(std::process::Stdio::piped())
-            .spawn()
-            .unwrap();
-        let mut line = String::new();
-        std::io::BufRead::read_line(&mut std::io::BufReader::new(child.stdout.take().unwrap()), &mut line).unwrap();
-        let address = line.trim().rsplit("http://").next().unwrap().to_string();
-        (child, format!("http://{address}"))
+        start_binary(data, &["--lease-seconds", "1", "--heartbeat-seconds", "0.2", "--poll-interval-ms", "50"])
     };
     let client = reqwest::Client::new();
     let (mut child, base) = start(data.path());

@@ -82,16 +82,8 @@ impl Drop for Served {
 
 fn serve_binary() -> Served {
     let data = tempfile::tempdir().unwrap();
-    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_crestscan"))
-        .args(["serve", "--bind", "127.0.0.1:0", "--log", "warn", "--data-dir"])
-        .arg(data.path())
-        .stdout(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    std::io::BufRead::read_line(&mut std::io::BufReader::new(child.stdout.take().unwrap()), &mut line).unwrap();
-    let address = line.trim().rsplit("http://").next().unwrap().to_string();
-    Served { child, base: format!("http://{address}"), _data: data }
+    let (child, base) = start_binary(data.path(), &[]);
+    Served { child, base, _data: data }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
