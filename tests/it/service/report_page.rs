@@ -1,5 +1,6 @@
 //! The pages in a real browser: Chromium (Debian's package; `CRESTSCAN_CHROMIUM` names another
-//! binary) headless against the real binary, `crestscan serve` on a loopback port. The dashboard lists a submitted inspection with a
+//! binary) headless against the real binary, `crestscan serve` on a loopback port. The API
+//! browser at /docs is loaded too. The dashboard lists a submitted inspection with a
 //! link to its report; the report renders every section and its 3D viewer draws the inspection's
 //! mesh (it reads its first frame back and marks itself `drawn`); on both the console stays empty
 //! and every request the page makes goes to the service (Chromium's own network log).
@@ -149,5 +150,18 @@ async fn the_dashboard_and_the_report_page_work_in_a_real_browser() {
     assert!(requests.iter().any(|u| u.contains("/v1/inspections?")), "{requests:?}");
     for request in &requests {
         assert!(request.starts_with(origin), "the dashboard requested {request}, outside {origin}");
+    }
+
+    // The API browser (Swagger UI, compiled in) runs under its own policy: it lists the
+    // operations from the binary's OpenAPI document, with nothing refused and nothing fetched
+    // from elsewhere.
+    let (dom, log, net_log) = browse(&format!("{base}/docs/")).await;
+    assert!(dom.contains("opblock") && dom.contains("get_report"), "the operations are not listed");
+    let console: Vec<&str> = log.lines().filter(|l| l.contains(":CONSOLE")).collect();
+    assert!(console.is_empty(), "console: {console:#?}");
+    let requests = page_requests(&net_log, &host);
+    assert!(requests.iter().any(|u| u.ends_with("/openapi.json")), "{requests:?}");
+    for request in &requests {
+        assert!(request.starts_with(origin), "the API browser requested {request}, outside {origin}");
     }
 }
