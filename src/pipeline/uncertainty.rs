@@ -12,7 +12,10 @@
 //!   the sub-frame phase, texture and gloss), as a multiple of the object pixel, chosen on the
 //!   tuning stations (docs/notebook/accuracy.md, "Uncertainty");
 //! - **registration**: the pairs' radial residuals after the ring's solve, which a fused cell
-//!   mixes where views overlap.
+//!   mixes where views overlap;
+//! - where the measurement failed its checks or its station lies outside the measured envelope
+//!   ([`measurement_failed`]), so that the method's term is unknown: the heights' dispersion along
+//!   the helix and their median's distance from nominal, both read off the measurement itself.
 //!
 //! The decision asks whether the verdict survives every measured value moved by its
 //! uncertainty: the black-crest rules are applied again at both bounds. At the bound toward
@@ -337,7 +340,7 @@ pub fn decide(
             "no decision: the measurement failed its quality checks or its station's optics lie outside the \
              envelope its uncertainty was measured in (the quality reasons say which); its heights and black \
              crests may be wrong by more than their local scatter shows, and each height's uncertainty \
-             includes the heights' dispersion along the helix"
+             includes the heights' dispersion along the helix and their median's distance from nominal"
                 .to_string(),
         );
     }
