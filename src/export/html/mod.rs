@@ -29,6 +29,9 @@ pub struct PageInputs<'a> {
     pub height_map_png: Option<&'a [u8]>,
     pub cmm: Option<CmmPanel>,
     pub mesh: Option<MeshSource<'a>>,
+    /// Why the images and the mesh are missing, where they are (the service's retention deleted
+    /// them): said on the page instead of the sections.
+    pub artifacts_missing: Option<String>,
 }
 
 /// Where the 3D viewer finds the mesh (GLB, with vertex colours).
@@ -320,6 +323,14 @@ fn cmm_section(page: &mut String, cmm: &CmmPanel) {
 }
 
 fn images(page: &mut String, inputs: &PageInputs) {
+    if let Some(why) = &inputs.artifacts_missing {
+        let _ = writeln!(
+            page,
+            "<section id=\"images\"><h2>Images and the surface in 3D</h2><p class=\"note\">{}</p></section>",
+            escape(why)
+        );
+        return;
+    }
     if inputs.mosaic_png.is_none() && inputs.height_map_png.is_none() {
         return;
     }

@@ -78,6 +78,16 @@ pub async fn get_report(
         async move { state.store.artifact(&id, kind).await.ok().map(|a| a.body) }
     };
     let (mosaic, height_map) = (image("all-in-focus.png").await, image("height-map.png").await);
+    let artifacts_missing = match (&mosaic, &height_map) {
+        (None, None) => state.store.artifacts_purged_at(&id.0).await?.map(|at| {
+            format!(
+                "The images and the mesh of this inspection were deleted on {} (artifact_retention_days); the \
+                 report's figures above are kept.",
+                super::rfc3339(at)
+            )
+        }),
+        _ => None,
+    };
     let inspection_id = id.0.clone();
     // Reducing the images decodes megabytes of PNG: off the async threads.
     let page = tokio::task::spawn_blocking(move || {
@@ -92,7 +102,10 @@ pub async fn get_report(
                 mosaic_png: mosaic.as_deref(),
                 height_map_png: height_map.as_deref(),
                 cmm,
-                mesh: Some(html::MeshSource::Url(format!("/v1/inspections/{inspection_id}/mesh?format=glb"))),
+                mesh: artifacts_missing
+                    .is_none()
+                    .then(|| html::MeshSource::Url(format!("/v1/inspections/{inspection_id}/mesh?format=glb"))),
+                artifacts_missing,
             },
         )
     })

@@ -524,6 +524,12 @@ async fn the_result_retention_frees_meshes_and_images_and_says_so() {
         .await;
     assert_eq!(app.get(&format!("/v1/inspections/{id}/report")).await.status(), StatusCode::OK);
     assert_eq!(app.get(&format!("/v1/inspections/{id}/threads")).await.status(), StatusCode::OK);
+    // The report's page still stands, and says what is gone instead of showing a broken viewer.
+    let page = app.client.get(app.url(&format!("/v1/inspections/{id}/report?format=html"))).send().await.unwrap();
+    assert_eq!(page.status(), StatusCode::OK);
+    let page = page.text().await.unwrap();
+    assert!(page.contains("were deleted on") && page.contains("artifact_retention_days"));
+    assert!(!page.contains("data:image/png") && !page.contains("id=\"viewer\""));
     // A second purge has nothing to do.
     assert_eq!(store.purge_artifacts(now_ms).await.unwrap(), 0);
     eprintln!("retention: {artifact_bytes} B of meshes and images, {freed_bytes} B of pages freed");
