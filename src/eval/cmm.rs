@@ -45,6 +45,37 @@ fn err(field: impl Into<String>, message: impl Into<String>) -> CmmError {
 }
 
 pub const MAX_POINTS: usize = 100_000;
+
+/// The unit a CSV export gives its heights in.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Unit {
+    Mm,
+    In,
+}
+
+impl Unit {
+    fn parse(value: &str, field: &str) -> Result<Self, CmmError> {
+        match value.trim().to_ascii_lowercase().as_str() {
+            "mm" | "millimetre" | "millimeter" | "millimetres" | "millimeters" => Ok(Self::Mm),
+            "in" | "inch" | "inches" | "\"" => Ok(Self::In),
+            other => Err(err(field, format!("{other:?} is not a unit crestscan reads (mm or in)"))),
+        }
+    }
+
+    fn name(self) -> &'static str {
+        match self {
+            Self::Mm => "mm",
+            Self::In => "in",
+        }
+    }
+
+    fn to_mm(self, value: f64) -> f64 {
+        match self {
+            Self::Mm => value,
+            Self::In => value * 25.4,
+        }
+    }
+}
 /// The highest thread number a point may name (a connection has a few dozen).
 pub const MAX_THREAD: u32 = 1000;
 
@@ -59,20 +90,75 @@ impl CmmMeasurements {
         Ok(parsed)
     }
 
-    /// CSV with the header `thread,angle_deg,height_mm`; an empty angle means the thread's mean.
+    /// CSV as CMM software exports it. The header names the columns `thread`, `angle_deg` and the
+    /// height, `height_mm` or `height_in` (inches, converted); an optional `unit` column (`mm` or
+    /// `in`) sets each row's unit instead. An empty angle means the thread's mean. The separator is
+    /// `,`, or `;` or a tab where the header uses one (European exports), and then a decimal comma
+    /// (`1,5748`) reads as a point. Lines before the header starting with `#` may carry
+    /// `instrument: …`, `measured_at: …` (RFC 3339) and `units: mm|in` (the default for a
+    /// `height` column without its unit in the name).
     pub fn from_csv(bytes: &[u8]) -> Result<Self, CmmError> {
-        let mut reader = csv::ReaderBuilder::new().trim(csv::Trim::All).from_reader(bytes);
-        let headers = reader.headers().map_err(|e| err("header", e.to_string()))?.clone();
-        let column = |name: &str| {
-            headers
-                .iter()
-                .position(|h| h == name)
-                .ok_or_else(|| err("header", format!("missing column {name:?} (expected thread,angle_deg,height_mm)")))
+        let text = std::str::from_utf8(bytes).map_err(|e| err("body", format!("not UTF-8 text: {e}")))?;
+        let text = text.strip_prefix('\u{feff}').unwrap_or(text);
+        // Metadata lines before the header.
+        let (mut instrument, mut measured_at, mut file_unit) = (None, None, None);
+        let mut body_start = 0;
+        let mut header_line = 1;
+        for line in text.split_inclusive('\n') {
+            let trimmed = line.trim();
+            if !(trimmed.starts_with('#') || trimmed.is_empty()) {
+                break;
+            }
+            body_start += line.len();
+            header_line += 1;
+            let Some((key, value)) = trimmed.trim_start_matches('#').split_once(':') else { continue };
+            let value = value.trim().to_string();
+            match key.trim().to_ascii_lowercase().as_str() {
+                "instrument" => instrument = Some(value),
+                "measured_at" => measured_at = Some(value),
+                "units" | "unit" => file_unit = Some(Unit::parse(&value, "units")?),
+                _ => {}
+            }
+        }
+        let body = &text[body_start..];
+        let first = body.lines().next().unwrap_or("");
+        let delimiter = if first.contains(';') {
+            b';'
+        } else if first.contains('\t') {
+            b'\t'
+        } else {
+            b','
         };
-        let (thread_col, angle_col, height_col) = (column("thread")?, column("angle_deg")?, column("height_mm")?);
+        let decimal_comma = delimiter != b',';
+        let mut reader =
+            csv::ReaderBuilder::new().delimiter(delimiter).trim(csv::Trim::All).from_reader(body.as_bytes());
+        let headers = reader.headers().map_err(|e| err("header", e.to_string()))?.clone();
+        let find = |name: &str| headers.iter().position(|h| h.eq_ignore_ascii_case(name));
+        let expected = "expected thread, angle_deg and height_mm (or height_in)";
+        let column =
+            |name: &str| find(name).ok_or_else(|| err("header", format!("missing column {name:?} ({expected})")));
+        let (thread_col, angle_col) = (column("thread")?, column("angle_deg")?);
+        let (height_col, column_unit) = match (find("height_mm"), find("height_in"), find("height")) {
+            (Some(c), None, _) => (c, Some(Unit::Mm)),
+            (None, Some(c), _) => (c, Some(Unit::In)),
+            (None, None, Some(c)) => (c, None),
+            (Some(_), Some(_), _) => return Err(err("header", "both height_mm and height_in: which is the height?")),
+            (None, None, None) => return Err(err("header", format!("missing the height column ({expected})"))),
+        };
+        let unit_col = find("unit").or_else(|| find("units"));
+        if column_unit.is_none() && unit_col.is_none() && file_unit.is_none() {
+            return Err(err(
+                "header",
+                "a `height` column needs its unit: name it height_mm or height_in, add a unit column, or a `# units: mm` line",
+            ));
+        }
+        let number = |s: &str| -> Option<f64> {
+            let s = if decimal_comma && !s.contains('.') { s.replacen(',', ".", 1) } else { s.to_string() };
+            s.parse::<f64>().ok()
+        };
         let mut points = Vec::new();
         for (i, record) in reader.records().enumerate() {
-            let line = i + 2;
+            let line = header_line + 1 + i;
             let record = record.map_err(|e| err(format!("line {line}"), e.to_string()))?;
             let get = |c: usize| record.get(c).unwrap_or("");
             let thread = get(thread_col).parse::<u32>().map_err(|_| {
@@ -81,17 +167,32 @@ impl CmmMeasurements {
             let angle_deg = match get(angle_col) {
                 "" => None,
                 a => Some(
-                    a.parse::<f64>()
-                        .map_err(|_| err(format!("line {line}, angle_deg"), format!("{a:?} is not a number")))?,
+                    number(a)
+                        .ok_or_else(|| err(format!("line {line}, angle_deg"), format!("{a:?} is not a number")))?,
                 ),
             };
             let h = get(height_col);
-            let height_mm = h
-                .parse::<f64>()
-                .map_err(|_| err(format!("line {line}, height_mm"), format!("{h:?} is not a number")))?;
-            points.push(CmmPoint { thread, angle_deg, height_mm });
+            let height = number(h).ok_or_else(|| {
+                err(format!("line {line}, {}", &headers[height_col]), format!("{h:?} is not a number"))
+            })?;
+            let row_unit = match unit_col.map(get).filter(|u| !u.is_empty()) {
+                Some(u) => Some(Unit::parse(u, &format!("line {line}, unit"))?),
+                None => None,
+            };
+            let unit = match (row_unit, column_unit) {
+                (Some(r), Some(c)) if r != c => {
+                    return Err(err(
+                        format!("line {line}, unit"),
+                        format!("{} in a {} column", r.name(), headers.get(height_col).unwrap_or("height")),
+                    ));
+                }
+                (Some(r), _) => r,
+                (None, Some(c)) => c,
+                (None, None) => file_unit.expect("checked above: some unit is declared"),
+            };
+            points.push(CmmPoint { thread, angle_deg, height_mm: unit.to_mm(height) });
         }
-        let parsed = Self { instrument: None, measured_at: None, points };
+        let parsed = Self { instrument, measured_at, points };
         parsed.validate()?;
         Ok(parsed)
     }
@@ -254,5 +355,58 @@ mod tests {
         assert_eq!(e.field, "points[0].thread");
         let e = CmmMeasurements::from_csv(b"thread,height\n1,2\n").unwrap_err();
         assert!(e.message.contains("angle_deg"), "{e}");
+    }
+
+    fn heights(m: &CmmMeasurements) -> Vec<f64> {
+        m.points.iter().map(|p| p.height_mm).collect()
+    }
+
+    #[test]
+    fn the_contracts_csv_reads_as_before() {
+        let m = CmmMeasurements::from_csv(b"thread,angle_deg,height_mm\n3,12.5,1.5748\n4,,1.576\n").unwrap();
+        assert_eq!(m.points[0], CmmPoint { thread: 3, angle_deg: Some(12.5), height_mm: 1.5748 });
+        assert_eq!(m.points[1].angle_deg, None);
+        assert_eq!((m.instrument, m.measured_at), (None, None));
+    }
+
+    #[test]
+    fn a_european_export_with_semicolons_decimal_commas_and_its_metadata_reads() {
+        let csv = "\u{feff}# instrument: Zeiss Contura\n# measured_at: 2026-11-30T10:00:00Z\n\
+                   thread;angle_deg;height_mm\n3;12,5;1,5748\n4;;1,5760\n";
+        let m = CmmMeasurements::from_csv(csv.as_bytes()).unwrap();
+        assert_eq!(m.points[0], CmmPoint { thread: 3, angle_deg: Some(12.5), height_mm: 1.5748 });
+        assert_eq!(heights(&m), [1.5748, 1.576]);
+        assert_eq!(m.instrument.as_deref(), Some("Zeiss Contura"));
+        assert_eq!(m.measured_at.as_deref(), Some("2026-11-30T10:00:00Z"));
+        // Tabs too.
+        let m = CmmMeasurements::from_csv(b"thread\tangle_deg\theight_mm\n3\t1,0\t1,5\n").unwrap();
+        assert_eq!(heights(&m), [1.5]);
+    }
+
+    #[test]
+    fn inches_are_converted_not_read_as_millimetres() {
+        let close = |a: f64, b: f64| (a - b).abs() < 1e-12;
+        let m = CmmMeasurements::from_csv(b"thread,angle_deg,height_in\n3,12.5,0.062\n").unwrap();
+        assert!(close(m.points[0].height_mm, 0.062 * 25.4));
+        let m = CmmMeasurements::from_csv(b"thread,angle_deg,height,unit\n3,1,0.062,in\n3,2,1.5748,mm\n").unwrap();
+        assert!(close(m.points[0].height_mm, 1.5748) && close(m.points[1].height_mm, 1.5748));
+        let m = CmmMeasurements::from_csv(b"# units: inch\nthread,angle_deg,height\n3,1,0.062\n").unwrap();
+        assert!(close(m.points[0].height_mm, 1.5748));
+    }
+
+    #[test]
+    fn a_unit_missing_unknown_or_contradicted_is_named() {
+        let e = CmmMeasurements::from_csv(b"thread,angle_deg,height\n3,1,1.5\n").unwrap_err();
+        assert_eq!(e.field, "header");
+        assert!(e.message.contains("unit"), "{e}");
+        let e = CmmMeasurements::from_csv(b"# units: ft\nthread,angle_deg,height\n3,1,1.5\n").unwrap_err();
+        assert_eq!(e.field, "units");
+        let e = CmmMeasurements::from_csv(b"thread,angle_deg,height_mm,unit\n3,1,1.5,mm\n3,2,0.06,in\n").unwrap_err();
+        assert_eq!(e.field, "line 3, unit");
+        let e = CmmMeasurements::from_csv(b"thread,angle_deg,height_mm,height_in\n3,1,1.5,0.06\n").unwrap_err();
+        assert_eq!(e.field, "header");
+        // A comma decimal in a comma-separated file is a column too many, not a number.
+        let e = CmmMeasurements::from_csv(b"thread,angle_deg,height_mm\n3,1,1,5\n").unwrap_err();
+        assert_eq!(e.field, "line 2");
     }
 }

@@ -34,7 +34,10 @@ pub struct StoredCmm {
 
 /// Upload (or replace) the CMM measurements of an inspection: JSON
 /// (`{"instrument", "measured_at", "points": [{"thread", "angle_deg", "height_mm"}]}`) or CSV
-/// (`thread,angle_deg,height_mm`; an empty angle is the thread's mean).
+/// (`thread,angle_deg,height_mm`; an empty angle is the thread's mean). CSV as CMM software
+/// exports it is read too: `;` or tab separators with decimal commas, heights in inches
+/// (`height_in`, or a `unit` column of `mm`/`in`, converted), and `# instrument: …`,
+/// `# measured_at: …` and `# units: mm|in` lines before the header.
 #[utoipa::path(
     put,
     path = "/v1/inspections/{id}/cmm",

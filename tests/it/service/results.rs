@@ -215,6 +215,23 @@ async fn round_trip_on_the_ci_preset() {
     assert!(page.contains(&format!("{} points compared", devs.len())));
     assert!(page.contains(&format!("bias {:+.1} µm", 1e3 * agreement["bias_mm"].as_f64().unwrap())));
     assert!(page.contains("aria-label=\"Bland–Altman\""));
+    // A European export in inches, with its instrument: read as the plant wrote it, stored in mm.
+    let european =
+        "# instrument: Zeiss Contura\n# measured_at: 2026-11-30T10:00:00Z\nthread;angle_deg;height_in\n3;12,5;0,062\n";
+    let put = app
+        .client
+        .put(app.url(&format!("{location}/cmm")))
+        .header("content-type", "text/csv")
+        .body(european)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(put.status(), StatusCode::OK);
+    let stored: Value = app.get(&format!("{location}/cmm")).await.json().await.unwrap();
+    assert_eq!(stored["instrument"], "Zeiss Contura");
+    assert_eq!(stored["measured_at"], "2026-11-30T10:00:00Z");
+    assert!((stored["points"][0]["height_mm"].as_f64().unwrap() - 0.062 * 25.4).abs() < 1e-9, "{stored}");
+    assert_eq!(stored["points"][0]["angle_deg"], 12.5);
 
     // The list finds it by its client reference; metrics counted the polls by route.
     let page: Value = app.get("/v1/inspections?client_reference=MES-4711&status=succeeded").await.json().await.unwrap();
