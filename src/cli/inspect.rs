@@ -103,6 +103,7 @@ impl InspectArgs {
                     mosaic_png: Some(&mosaic_preview),
                     height_map_png: Some(&height_map_preview),
                     mesh: Some(html::MeshSource::Inline(&light_glb)),
+                    full_images: Some(["all-in-focus.png".into(), "height-map.png".into()]),
                     ..Default::default()
                 },
             );

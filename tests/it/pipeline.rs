@@ -186,6 +186,7 @@ fn cli_inspect_writes_the_report_in_the_contract_shape() {
     assert!(page.starts_with("<!DOCTYPE html>") && page.contains("id=\"surface\""));
     assert_eq!(page.matches("<figure><figcaption>thread ").count(), report["threads"].as_array().unwrap().len());
     assert_eq!(page.matches("src=\"data:image/png;base64,").count(), 2);
+    assert!(page.contains("href=\"all-in-focus.png\"") && page.contains("href=\"height-map.png\""));
     assert!(!page.contains("src=\"http") && !page.contains("href=\"http"));
 }
 

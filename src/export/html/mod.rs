@@ -32,6 +32,9 @@ pub struct PageInputs<'a> {
     /// Why the images and the mesh are missing, where they are (the service's retention deleted
     /// them): said on the page instead of the sections.
     pub artifacts_missing: Option<String>,
+    /// Where the full-resolution images are (mosaic, height map): the service's image endpoints,
+    /// or the files written beside the page.
+    pub full_images: Option<[String; 2]>,
 }
 
 /// Where the 3D viewer finds the mesh (GLB, with vertex colours).
@@ -334,12 +337,21 @@ fn images(page: &mut String, inputs: &PageInputs) {
     if inputs.mosaic_png.is_none() && inputs.height_map_png.is_none() {
         return;
     }
-    page.push_str("<section id=\"images\"><h2>Images</h2><p class=\"note\">The unrolled surface, angle across and z down. Click an image for full size.</p>\n");
-    for (caption, png) in [("All-in-focus mosaic", inputs.mosaic_png), ("Height map", inputs.height_map_png)] {
+    let _ = writeln!(
+        page,
+        "<section id=\"images\"><h2>Images</h2><p class=\"note\">The unrolled surface, angle across and z down, \
+         reduced to {IMAGE_WIDTH_PX} pixels wide: click an image to see it at that size.</p>"
+    );
+    let links = inputs.full_images.as_ref();
+    for (i, (caption, png)) in
+        [("All-in-focus mosaic", inputs.mosaic_png), ("Height map", inputs.height_map_png)].into_iter().enumerate()
+    {
         if let Some(png) = png {
+            let full =
+                links.map(|l| format!(" (<a href=\"{}\">full resolution</a>)", escape(&l[i]))).unwrap_or_default();
             let _ = writeln!(
                 page,
-                "<figure class=\"zoom\"><figcaption>{caption}</figcaption><img alt=\"{caption}\" src=\"{}\"></figure>",
+                "<figure class=\"zoom\"><figcaption>{caption}{full}</figcaption><img alt=\"{caption}\" src=\"{}\"></figure>",
                 data_uri_png(png)
             );
         }

@@ -105,6 +105,9 @@ pub async fn get_report(
                 mesh: artifacts_missing
                     .is_none()
                     .then(|| html::MeshSource::Url(format!("/v1/inspections/{inspection_id}/mesh?format=glb"))),
+                full_images: artifacts_missing.is_none().then(|| {
+                    ["all-in-focus", "height-map"].map(|kind| format!("/v1/inspections/{inspection_id}/images/{kind}"))
+                }),
                 artifacts_missing,
             },
         )

@@ -66,6 +66,7 @@ async fn round_trip_on_the_ci_preset() {
     assert!(page.contains(&format!("verdict: {}", truth.verdict.as_str())));
     assert!(page.contains(&id));
     assert_eq!(page.matches("src=\"data:image/png;base64,").count(), 2);
+    assert!(page.contains(&format!("href=\"/v1/inspections/{id}/images/all-in-focus\"")));
     assert_eq!(page.matches("<figure><figcaption>thread ").count(), report.threads.len());
     assert_eq!(html_report(&app, &location, "?format=html").await, page);
     problem(app.get(&format!("{location}/report?format=pdf")).await, StatusCode::NOT_ACCEPTABLE, "not_acceptable")
