@@ -86,20 +86,25 @@ const SCRIPT: &str = "document.querySelectorAll('figure.zoom img').forEach(funct
 /// The 3D viewer with three.js, one classic script (assets/viewer/build.sh).
 const VIEWER: &str = include_str!("viewer.min.js");
 
-fn script_hash(script: &str) -> String {
+/// An inline script's CSP source expression: `'sha256-…'` of its exact text.
+pub fn script_hash(script: &str) -> String {
     use sha2::Digest;
     format!("'sha256-{}'", base64::engine::general_purpose::STANDARD.encode(sha2::Sha256::digest(script.as_bytes())))
 }
 
 /// The Content-Security-Policy the page needs: its own inline styles, images as data URIs, its two
-/// scripts by hash, and fetching from its own origin (the service's mesh); nothing else.
-pub fn content_security_policy() -> String {
-    format!(
-        "default-src 'none'; style-src 'unsafe-inline'; img-src data:; script-src {} {}; connect-src 'self'; \
-         frame-ancestors 'none'; base-uri 'none'; form-action 'none'",
-        script_hash(SCRIPT),
-        script_hash(VIEWER)
-    )
+/// scripts by hash, and fetching from its own origin (the service's mesh); nothing else. Hashed
+/// once (the viewer is half a megabyte), not per page served.
+pub fn content_security_policy() -> &'static str {
+    static POLICY: std::sync::OnceLock<String> = std::sync::OnceLock::new();
+    POLICY.get_or_init(|| {
+        format!(
+            "default-src 'none'; style-src 'unsafe-inline'; img-src data:; script-src {} {}; connect-src 'self'; \
+             frame-ancestors 'none'; base-uri 'none'; form-action 'none'",
+            script_hash(SCRIPT),
+            script_hash(VIEWER)
+        )
+    })
 }
 
 fn data_uri_png(bytes: &[u8]) -> String {

@@ -14,12 +14,10 @@ const SCRIPT: &str = include_str!("dashboard/dashboard.js");
 fn page() -> &'static (String, HeaderValue) {
     static PAGE_AND_POLICY: OnceLock<(String, HeaderValue)> = OnceLock::new();
     PAGE_AND_POLICY.get_or_init(|| {
-        use base64::Engine;
-        use sha2::Digest;
-        let hash = base64::engine::general_purpose::STANDARD.encode(sha2::Sha256::digest(SCRIPT.as_bytes()));
         let policy = format!(
-            "default-src 'none'; style-src 'unsafe-inline'; script-src 'sha256-{hash}'; connect-src 'self'; \
-             frame-ancestors 'none'; base-uri 'none'; form-action 'none'"
+            "default-src 'none'; style-src 'unsafe-inline'; script-src {}; connect-src 'self'; \
+             frame-ancestors 'none'; base-uri 'none'; form-action 'none'",
+            crate::export::html::script_hash(SCRIPT)
         );
         (PAGE.replace("/*SCRIPT*/", SCRIPT), HeaderValue::from_str(&policy).expect("ASCII"))
     })

@@ -122,7 +122,7 @@ pub async fn get_report(
             (header::VARY, HeaderValue::from_static("Accept")),
             (
                 header::CONTENT_SECURITY_POLICY,
-                HeaderValue::from_str(&crate::export::html::content_security_policy()).map_err(ApiError::internal)?,
+                HeaderValue::from_str(crate::export::html::content_security_policy()).map_err(ApiError::internal)?,
             ),
         ],
         page,

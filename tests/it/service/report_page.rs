@@ -87,6 +87,20 @@ fn serve_binary() -> Served {
     Served { child, base, _data: data }
 }
 
+/// Nothing on the page's console (no script error, no refused load: a refusal by the page's
+/// policy is a console error too), and every request the page made went to `origin`; returns
+/// those requests (the caller checks the one it expects is among them, so that they were seen).
+fn quiet_and_local(log: &str, net_log: &Value, origin: &str) -> Vec<String> {
+    let console: Vec<&str> = log.lines().filter(|l| l.contains(":CONSOLE")).collect();
+    assert!(console.is_empty(), "console: {console:#?}");
+    let host = origin.trim_start_matches("http://").split(':').next().unwrap();
+    let requests = page_requests(net_log, host);
+    for request in &requests {
+        assert!(request.starts_with(origin), "the page requested {request}, outside {origin}");
+    }
+    requests
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_dashboard_and_the_report_page_work_in_a_real_browser() {
     let served = serve_binary();
@@ -125,18 +139,9 @@ async fn the_dashboard_and_the_report_page_work_in_a_real_browser() {
     let triangles: usize =
         viewer.split("data-triangles=\"").nth(1).unwrap().split('"').next().unwrap().parse().unwrap();
     assert!(triangles > 1000, "{triangles}");
-    // Nothing on the console: no script error, no refused load (a refusal by the page's policy
-    // is a console error too).
-    let console: Vec<&str> = log.lines().filter(|l| l.contains(":CONSOLE")).collect();
-    assert!(console.is_empty(), "console: {console:#?}");
     // The page's requests: the page itself and its mesh, both from the service.
-    let origin = base.as_str();
-    let host = origin.trim_start_matches("http://").split(':').next().unwrap().to_string();
-    let requests = page_requests(&net_log, &host);
+    let requests = quiet_and_local(&log, &net_log, &base);
     assert!(requests.iter().any(|u| u.contains("/mesh?format=glb")), "{requests:?}");
-    for request in &requests {
-        assert!(request.starts_with(origin), "the page requested {request}, outside {origin}");
-    }
 
     // The dashboard lists it, with a link to that page, through the public API.
     let (dom, log, net_log) = browse(&format!("{base}/")).await;
@@ -144,24 +149,14 @@ async fn the_dashboard_and_the_report_page_work_in_a_real_browser() {
     let listed = listed.split("</tr>").next().unwrap();
     assert!(listed.contains("succeeded") && listed.contains("BC 4-1/2"), "{listed}");
     assert!(listed.contains(&format!("href=\"/v1/inspections/{id}/report?format=html\"")), "{listed}");
-    let console: Vec<&str> = log.lines().filter(|l| l.contains(":CONSOLE")).collect();
-    assert!(console.is_empty(), "console: {console:#?}");
-    let requests = page_requests(&net_log, &host);
+    let requests = quiet_and_local(&log, &net_log, &base);
     assert!(requests.iter().any(|u| u.contains("/v1/inspections?")), "{requests:?}");
-    for request in &requests {
-        assert!(request.starts_with(origin), "the dashboard requested {request}, outside {origin}");
-    }
 
     // The API browser (Swagger UI, compiled in) runs under its own policy: it lists the
     // operations from the binary's OpenAPI document, with nothing refused and nothing fetched
     // from elsewhere.
     let (dom, log, net_log) = browse(&format!("{base}/docs/")).await;
     assert!(dom.contains("opblock") && dom.contains("get_report"), "the operations are not listed");
-    let console: Vec<&str> = log.lines().filter(|l| l.contains(":CONSOLE")).collect();
-    assert!(console.is_empty(), "console: {console:#?}");
-    let requests = page_requests(&net_log, &host);
+    let requests = quiet_and_local(&log, &net_log, &base);
     assert!(requests.iter().any(|u| u.ends_with("/openapi.json")), "{requests:?}");
-    for request in &requests {
-        assert!(request.starts_with(origin), "the API browser requested {request}, outside {origin}");
-    }
 }
