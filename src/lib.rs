@@ -18,6 +18,10 @@ pub mod numeric;
 /// arcs, the 5B rules.
 pub mod domain;
 
+/// The learned models (the seed's MLP) run through ONNX Runtime: the library, the shipped and
+/// installed models, pooled sessions.
+pub mod learned;
+
 /// The input edge: the bundle v1 reader (directory, zip, tar) and its validation.
 pub mod bundle;
 

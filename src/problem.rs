@@ -64,6 +64,7 @@ codes! {
     CmmNotFound = ("cmm_not_found", 404, "No CMM measurements"),
     ResultExpired = ("result_expired", 410, "Result deleted by retention"),
     UnknownDesignation = ("unknown_designation", 404, "Unknown connection designation"),
+    UnknownModel = ("unknown_model", 422, "Unknown model"),
     // Bundle validation (the bundle reader's codes).
     UnsupportedFormatVersion = ("unsupported_format_version", 422, "Unsupported bundle format"),
     InvalidManifest = ("invalid_manifest", 422, "Invalid manifest"),
@@ -92,6 +93,7 @@ codes! {
     IoError = ("io_error", 500, "I/O error"),
     InternalError = ("internal_error", 500, "Internal error"),
     NotReady = ("not_ready", 503, "Not ready"),
+    ModelUnavailable = ("model_unavailable", 503, "Learned model unavailable"),
     TooManyUploads = ("too_many_uploads", 429, "Too many uploads from this client"),
     ServerBusy = ("server_busy", 503, "Too many uploads at once"),
     InsufficientStorage = ("insufficient_storage", 507, "Insufficient storage"),

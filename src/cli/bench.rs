@@ -1,6 +1,6 @@
 //! `crestscan bench`: a benchmark suite against the simulator's truth.
 
-use super::DepthArgs;
+use super::{DepthArgs, LearnedArgs};
 use anyhow::{Result, bail};
 use crestscan::eval::{self, Suite};
 use crestscan::pipeline::PipelineOptions;
@@ -32,6 +32,8 @@ pub struct BenchArgs {
     options: Option<PathBuf>,
     #[command(flatten)]
     depth: DepthArgs,
+    #[command(flatten)]
+    learned: LearnedArgs,
     /// No progress bar (it is drawn only on a terminal in any case).
     #[arg(long)]
     quiet: bool,
@@ -60,14 +62,17 @@ impl From<SuiteArg> for Suite {
 
 impl BenchArgs {
     pub fn run(self) -> Result<()> {
-        let Self { suite, work, only, json, repeat, options: options_file, depth, quiet } = self;
+        let Self { suite, work, only, json, repeat, options: options_file, depth, learned, quiet } = self;
         let suite = Suite::from(suite);
         let work = work.unwrap_or_else(|| PathBuf::from(suite.default_work_dir()));
         if let Some(o) = only.iter().find(|o| !suite.cases().iter().any(|c| c.matches(o))) {
             let names: Vec<String> = suite.cases().iter().map(|c| c.name()).collect();
             bail!("--only {o:?} is no case of the {} suite; its cases: {}", suite.name(), names.join(", "));
         }
-        let options = super::options_over(PipelineOptions { depth: depth.into(), ..Default::default() }, options_file)?;
+        let options = super::options_over(
+            PipelineOptions { depth: depth.into(), profile: learned.apply(Default::default()), ..Default::default() },
+            options_file,
+        )?;
         let mut results = Vec::new();
         let stations = matches!(suite, Suite::Stations | Suite::StationsTuning);
         // At a random station the pipeline may find no depth or no thread: that case is an

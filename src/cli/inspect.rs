@@ -1,6 +1,6 @@
 //! `crestscan inspect`: the whole pipeline on one bundle; the summary or the report, and the files.
 
-use super::{DepthArgs, open_bundle};
+use super::{DepthArgs, LearnedArgs, open_bundle};
 use anyhow::{Context, Result};
 use crestscan::bundle::OpenOptions;
 use crestscan::domain::rules::ArcRule;
@@ -36,6 +36,8 @@ pub struct InspectArgs {
     options: Option<PathBuf>,
     #[command(flatten)]
     depth: DepthArgs,
+    #[command(flatten)]
+    learned: LearnedArgs,
     /// No progress bar (it is drawn only on a terminal in any case).
     #[arg(long)]
     quiet: bool,
@@ -49,14 +51,15 @@ enum ArcRuleArg {
 
 impl InspectArgs {
     pub fn run(self) -> Result<()> {
-        let Self { bundle, out, json, arc_rule, height_window_half_bins, options: options_file, depth, quiet } = self;
+        let Self { bundle, out, json, arc_rule, height_window_half_bins, options: options_file, depth, learned, quiet } =
+            self;
         let b = open_bundle(&bundle, OpenOptions::default())?;
         let options = PipelineOptions {
             arc_rule: match arc_rule {
                 ArcRuleArg::PerThread => ArcRule::PerThread,
                 ArcRuleArg::Combined => ArcRule::Combined,
             },
-            profile: ProfileOptions { height_window_half_bins },
+            profile: learned.apply(ProfileOptions { height_window_half_bins, ..Default::default() }),
             depth: depth.into(),
             ..Default::default()
         };

@@ -4,6 +4,7 @@ mod bench;
 mod compare;
 mod connections;
 mod inspect;
+mod pairs;
 mod progress;
 mod serve;
 mod simulate;
@@ -14,6 +15,7 @@ use clap::{Args, Parser, Subcommand};
 use crestscan::bundle::{Bundle, OpenOptions};
 use crestscan::domain::thread::ConnectionTable;
 use crestscan::pipeline::depth::DepthOptions;
+use crestscan::pipeline::profile::{Correction, ProfileOptions};
 use crestscan::problem::ErrorCode;
 use std::path::Path;
 
@@ -34,6 +36,8 @@ enum Command {
     Bench(bench::BenchArgs),
     /// Compare an inspection report with a simulated bundle's truth/truth.json.
     Compare(compare::CompareArgs),
+    /// Write the profile-correction MLP's training pairs of a bundle (JSON lines; docs/models.md).
+    Pairs(pairs::PairsArgs),
     /// Validate a bundle (directory, .zip or .tar) without inspecting it.
     Validate(validate::ValidateArgs),
     /// Print the API 5B connection table.
@@ -48,6 +52,52 @@ enum Command {
         #[arg(long)]
         addr: Option<std::net::SocketAddr>,
     },
+}
+
+/// The learned parts' options `inspect` and `bench` take (docs/models.md).
+#[derive(Args, Debug)]
+struct LearnedArgs {
+    /// Correct each bin's pitch of profile with the seed's MLP before its height is taken (needs
+    /// ONNX Runtime: scripts/setup-onnxruntime).
+    #[arg(long, value_enum, default_value_t = CorrectionArg::from(ProfileOptions::default().correction))]
+    profile_correction: CorrectionArg,
+    /// The correction model by name [default: the shipped one]; an installed one is
+    /// `<models-dir>/<name>.onnx` with its card `<name>.json`.
+    #[arg(long)]
+    correction_model: Option<String>,
+    /// Where installed models are looked for.
+    #[arg(long, env = "CRESTSCAN_MODELS_DIR")]
+    models_dir: Option<std::path::PathBuf>,
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum CorrectionArg {
+    On,
+    Off,
+}
+
+impl From<Correction> for CorrectionArg {
+    fn from(c: Correction) -> Self {
+        match c {
+            Correction::On => CorrectionArg::On,
+            Correction::Off => CorrectionArg::Off,
+        }
+    }
+}
+
+impl LearnedArgs {
+    /// `profile` with these choices, and the models folder set for the process.
+    fn apply(self, profile: ProfileOptions) -> ProfileOptions {
+        crestscan::learned::set_installed_dir(self.models_dir);
+        ProfileOptions {
+            correction: match self.profile_correction {
+                CorrectionArg::On => Correction::On,
+                CorrectionArg::Off => Correction::Off,
+            },
+            correction_model: self.correction_model,
+            ..profile
+        }
+    }
 }
 
 /// The depth stage's options `inspect` and `bench` take.
@@ -102,6 +152,7 @@ pub fn main() -> Result<()> {
         Command::Inspect(args) => args.run(),
         Command::Bench(args) => args.run(),
         Command::Compare(args) => args.run(),
+        Command::Pairs(args) => args.run(),
         Command::Validate(args) => args.run(),
         Command::Connections(args) => args.run(),
         Command::Serve(args) => args.run(),

@@ -2,6 +2,7 @@
 //! `crestscan bench`) or a CMM's measurements.
 
 pub mod cmm;
+pub mod pairs;
 pub mod suite;
 pub mod table;
 pub mod truth;

@@ -85,6 +85,8 @@ pub enum PipelineError {
     Mesh(#[from] mesh::MeshError),
     #[error(transparent)]
     Option(#[from] options::OptionOutOfRange),
+    #[error(transparent)]
+    Learned(#[from] crate::learned::LearnedError),
 }
 
 impl ErrorCode for PipelineError {
@@ -95,6 +97,7 @@ impl ErrorCode for PipelineError {
             PipelineError::NoThread { .. } => Code::NoThread,
             PipelineError::Mesh(_) => Code::MeshFailed,
             PipelineError::Option(e) => e.code(),
+            PipelineError::Learned(e) => e.code(),
         }
     }
 
@@ -102,6 +105,7 @@ impl ErrorCode for PipelineError {
         match self {
             PipelineError::Frame(e) => e.culprit(),
             PipelineError::Option(e) => e.culprit(),
+            PipelineError::Learned(e) => e.culprit(),
             _ => None,
         }
     }
@@ -114,19 +118,34 @@ pub struct Inspection {
     /// The refined view poses.
     pub poses: Vec<ViewPose>,
     pub mesh: mesh::Mesh,
+    /// The measured threads before the uncertainty stage (their bins' own fits in
+    /// `raw_height_mm`), for [`profile::pitch::pitch_profiles`] on the map.
+    pub threads: Vec<ThreadMeasure>,
 }
 
-/// Runs the pipeline. Ok(None) means it was cancelled.
+/// Runs the pipeline, with the process's models ([`crate::learned::models`]). Ok(None) means it
+/// was cancelled.
 pub fn inspect(
     recording: &dyn Recording,
     options: &PipelineOptions,
     progress: &(dyn Fn(Stage, f64) + Sync),
     cancel: &AtomicBool,
 ) -> Result<Option<Inspection>, PipelineError> {
+    inspect_with(recording, options, crate::learned::models(), progress, cancel)
+}
+
+/// [`inspect`] with the learned models of `models` (the service's: its own models folder).
+pub fn inspect_with(
+    recording: &dyn Recording,
+    options: &PipelineOptions,
+    models: &crate::learned::Models,
+    progress: &(dyn Fn(Stage, f64) + Sync),
+    cancel: &AtomicBool,
+) -> Result<Option<Inspection>, PipelineError> {
     // Every caller (the service checks at submission too) meets the same bounds: an option outside
     // them can multiply a stage's memory or work without limit.
     options.check_ranges()?;
-    match run_stages(recording, options, Run::new(progress, cancel)) {
+    match run_stages(recording, options, models, Run::new(progress, cancel)) {
         Ok(inspection) => Ok(Some(inspection)),
         Err(Halt::Cancelled) => Ok(None),
         Err(Halt::Failed(e)) => Err(e),
@@ -135,12 +154,19 @@ pub fn inspect(
 
 type Step<T> = Result<T, Halt<PipelineError>>;
 
-fn run_stages(recording: &dyn Recording, options: &PipelineOptions, mut run: Run) -> Step<Inspection> {
+fn run_stages(
+    recording: &dyn Recording,
+    options: &PipelineOptions,
+    models: &crate::learned::Models,
+    mut run: Run,
+) -> Step<Inspection> {
     let (depth_maps, depth_coverage) = measure_depth(recording, options, &mut run)?;
     let registered = register_views(recording, options, &depth_maps, &mut run)?;
     let (map, map_implausible_share) =
         fuse_views(recording, options, &depth_maps, &registered.poses, &registered.encoder_z_ranges_mm, &mut run)?;
-    let (mesh, helix, mut threads) = mesh_and_profile(recording, options, &map, map_implausible_share, &mut run)?;
+    let (mesh, helix, mut threads, models) =
+        mesh_and_profile(recording, options, models, &map, map_implausible_share, &mut run)?;
+    let measured_threads = threads.clone();
     let (assessment, crest, rule_input) = crest_and_rules(recording, options, &helix, &threads, &mut run);
     let part = recording.part();
     let station = domain::station::Station {
@@ -205,9 +231,10 @@ fn run_stages(recording: &dyn Recording, options: &PipelineOptions, mut run: Run
         depth_prefiltered_views: depth_maps.iter().filter(|d| d.prefiltered).count(),
         map_coverage: map.coverage(),
         map_implausible_share,
+        models,
         timings: run.into_timings(),
     });
-    Ok(Inspection { report, map, depth_maps, poses: registered.poses, mesh })
+    Ok(Inspection { report, map, depth_maps, poses: registered.poses, mesh, threads: measured_threads })
 }
 
 /// Depth from focus per view, in parallel, then the views' sub-frame phases equalised; the maps
@@ -394,10 +421,11 @@ fn fuse_views(
 fn mesh_and_profile(
     recording: &dyn Recording,
     options: &PipelineOptions,
+    models: &crate::learned::Models,
     map: &UnrolledMap,
     map_implausible_share: f64,
     run: &mut Run,
-) -> Step<(mesh::Mesh, Helix, Vec<ThreadMeasure>)> {
+) -> Step<(mesh::Mesh, Helix, Vec<ThreadMeasure>, Vec<crate::learned::ModelUse>)> {
     run.progress(Stage::Mesh, 0.0);
     run.progress(Stage::Profile, 0.0);
     let form = &recording.part().form;
@@ -425,10 +453,25 @@ fn mesh_and_profile(
         map_coverage: map.coverage(),
         map_implausible_share,
     })?;
-    let threads = threads.expect("measured whenever the helix was found");
-    run.record_side_by_side(&[(Stage::Mesh, mesh_seconds), (Stage::Profile, profile_seconds)]);
+    let mut threads = threads.expect("measured whenever the helix was found");
+    // The MLP runs after the side by side: it is the profile stage's, but needs the whole map
+    // and its own sessions' threads.
+    let started = Instant::now();
+    let mut models_used = Vec::new();
+    if options.profile.correction == profile::Correction::On {
+        let model = models
+            .get(crate::learned::ModelRole::ProfileCorrection, options.profile.correction_model.as_deref())
+            .map_err(PipelineError::from)?;
+        profile::pitch::correct_heights(map, form, &helix, &mut threads, &options.profile, &model)
+            .map_err(PipelineError::from)?;
+        models_used.push(model.identity.clone());
+    }
+    run.record_side_by_side(&[
+        (Stage::Mesh, mesh_seconds),
+        (Stage::Profile, profile_seconds + started.elapsed().as_secs_f64()),
+    ]);
     run.check()?;
-    Ok((mesh, helix, threads))
+    Ok((mesh, helix, threads, models_used))
 }
 
 /// Black-crest observations from the per-thread measures, then the API 5B rules on them.

@@ -54,6 +54,19 @@ impl Default for PipelineOptions {
     }
 }
 
+impl PipelineOptions {
+    /// The learned models these options ask for, loaded (and ONNX Runtime with them): what the
+    /// service checks at submission, so that a missing model is refused then rather than failing
+    /// the job. Nothing is asked of a classical run.
+    pub fn check_learned(&self, models: &crate::learned::Models) -> Result<(), crate::learned::LearnedError> {
+        if self.profile.correction == crate::pipeline::profile::Correction::On {
+            models.get(crate::learned::ModelRole::ProfileCorrection, self.profile.correction_model.as_deref())?;
+            crate::learned::runtime()?;
+        }
+        Ok(())
+    }
+}
+
 /// The documented range of one numeric option, by its dotted path in the stored shape.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct OptionRange {

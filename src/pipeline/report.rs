@@ -234,6 +234,9 @@ pub struct Provenance {
     /// Set by the service: the inspection's id and the sha256 of its uploaded bundle.
     pub inspection_id: Option<String>,
     pub bundle_sha256: Option<String>,
+    /// The learned models that changed this report, by sha256 (none: the classical pipeline).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub models: Vec<crate::learned::ModelUse>,
 }
 
 /// What the stages found, from which the report is assembled.
@@ -259,6 +262,7 @@ pub struct Findings<'a> {
     pub depth_prefiltered_views: usize,
     pub map_coverage: f64,
     pub map_implausible_share: f64,
+    pub models: Vec<crate::learned::ModelUse>,
     pub timings: Vec<StageTiming>,
 }
 
@@ -323,6 +327,7 @@ impl Report {
                 settings: f.options.clone(),
                 inspection_id: None,
                 bundle_sha256: None,
+                models: f.models,
             }),
             serial: part.serial.clone(),
             height_tolerance_mm: form.height_tolerance_mm,

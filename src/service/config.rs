@@ -204,6 +204,11 @@ impl Settings {
     pub fn tmp_dir(&self) -> PathBuf {
         self.data_dir.join("tmp")
     }
+
+    /// Installed learned models (`<name>.onnx` with its card `<name>.json`; docs/models.md).
+    pub fn models_dir(&self) -> PathBuf {
+        self.data_dir.join("models")
+    }
     pub fn max_upload_bytes(&self) -> u64 {
         self.max_upload_mb.saturating_mul(1 << 20)
     }

@@ -49,6 +49,7 @@ impl Application {
         let metrics = Arc::new(Metrics::new());
         let wake = Arc::new(Notify::new());
         let settings = Arc::new(settings);
+        let models = Arc::new(crate::learned::Models::new(Some(settings.models_dir())));
         let state = AppState {
             store: store.clone(),
             table: table.clone(),
@@ -63,6 +64,7 @@ impl Application {
                 &settings.allowed_hosts,
                 &settings.allowed_origins,
             )),
+            models: models.clone(),
         };
         let worker = WorkerContext {
             store,
@@ -72,6 +74,7 @@ impl Application {
             settings: (*settings).clone(),
             wake,
             owner: format!("{}-{}", std::process::id(), uuid::Uuid::now_v7()),
+            models,
         };
         Ok(Self { listener, state, worker, address })
     }

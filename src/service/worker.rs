@@ -29,6 +29,7 @@ pub struct WorkerContext {
     pub wake: Arc<Notify>,
     /// Unique per process; each claim's lease token starts with it.
     pub owner: String,
+    pub models: Arc<crate::learned::Models>,
 }
 
 enum Outcome {
@@ -289,7 +290,8 @@ fn run_job(ctx: &WorkerContext, job: &Claimed, cancel: &AtomicBool, progress: &M
     let report_progress = |stage: Stage, fraction: f64| {
         *progress.lock().expect("progress lock") = Some((stage, fraction));
     };
-    let mut inspection = match pipeline::inspect(&bundle, &options.pipeline, &report_progress, cancel) {
+    let mut inspection = match pipeline::inspect_with(&bundle, &options.pipeline, &ctx.models, &report_progress, cancel)
+    {
         Ok(Some(i)) => i,
         Ok(None) => return Outcome::Canceled,
         Err(e) => return failure(&e),

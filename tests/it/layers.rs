@@ -10,13 +10,15 @@ const LAYERS: &[(&str, &[&str])] = &[
     ("problem", &[]),
     ("numeric", &["problem"]),
     ("domain", &["problem", "numeric"]),
+    // The learned models' runtime and registry: below the pipeline, which runs them.
+    ("learned", &["problem", "numeric", "domain"]),
     ("bundle", &["problem", "numeric", "domain"]),
-    ("pipeline", &["problem", "numeric", "domain"]),
+    ("pipeline", &["problem", "numeric", "domain", "learned"]),
     // The simulator writes the contract's manifest.
     ("sim", &["problem", "numeric", "domain", "bundle"]),
-    ("export", &["problem", "numeric", "domain", "pipeline"]),
-    ("eval", &["problem", "numeric", "domain", "bundle", "pipeline", "sim", "export"]),
-    ("service", &["problem", "numeric", "domain", "bundle", "pipeline", "sim", "export", "eval"]),
+    ("export", &["problem", "numeric", "domain", "learned", "pipeline"]),
+    ("eval", &["problem", "numeric", "domain", "learned", "bundle", "pipeline", "sim", "export"]),
+    ("service", &["problem", "numeric", "domain", "learned", "bundle", "pipeline", "sim", "export", "eval"]),
 ];
 
 /// Crates only the service may use.

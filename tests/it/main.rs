@@ -7,6 +7,7 @@ mod fuzz_corpus;
 #[path = "../../fuzz/src/lib.rs"]
 mod fuzz_targets;
 mod layers;
+mod learned;
 mod numeric_props;
 mod pipeline;
 mod reader_props;

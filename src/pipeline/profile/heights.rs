@@ -314,12 +314,18 @@ pub(super) fn measure_threads_every(
     for (w, bin) in pending.iter().zip(measured) {
         threads[w.thread].bins.push(bin);
     }
+    smooth_along_helix(&mut threads, options);
+    threads
+}
+
+/// Each bin's reported height from the bins' own fits (`raw_height_mm`): the trimmed mean along
+/// the helix ([`ProfileOptions::height_window_half_bins`]).
+pub fn smooth_along_helix(threads: &mut [ThreadMeasure], options: &ProfileOptions) {
     // Along the helix, thread i's last bin (359.5°) is followed by thread i + 1's first (0.5°).
-    let helix_order: Vec<Option<f64>> = threads.iter().flat_map(|t| t.bins.iter().map(|b| b.height_mm)).collect();
+    let helix_order: Vec<Option<f64>> = threads.iter().flat_map(|t| t.bins.iter().map(|b| b.raw_height_mm)).collect();
     let filtered = trimmed_mean_counted(&helix_order, options.height_window_half_bins);
     for (bin, h) in threads.iter_mut().flat_map(|t| t.bins.iter_mut()).zip(filtered) {
         bin.height_mm = h.map(|(mean, _)| mean);
         bin.kept_bins = h.map_or(0, |(_, kept)| kept);
     }
-    threads
 }

@@ -13,7 +13,7 @@ mod heights;
 mod helix;
 pub mod pitch;
 
-pub use heights::{crest_window_half_mm, measure_threads, survey_threads};
+pub use heights::{crest_window_half_mm, measure_threads, smooth_along_helix, survey_threads};
 pub use helix::{estimate_helix, refine_helix};
 
 use crate::domain::thread::{ProfileShape, ThreadForm};
@@ -73,11 +73,26 @@ pub struct ProfileOptions {
     /// keeps a spike out. The price is resolution: a dent of a degree or two is trimmed away and
     /// one of a few degrees flattened. 0 reports each bin's own fit.
     pub height_window_half_bins: usize,
+    /// Correct each bin's pitch of profile with the seed's MLP before its height is taken
+    /// ([`pitch::correct_heights`]; needs ONNX Runtime).
+    pub correction: Correction,
+    /// The correction model by name: a shipped one or one installed in the models folder
+    /// (docs/models.md); none: the shipped model.
+    pub correction_model: Option<String>,
+}
+
+/// Whether the profile-correction MLP runs.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Correction {
+    #[default]
+    Off,
+    On,
 }
 
 impl Default for ProfileOptions {
     fn default() -> Self {
-        Self { height_window_half_bins: 5 }
+        Self { height_window_half_bins: 5, correction: Correction::default(), correction_model: None }
     }
 }
 

@@ -9,11 +9,12 @@
 
 use super::*;
 
-/// Samples of one pitch, as in the seed.
-pub const PITCH_SAMPLES: usize = 256;
+/// Samples of one pitch, as in the seed (the MLP's input width).
+pub const PITCH_SAMPLES: usize = crate::learned::profile_mlp::SAMPLES;
 
-/// Below this share of slots holding data, a pitch gives no profile (interpolation would make it).
-const MIN_FILLED_SHARE: f64 = 0.25;
+/// Below this share of the pitch lying within one map row of data, a pitch gives no profile
+/// (interpolation would make it).
+const MIN_FILLED_SHARE: f64 = 0.5;
 
 /// One pitch of profile, normalised: `(r − mean_mm) / scale_mm` per slot.
 #[derive(Clone, Debug, PartialEq)]
@@ -25,7 +26,7 @@ pub struct PitchProfile {
     pub samples: Vec<f32>,
     pub mean_mm: f64,
     pub scale_mm: f64,
-    /// Share of slots that held data before interpolation.
+    /// Share of the pitch within one map row of data (before interpolation).
     pub filled_share: f64,
 }
 
@@ -40,9 +41,11 @@ pub fn window_slots(form: &ThreadForm) -> [std::ops::Range<usize>; 3] {
     [slot(-crest_half)..slot(crest_half), 0..slot(before + root_half), slot(after - root_half)..PITCH_SAMPLES]
 }
 
-/// Resamples one pitch from `(x_mm, r_mm)` samples (x relative to the crest centre); None where too
-/// few slots hold data.
-pub fn resample(form: &ThreadForm, samples: &[(f64, f64)]) -> Option<(Vec<f32>, f64, f64)> {
+/// Resamples one pitch from `(x_mm, r_mm)` samples (x relative to the crest centre), taken on a
+/// map whose rows are `row_mm` apart; None where too little of the pitch lies within a row of
+/// data. The share is of the pitch, not of slots: a coarse station's map has fewer rows per pitch
+/// than there are slots, and every slot between two rows is then interpolation of the map's own.
+pub fn resample(form: &ThreadForm, samples: &[(f64, f64)], row_mm: f64) -> Option<(Vec<f32>, f64, f64)> {
     let (before, after) = form.root_centres_mm();
     let span = after - before;
     let mut sum = [0.0f64; PITCH_SAMPLES];
@@ -55,8 +58,17 @@ pub fn resample(form: &ThreadForm, samples: &[(f64, f64)]) -> Option<(Vec<f32>, 
         }
     }
     let filled: Vec<usize> = (0..PITCH_SAMPLES).filter(|&k| count[k] > 0).collect();
-    let share = filled.len() as f64 / PITCH_SAMPLES as f64;
-    if share < MIN_FILLED_SHARE {
+    // Slots within a map row of a filled one.
+    let reach = (row_mm / span * PITCH_SAMPLES as f64).ceil().max(0.0) as usize;
+    let covered = (0..PITCH_SAMPLES)
+        .filter(|&k| {
+            let at = filled.partition_point(|&j| j < k);
+            let near = |j: usize| j.abs_diff(k) <= reach;
+            filled.get(at).is_some_and(|&j| near(j)) || (at > 0 && near(filled[at - 1]))
+        })
+        .count();
+    let share = covered as f64 / PITCH_SAMPLES as f64;
+    if filled.is_empty() || share < MIN_FILLED_SHARE {
         return None;
     }
     let value = |k: usize| sum[k] / count[k] as f64;
@@ -109,25 +121,50 @@ pub fn pitch_profiles(
                 .into_iter()
                 .map(|(u, r, _)| ((u - u_crest) * p, r))
                 .collect();
-            let (values, mean_mm, filled_share) = resample(form, &samples)?;
+            let (values, mean_mm, filled_share) = resample(form, &samples, g.dz_mm)?;
             Some(PitchProfile { thread: t, bin: k, samples: values, mean_mm, scale_mm: form.height_mm, filled_share })
         })
         .collect()
 }
 
-/// What a corrected profile changes the height by, mm: the change of the crest window's mean
-/// minus the change of the two root windows' means interpolated at the crest (as the height's
-/// roots are).
-pub fn height_change_mm(form: &ThreadForm, input: &[f32], corrected: &[f32], scale_mm: f64) -> f64 {
+/// The height a pitch of profile reads, mm: its crest window's mean minus the two root windows'
+/// means interpolated at the crest (as the height's roots are). Linear in the samples, so the
+/// training code applies the same operator (training/profile_mlp.py, `height_operator`).
+pub fn pitch_height_mm(form: &ThreadForm, samples: &[f32], scale_mm: f64) -> f64 {
     let [crest, root_before, root_after] = window_slots(form);
-    let mean_change = |r: &std::ops::Range<usize>| {
+    let mean = |r: &std::ops::Range<usize>| {
         let n = r.len().max(1) as f64;
-        r.clone().map(|k| (corrected[k] - input[k]) as f64).sum::<f64>() / n
+        r.clone().map(|k| samples[k] as f64).sum::<f64>() / n
     };
     let (before, after) = form.root_centres_mm();
-    let (b, a) = (mean_change(&root_before), mean_change(&root_after));
+    let (b, a) = (mean(&root_before), mean(&root_after));
     let root = b + (a - b) * (0.0 - before) / (after - before);
-    scale_mm * (mean_change(&crest) - root)
+    scale_mm * (mean(&crest) - root)
+}
+
+/// Replaces every measured bin's own height (`raw_height_mm`) by the height its corrected pitch of
+/// profile reads ([`pitch_height_mm`]), as the seed reads heights off the MLP's profile, then takes
+/// the reported heights along the helix again. Bins whose pitch holds too little data
+/// ([`resample`]) keep their fit. Returns how many bins the model corrected.
+pub fn correct_heights(
+    map: &UnrolledMap,
+    form: &ThreadForm,
+    helix: &Helix,
+    threads: &mut [ThreadMeasure],
+    options: &ProfileOptions,
+    model: &crate::learned::Model,
+) -> Result<usize, crate::learned::LearnedError> {
+    let profiles = pitch_profiles(map, form, helix, threads);
+    let input: Vec<f32> = profiles.iter().flat_map(|p| p.samples.iter().copied()).collect();
+    let corrected = crate::learned::profile_mlp::correct(model, &input)?;
+    for (p, out) in profiles.iter().zip(corrected.chunks_exact(PITCH_SAMPLES)) {
+        let height = pitch_height_mm(form, out, p.scale_mm);
+        let bin = &mut threads[p.thread].bins[p.bin];
+        // A model that answers NaN for a pitch leaves the bin unmeasured rather than wrong.
+        bin.raw_height_mm = bin.raw_height_mm.and(Some(height)).filter(|h| h.is_finite());
+    }
+    smooth_along_helix(threads, options);
+    Ok(profiles.len())
 }
 
 #[cfg(test)]
@@ -156,14 +193,20 @@ mod pitch_tests {
     fn a_sparse_pitch_is_refused_and_gaps_are_interpolated() {
         let form = buttress();
         let (before, after) = form.root_centres_mm();
-        // Every fifth slot holds data: under a quarter, no profile.
-        let sparse: Vec<(f64, f64)> = (0..PITCH_SAMPLES).step_by(5).map(|k| (slot_offset_mm(&form, k), 1.0)).collect();
-        assert!(resample(&form, &sparse).is_none());
+        let slot_mm = (after - before) / PITCH_SAMPLES as f64;
+        // Data over the first third of the pitch only: under half, no profile.
+        let third: Vec<(f64, f64)> = (0..PITCH_SAMPLES / 3).map(|k| (slot_offset_mm(&form, k), 1.0)).collect();
+        assert!(resample(&form, &third, slot_mm).is_none());
+        // Every eighth slot on a map of slot-sized rows: most slots are interpolation, no profile.
+        let sparse: Vec<(f64, f64)> = (0..PITCH_SAMPLES).step_by(8).map(|k| (slot_offset_mm(&form, k), 1.0)).collect();
+        assert!(resample(&form, &sparse, slot_mm).is_none());
+        // The same samples on a map whose rows are eight slots apart: every row there is, a profile.
+        assert!(resample(&form, &sparse, 8.0 * slot_mm).is_some());
         // A line r = x over every second slot: the missing slots lie on the same line.
         let line: Vec<(f64, f64)> =
             (0..PITCH_SAMPLES).step_by(2).map(|k| (slot_offset_mm(&form, k), slot_offset_mm(&form, k))).collect();
-        let (values, mean, share) = resample(&form, &line).expect("half the slots");
-        assert!((share - 0.5).abs() < 1e-9);
+        let (values, mean, share) = resample(&form, &line, slot_mm).expect("half the slots");
+        assert!((share - 1.0).abs() < 1e-9, "{share}");
         let slope = (after - before) / PITCH_SAMPLES as f64 / form.height_mm;
         for k in 1..PITCH_SAMPLES - 2 {
             assert!(((values[k + 1] - values[k]) as f64 - slope).abs() < 1e-5, "slot {k}");
@@ -174,16 +217,17 @@ mod pitch_tests {
     #[test]
     fn a_raised_crest_window_raises_the_height_by_as_much() {
         let form = buttress();
-        let input = vec![0.0f32; PITCH_SAMPLES];
-        let mut corrected = input.clone();
+        let flat = vec![0.0f32; PITCH_SAMPLES];
+        assert_eq!(pitch_height_mm(&form, &flat, form.height_mm), 0.0);
+        let mut raised = flat.clone();
         let [crest, ..] = window_slots(&form);
         for k in crest {
-            corrected[k] = 0.01;
+            raised[k] = 0.01;
         }
-        let change = height_change_mm(&form, &input, &corrected, form.height_mm);
-        assert!((change - 0.01 * form.height_mm).abs() < 1e-6, "{change}");
-        // The same change everywhere is an offset: no change of height.
-        let offset = vec![0.02f32; PITCH_SAMPLES];
-        assert!(height_change_mm(&form, &input, &offset, form.height_mm).abs() < 1e-9);
+        let height = pitch_height_mm(&form, &raised, form.height_mm);
+        assert!((height - 0.01 * form.height_mm).abs() < 1e-6, "{height}");
+        // The same offset everywhere changes no height.
+        let offset: Vec<f32> = raised.iter().map(|v| v + 0.02).collect();
+        assert!((pitch_height_mm(&form, &offset, form.height_mm) - height).abs() < 1e-6);
     }
 }

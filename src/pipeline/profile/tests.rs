@@ -122,7 +122,7 @@ fn the_end_face_cell_is_not_taken_for_a_root() {
     let form = ThreadForm::api_round(3.175, 1.810, 0.05, 0.0625, None).unwrap();
     let (mut map, form) = ideal_map_of(form, 1.1, 0.01);
     let helix = estimate_helix(&map, &form).unwrap();
-    let options = ProfileOptions { height_window_half_bins: 0 };
+    let options = ProfileOptions { height_window_half_bins: 0, ..Default::default() };
     let clean = measure_threads(&map, &form, &helix, &options);
     // The edge reads 12 µm low all round (within the noise's reach: no outlier to reject).
     let ntheta = map.grid.ntheta;

@@ -6,7 +6,7 @@ use super::{AppState, Binary, InspectionId, parse_rfc3339, rfc3339};
 use crate::bundle::{Bundle, FrameCheck, OpenOptions};
 use crate::domain::rules::{ArcRule, Verdict};
 use crate::pipeline::PipelineOptions;
-use crate::problem::Code;
+use crate::problem::{Code, ErrorCode};
 use crate::service::queue::JobOptions;
 use crate::service::store::files::sha256_hex;
 use crate::service::store::{Inserted, InspectionRow, ListFilter, NewInspection, Status};
@@ -192,6 +192,14 @@ fn pipeline_options_schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::
             serde_json::Value::String(_) if path == "arc_rule" => {
                 builder.schema_type(SchemaType::new(Type::String)).enum_values(Some(ArcRule::NAMES))
             }
+            serde_json::Value::String(_) if path == "profile.correction" => builder
+                .schema_type(SchemaType::new(Type::String))
+                .enum_values(Some(["off", "on"]))
+                .description(Some("Correct each pitch of profile with the seed's MLP (needs ONNX Runtime)")),
+            serde_json::Value::Null if path == "profile.correction_model" => builder
+                .schema_type(SchemaType::from_iter([Type::String, Type::Null]))
+                .pattern(Some("^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"))
+                .description(Some("A shipped or installed correction model by name; null: the shipped one")),
             _ => builder,
         };
         Schema::Object(built.build())
@@ -373,6 +381,25 @@ pub async fn create_inspection(
     drop(pass);
     let received = received?;
     let (reference, options) = resolve_options(query, received.options_part.as_deref())?;
+    // A learned part that cannot run is refused now, not found out by the worker (loading ONNX
+    // Runtime the first time reads a 29 MB library: off the async threads).
+    let (models, pipeline) = (state.models.clone(), options.pipeline.clone());
+    tokio::task::spawn_blocking(move || pipeline.check_learned(&models))
+        .await
+        .map_err(|e| ApiError::new(Code::InternalError, format!("checking the learned models: {e}")))?
+        .map_err(|e| match e.code() {
+            // The server's own failure: its paths and library messages go to the log.
+            Code::ModelUnavailable => {
+                tracing::error!(error = %e, "a learned model was asked for and cannot run");
+                ApiError::new(
+                    Code::ModelUnavailable,
+                    "this server cannot run the learned models now (ONNX Runtime or the model could not be \
+                     loaded; its log says which); with pipeline.profile.correction \"off\" the classical \
+                     pipeline runs",
+                )
+            }
+            _ => ApiError::of(&e).with_culprit("pipeline.profile.correction_model"),
+        })?;
     let options_json = serde_json::to_string(&options).expect("options serialise");
     let request_sha256 =
         sha256_hex(format!("{}\n{}\n{}", received.sha256, options_json, reference.as_deref().unwrap_or("")).as_bytes());

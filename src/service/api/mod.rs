@@ -44,6 +44,8 @@ pub struct AppState {
     pub uploads: Arc<ingest::UploadGate>,
     /// The hosts and origins browsers may reach the service by.
     pub browser: Arc<browser::BrowserPolicy>,
+    /// The learned models: shipped, and installed in `<data_dir>/models`.
+    pub models: Arc<crate::learned::Models>,
 }
 
 /// An inspection id: a UUID, rendered in its canonical lowercase form.

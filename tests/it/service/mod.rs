@@ -4,6 +4,7 @@
 mod browser;
 mod hostile;
 mod inspections;
+mod models;
 mod openapi;
 mod queue;
 mod report_page;

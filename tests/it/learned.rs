@@ -1,0 +1,105 @@
+//! The learned parts through real ONNX Runtime (scripts/setup-onnxruntime puts it in place): the
+//! shipped model against the framework's own output, session reuse, the pipeline with profile
+//! correction, and what the CLI says when the runtime is missing.
+
+use crate::common::ci_bundle;
+use crestscan::bundle::{Bundle, OpenOptions};
+use crestscan::domain::thread::ConnectionTable;
+use crestscan::learned::{self, ModelRole, ModelSource};
+use crestscan::pipeline::profile::Correction;
+use crestscan::pipeline::{self, PipelineOptions};
+use std::sync::atomic::AtomicBool;
+
+/// The input and torch's output that training/profile_mlp.py wrote beside the shipped model.
+fn framework_check() -> (Vec<f32>, Vec<f32>) {
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/models/profile-mlp.check.json");
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap();
+    let flat = |key: &str| -> Vec<f32> {
+        v[key]
+            .as_array()
+            .unwrap()
+            .iter()
+            .flat_map(|row| row.as_array().unwrap().iter().map(|x| x.as_f64().unwrap() as f32))
+            .collect()
+    };
+    (flat("input"), flat("output"))
+}
+
+#[test]
+fn the_shipped_mlp_through_onnx_runtime_equals_the_frameworks_output() {
+    let (input, expected) = framework_check();
+    assert!(input.len() >= 4 * learned::profile_mlp::SAMPLES && input.len() == expected.len());
+    let model = learned::models().get(ModelRole::ProfileCorrection, None).expect("the shipped model");
+    assert_eq!(model.identity.source, ModelSource::Shipped);
+    let output = learned::profile_mlp::correct(&model, &input).expect("ONNX Runtime runs the shipped model");
+    let worst = output.iter().zip(&expected).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+    assert!(worst < 1e-4, "largest difference from torch's output {worst}");
+    // The model corrects: its output is not its input.
+    let moved = output.iter().zip(&input).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+    assert!(moved > 1e-3, "{moved}");
+    // The session went back to the pool and is reused.
+    assert!(model.pool.idle_sessions() >= 1);
+    let again = learned::profile_mlp::correct(&model, &input).unwrap();
+    assert_eq!(again, output, "the same input gives the same output");
+}
+
+#[test]
+fn profile_correction_changes_heights_and_the_report_names_the_model() {
+    let bundle = Bundle::open(ci_bundle(), &ConnectionTable::api5b(), OpenOptions::default()).unwrap();
+    let run = |options: &PipelineOptions| {
+        pipeline::inspect(&bundle, options, &|_, _| {}, &AtomicBool::new(false)).unwrap().unwrap().report
+    };
+    let classic = run(&PipelineOptions::default());
+    let mut options = PipelineOptions::default();
+    options.profile.correction = Correction::On;
+    let corrected = run(&options);
+    let provenance = corrected.provenance.as_ref().unwrap();
+    assert_eq!(provenance.models.len(), 1, "{:?}", provenance.models);
+    let shipped = learned::models().shipped();
+    assert_eq!(provenance.models[0], shipped[0]);
+    assert_eq!(provenance.models[0].sha256.len(), 64);
+    assert!(classic.provenance.as_ref().unwrap().models.is_empty());
+    let heights = |r: &pipeline::report::Report| -> Vec<Option<f64>> {
+        r.threads.iter().flat_map(|t| t.height_mm.values.iter().copied()).collect()
+    };
+    let (a, b) = (heights(&classic), heights(&corrected));
+    assert_eq!(a.len(), b.len());
+    let changed =
+        a.iter().zip(&b).filter(|(x, y)| matches!((x, y), (Some(x), Some(y)) if (x - y).abs() > 1e-6)).count();
+    assert!(changed > 0, "the correction changed no height");
+    // Every corrected height is a height (a bounded change, not a model gone wrong).
+    for (x, y) in a.iter().zip(&b) {
+        if let (Some(x), Some(y)) = (x, y) {
+            assert!((x - y).abs() < 0.5 * corrected.nominal_height_mm, "{x} → {y}");
+        }
+    }
+    // An unknown model is an error that names the option.
+    options.profile.correction_model = Some("no-such-model".into());
+    let err = pipeline::inspect(&bundle, &options, &|_, _| {}, &AtomicBool::new(false)).err().expect("refused");
+    let text = err.to_string();
+    assert!(text.contains("no-such-model") && text.contains("profile-mlp"), "{text}");
+}
+
+#[test]
+fn without_onnx_runtime_the_cli_says_what_is_missing_and_the_classical_path_runs() {
+    let bin = env!("CARGO_BIN_EXE_crestscan");
+    let run = |correction: &str| {
+        std::process::Command::new(bin)
+            .args(["inspect", "--quiet", "--profile-correction", correction])
+            .arg(ci_bundle())
+            .env("CRESTSCAN_ORT_LIB", "/nonexistent/libonnxruntime.so")
+            .output()
+            .unwrap()
+    };
+    let on = run("on");
+    assert!(!on.status.success());
+    let stderr = String::from_utf8_lossy(&on.stderr);
+    assert!(stderr.contains("ONNX Runtime is not available"), "{stderr}");
+    assert!(
+        stderr.contains("/nonexistent/libonnxruntime.so") && stderr.contains("scripts/setup-onnxruntime"),
+        "{stderr}"
+    );
+    let off = run("off");
+    assert!(off.status.success(), "{}", String::from_utf8_lossy(&off.stderr));
+    assert!(String::from_utf8_lossy(&off.stdout).contains("ACCEPT"));
+}
