@@ -9,11 +9,18 @@ COPY src ./src
 COPY data ./data
 COPY migrations ./migrations
 COPY openapi ./openapi
+# The learned models are compiled into the binary; ONNX Runtime comes from its PyPI wheel.
+COPY models ./models
+COPY scripts/setup-onnxruntime ./scripts/setup-onnxruntime
+RUN apt-get update -qq && apt-get install -y -qq --no-install-recommends python3-pip >/dev/null \
+    && scripts/setup-onnxruntime /src/onnxruntime
 RUN cargo build --release --locked --bin crestscan
 
 FROM debian:bookworm-slim
 RUN useradd --system --uid 10001 --home-dir /var/lib/crestscan --create-home crestscan
 COPY --from=build /src/target/release/crestscan /usr/local/bin/crestscan
+# Found beside the binary (docs/models.md); installed models go in /var/lib/crestscan/models.
+COPY --from=build /src/onnxruntime/libonnxruntime.so /usr/local/bin/libonnxruntime.so
 USER crestscan
 WORKDIR /var/lib/crestscan
 # SQLite database, uploaded bundles and temporaries. The API browser (/docs) and the OpenAPI

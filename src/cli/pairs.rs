@@ -6,6 +6,8 @@ use super::open_bundle;
 use anyhow::{Context, Result};
 use crestscan::bundle::OpenOptions;
 use crestscan::domain::frame::Recording;
+use crestscan::eval::cmm::CmmMeasurements;
+use crestscan::eval::pairs::ProfileSet;
 use crestscan::pipeline::profile::Correction;
 use crestscan::pipeline::{self, PipelineOptions};
 use crestscan::sim::Truth;
@@ -20,8 +22,12 @@ pub struct PairsArgs {
     #[arg(long)]
     out: PathBuf,
     /// The simulator's truth [default: the bundle's truth/truth.json, when it has one].
-    #[arg(long)]
+    #[arg(long, conflicts_with = "cmm")]
     truth: Option<PathBuf>,
+    /// Pair with a CMM's heights instead (JSON or CSV, as `PUT /v1/inspections/{id}/cmm` takes
+    /// them; a file ending in .json is JSON).
+    #[arg(long)]
+    cmm: Option<PathBuf>,
     /// Pipeline options as a JSON file (as `inspect --options`); profile correction is always off:
     /// the pairs are the reconstruction's own.
     #[arg(long)]
@@ -33,27 +39,40 @@ impl PairsArgs {
         let b = open_bundle(&self.bundle, OpenOptions::default())?;
         let mut options = super::options_over(PipelineOptions::default(), self.options)?;
         options.profile.correction = Correction::Off;
-        let truth_path = self.truth.clone().or_else(|| {
-            let p = self.bundle.join("truth").join("truth.json");
-            p.is_file().then_some(p)
-        });
+        let truth_path = match (&self.truth, &self.cmm) {
+            (Some(p), _) => Some(p.clone()),
+            (None, Some(_)) => None,
+            (None, None) => Some(self.bundle.join("truth").join("truth.json")).filter(|p| p.is_file()),
+        };
+        let read = |p: &PathBuf| std::fs::read(p).with_context(|| format!("reading {}", p.display()));
         let truth: Option<Truth> = match &truth_path {
             Some(p) => Some(
-                serde_json::from_slice(&std::fs::read(p).with_context(|| format!("reading {}", p.display()))?)
+                serde_json::from_slice(&read(p)?)
                     .with_context(|| format!("{}: not a simulation's truth", p.display()))?,
             ),
+            None => None,
+        };
+        let cmm = match &self.cmm {
+            Some(p) => {
+                let bytes = read(p)?;
+                let parsed = if p.extension().is_some_and(|e| e == "json") {
+                    CmmMeasurements::from_json(&bytes)
+                } else {
+                    CmmMeasurements::from_csv(&bytes)
+                };
+                Some(parsed.map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?)
+            }
             None => None,
         };
         let inspection = pipeline::inspect(&b, &options, &|_, _| {}, &AtomicBool::new(false))?.context("cancelled")?;
         let source = self.bundle.file_name().map_or_else(String::new, |n| n.to_string_lossy().into_owned());
         let optics = b.optics();
-        let pairs = crestscan::eval::pairs::pairs(
-            &source,
-            &inspection,
-            &b.part().form,
-            optics.object_pixel_mm(optics.focus_distance_mm),
-            truth.as_ref(),
-        );
+        let set = ProfileSet::of(&inspection, &b.part().form, optics.object_pixel_mm(optics.focus_distance_mm));
+        let pairs = match (&truth, &cmm) {
+            (Some(t), _) => set.with_truth(&source, t),
+            (None, Some(c)) => set.with_cmm(&source, c),
+            (None, None) => set.unanswered(&source),
+        };
         let partial = self.out.with_extension("partial");
         let mut w = BufWriter::new(std::fs::File::create(&partial).with_context(|| partial.display().to_string())?);
         for p in &pairs {

@@ -8,10 +8,11 @@
 //! that the windows of [`pitch::window_slots`] read the true height off it.
 
 use crate::domain::thread::ThreadForm;
+use crate::eval::cmm::CmmMeasurements;
 use crate::pipeline::Inspection;
 use crate::pipeline::profile::pitch::{self, PITCH_SAMPLES};
 use crate::sim::Truth;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Debug, Serialize)]
 pub struct Pair {
@@ -33,7 +34,7 @@ pub struct Pair {
     pub root_weight_after: f64,
     /// The bin's own height fit (before the trimmed mean along the helix), mm.
     pub raw_height_mm: f64,
-    /// The true pitch, normalised alike (simulated parts only).
+    /// The true pitch, normalised alike (simulated parts only; a CMM gives heights).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub target: Option<Vec<f32>>,
     /// The true (or CMM) height of the bin, mm.
@@ -61,52 +62,147 @@ fn true_pitch(truth: &Truth, index: u32, angle_deg: f64) -> Vec<f32> {
     r.iter().map(|v| ((v - mean) / part.form.height_mm) as f32).collect()
 }
 
-/// Pairs of every measured bin of `inspection` (run with profile correction off) against a
-/// simulated bundle's truth, or without answers when there is none.
-pub fn pairs(
-    source: &str,
-    inspection: &Inspection,
-    form: &ThreadForm,
-    object_pixel_mm: f64,
-    truth: Option<&Truth>,
-) -> Vec<Pair> {
-    let helix = &inspection.report.helix;
-    let profiles = pitch::pitch_profiles(&inspection.map, form, helix, &inspection.threads);
-    let windows = windows(form);
-    let (before, after) = form.root_centres_mm();
-    let root_weight_after = (0.0 - before) / (after - before);
-    profiles
-        .into_iter()
-        .filter_map(|p| {
-            let thread = &inspection.threads[p.thread];
-            let bin = &thread.bins[p.bin];
-            let raw_height_mm = bin.raw_height_mm?;
-            let true_height = truth.and_then(|t| {
-                let tt = t.threads.iter().find(|tt| tt.index == thread.index)?;
-                let k = tt.height_mm.angles_deg.iter().position(|a| (a - bin.angle_deg).abs() < 1e-6)?;
-                tt.height_mm.values[k]
-            });
-            // A simulated bin without a true height (beyond the inspected length, or chamfered
-            // away) teaches nothing.
-            if truth.is_some() && true_height.is_none() {
-                return None;
-            }
-            Some(Pair {
-                source: source.into(),
-                thread: thread.index,
-                angle_deg: bin.angle_deg,
-                object_pixel_mm,
-                input: p.samples,
-                scale_mm: p.scale_mm,
-                filled_share: p.filled_share,
-                windows,
-                root_weight_after,
-                raw_height_mm,
-                target: truth.map(|t| true_pitch(t, thread.index, bin.angle_deg)),
-                target_height_mm: true_height,
+/// One measured bin's pitch of profile, as an inspection keeps it for later pairing.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ProfileBin {
+    pub thread: u32,
+    pub angle_deg: f64,
+    pub raw_height_mm: f64,
+    pub filled_share: f64,
+    #[serde(skip)]
+    pub input: Vec<f32>,
+}
+
+/// Every measured bin's pitch of profile of one inspection, with what pairing needs of the form:
+/// what the service keeps with a result (`pitch-profiles`) so that CMM data uploaded later makes
+/// training pairs.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ProfileSet {
+    pub version: u32,
+    pub object_pixel_mm: f64,
+    pub scale_mm: f64,
+    pub windows: [[usize; 2]; 3],
+    pub root_weight_after: f64,
+    pub bins: Vec<ProfileBin>,
+}
+
+#[derive(Debug, thiserror::Error)]
+#[error("stored pitch profiles unreadable: {0}")]
+pub struct ProfileSetError(String);
+
+impl ProfileSet {
+    /// The pitches of every bin `inspection` measured (with profile correction off or on: the
+    /// pitches are read off the map, before any correction).
+    pub fn of(inspection: &Inspection, form: &ThreadForm, object_pixel_mm: f64) -> Self {
+        let helix = &inspection.report.helix;
+        let profiles = pitch::pitch_profiles(&inspection.map, form, helix, &inspection.threads);
+        let (before, after) = form.root_centres_mm();
+        let bins = profiles
+            .into_iter()
+            .filter_map(|p| {
+                let thread = &inspection.threads[p.thread];
+                let bin = &thread.bins[p.bin];
+                Some(ProfileBin {
+                    thread: thread.index,
+                    angle_deg: bin.angle_deg,
+                    raw_height_mm: bin.raw_height_mm?,
+                    filled_share: p.filled_share,
+                    input: p.samples,
+                })
             })
-        })
-        .collect()
+            .collect();
+        Self {
+            version: 1,
+            object_pixel_mm,
+            scale_mm: form.height_mm,
+            windows: windows(form),
+            root_weight_after: (0.0 - before) / (after - before),
+            bins,
+        }
+    }
+
+    /// A JSON header line, then every bin's samples as little-endian f32 (5 MB for a whole part of
+    /// 5000 bins, a fifth of its text).
+    pub fn encode(&self) -> Vec<u8> {
+        let mut out = serde_json::to_vec(self).expect("serialises");
+        out.push(b'\n');
+        out.reserve(self.bins.len() * PITCH_SAMPLES * 4);
+        for b in &self.bins {
+            for v in &b.input {
+                out.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+        out
+    }
+
+    pub fn decode(bytes: &[u8]) -> Result<Self, ProfileSetError> {
+        let newline = bytes.iter().position(|&b| b == b'\n').ok_or_else(|| ProfileSetError("no header".into()))?;
+        let mut set: ProfileSet =
+            serde_json::from_slice(&bytes[..newline]).map_err(|e| ProfileSetError(e.to_string()))?;
+        let body = &bytes[newline + 1..];
+        if set.version != 1 || body.len() != set.bins.len() * PITCH_SAMPLES * 4 {
+            return Err(ProfileSetError(format!("version {} with {} bytes of samples", set.version, body.len())));
+        }
+        for (b, chunk) in set.bins.iter_mut().zip(body.chunks_exact(PITCH_SAMPLES * 4)) {
+            b.input = chunk.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+        }
+        Ok(set)
+    }
+
+    fn pair(&self, source: &str, b: &ProfileBin, target: Option<Vec<f32>>, target_height_mm: Option<f64>) -> Pair {
+        Pair {
+            source: source.into(),
+            thread: b.thread,
+            angle_deg: b.angle_deg,
+            object_pixel_mm: self.object_pixel_mm,
+            input: b.input.clone(),
+            scale_mm: self.scale_mm,
+            filled_share: b.filled_share,
+            windows: self.windows,
+            root_weight_after: self.root_weight_after,
+            raw_height_mm: b.raw_height_mm,
+            target,
+            target_height_mm,
+        }
+    }
+
+    /// Pairs against a simulated bundle's truth: the true pitch and height of every bin that has
+    /// a true height (one beyond the inspected length, or chamfered away, teaches nothing).
+    pub fn with_truth(&self, source: &str, truth: &Truth) -> Vec<Pair> {
+        self.bins
+            .iter()
+            .filter_map(|b| {
+                let tt = truth.threads.iter().find(|tt| tt.index == b.thread)?;
+                let k = tt.height_mm.angles_deg.iter().position(|a| (a - b.angle_deg).abs() < 1e-6)?;
+                let h = tt.height_mm.values[k]?;
+                Some(self.pair(source, b, Some(true_pitch(truth, b.thread, b.angle_deg)), Some(h)))
+            })
+            .collect()
+    }
+
+    /// Pairs against a CMM's heights: every bin with a CMM point of its thread in its 1° bin (the
+    /// mean of several); points without an angle (a thread's mean) pair with no bin.
+    pub fn with_cmm(&self, source: &str, cmm: &CmmMeasurements) -> Vec<Pair> {
+        self.bins
+            .iter()
+            .filter_map(|b| {
+                let heights: Vec<f64> = cmm
+                    .points
+                    .iter()
+                    .filter(|p| p.thread == b.thread)
+                    .filter(|p| p.angle_deg.is_some_and(|a| (a - (b.angle_deg - 0.5)).rem_euclid(360.0) < 1.0))
+                    .map(|p| p.height_mm)
+                    .collect();
+                (!heights.is_empty())
+                    .then(|| self.pair(source, b, None, Some(heights.iter().sum::<f64>() / heights.len() as f64)))
+            })
+            .collect()
+    }
+
+    /// Pairs without answers (a bundle with neither truth nor CMM data: the inputs only).
+    pub fn unanswered(&self, source: &str) -> Vec<Pair> {
+        self.bins.iter().map(|b| self.pair(source, b, None, None)).collect()
+    }
 }
 
 #[cfg(test)]
@@ -116,6 +212,44 @@ mod tests {
 
     /// The true pitch's windows read the truth's height: the target and the height agree, so a
     /// model trained on the profile learns the height.
+    #[test]
+    fn stored_profiles_read_back_and_pair_with_cmm_points_by_bin() {
+        let bin = |thread, angle_deg, v: f32| ProfileBin {
+            thread,
+            angle_deg,
+            raw_height_mm: 1.5,
+            filled_share: 0.9,
+            input: (0..PITCH_SAMPLES).map(|k| v + k as f32 * 1e-3).collect(),
+        };
+        let set = ProfileSet {
+            version: 1,
+            object_pixel_mm: 0.04,
+            scale_mm: 1.5748,
+            windows: [[97, 169], [0, 36], [220, 256]],
+            root_weight_after: 0.5,
+            bins: vec![bin(2, 10.5, 0.1), bin(2, 11.5, 0.2), bin(3, 10.5, -0.3)],
+        };
+        let back = ProfileSet::decode(&set.encode()).expect("reads back");
+        assert_eq!(back, set);
+        assert!(ProfileSet::decode(&set.encode()[..100]).is_err());
+        let cmm = CmmMeasurements {
+            instrument: None,
+            measured_at: None,
+            points: vec![
+                crate::eval::cmm::CmmPoint { thread: 2, angle_deg: Some(10.2), height_mm: 1.50 },
+                crate::eval::cmm::CmmPoint { thread: 2, angle_deg: Some(10.8), height_mm: 1.52 },
+                crate::eval::cmm::CmmPoint { thread: 2, angle_deg: None, height_mm: 1.4 },
+                crate::eval::cmm::CmmPoint { thread: 4, angle_deg: Some(10.5), height_mm: 1.4 },
+            ],
+        };
+        let pairs = set.with_cmm("x", &cmm);
+        assert_eq!(pairs.len(), 1, "one bin has CMM points: thread 2 at 10–11°");
+        assert_eq!((pairs[0].thread, pairs[0].angle_deg), (2, 10.5));
+        assert!((pairs[0].target_height_mm.unwrap() - 1.51).abs() < 1e-12);
+        assert!(pairs[0].target.is_none());
+        assert_eq!(pairs[0].input, set.bins[0].input);
+    }
+
     #[test]
     fn the_true_pitch_reads_the_true_height() {
         let spec = crate::sim::presets::preset("bc-black-2").expect("preset");

@@ -3,6 +3,7 @@
 //! complete with success, retry or abort. A panic in the pipeline fails that job only.
 
 use crate::bundle::{Bundle, OpenOptions};
+use crate::domain::frame::Recording;
 use crate::domain::rules::Verdict;
 use crate::domain::thread::ConnectionTable;
 use crate::export::{ply, png, stl};
@@ -300,8 +301,23 @@ fn run_job(ctx: &WorkerContext, job: &Claimed, cancel: &AtomicBool, progress: &M
         provenance.inspection_id = Some(job.id.clone());
         provenance.bundle_sha256 = Some(job.upload_sha256.clone());
     }
+    let optics = bundle.optics();
+    let profiles = crate::eval::pairs::ProfileSet::of(
+        &inspection,
+        &bundle.part().form,
+        optics.object_pixel_mm(optics.focus_distance_mm),
+    );
     match encode_results(&inspection) {
-        Ok(r) => Outcome::Succeeded(Box::new(r)),
+        Ok(mut r) => {
+            // Kept for the profile-correction MLP's training pairs once CMM data arrives
+            // (`GET …/training-pairs`; docs/models.md).
+            r.artifacts.push(Artifact {
+                kind: PITCH_PROFILES,
+                content_type: "application/octet-stream",
+                body: profiles.encode(),
+            });
+            Outcome::Succeeded(Box::new(r))
+        }
         Err(e) => {
             let reference = uuid::Uuid::now_v7();
             tracing::warn!(inspection = %job.id, error = %e, %reference, "encoding the results failed");
@@ -325,6 +341,9 @@ fn failure(e: &impl ErrorCode) -> Outcome {
         Outcome::Fail(Problem::of(e))
     }
 }
+
+/// The artifact holding an inspection's pitch profiles ([`crate::eval::pairs::ProfileSet`]).
+pub const PITCH_PROFILES: &str = "pitch-profiles";
 
 pub fn encode_results(
     inspection: &pipeline::Inspection,

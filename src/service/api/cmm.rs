@@ -18,7 +18,10 @@ use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
 pub fn router() -> OpenApiRouter<AppState> {
-    OpenApiRouter::new().routes(routes!(put_cmm, get_cmm)).routes(routes!(get_cmm_comparison))
+    OpenApiRouter::new()
+        .routes(routes!(put_cmm, get_cmm))
+        .routes(routes!(get_cmm_comparison))
+        .routes(routes!(get_training_pairs))
 }
 
 const MAX_CMM_BYTES: usize = 16 << 20;
@@ -218,4 +221,51 @@ pub async fn get_cmm_comparison(
         height_tolerance_mm: report.height_tolerance_mm,
         comparison: cmm::compare(&report, &measurements, tolerance),
     }))
+}
+
+/// The profile-correction MLP's training pairs of this inspection: one JSON object per line
+/// (`application/x-ndjson`), for each measured 1° bin that has a CMM point of its thread: the
+/// bin's pitch of reconstructed profile (256 samples), its own height fit, and the CMM's height.
+/// training/profile_mlp.py refits the MLP from such files (docs/models.md, "Recalibration from
+/// CMM data").
+#[utoipa::path(
+    get,
+    path = "/v1/inspections/{id}/training-pairs",
+    operation_id = "get_training_pairs",
+    tag = "cmm",
+    params(("id" = uuid::Uuid, Path, description = "Inspection id")),
+    responses(
+        (status = 200, description = "One pair per line", body = String, content_type = "application/x-ndjson"),
+        (status = 404, description = "No such inspection, no CMM data yet, or no pitch profiles kept", body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
+        (status = 410, description = "Pitch profiles deleted by retention", body = Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn get_training_pairs(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<axum::response::Response, ApiError> {
+    use axum::response::IntoResponse;
+    let id = succeeded(&state, &id).await?;
+    let stored = stored_cmm(&state, id.clone()).await?;
+    let kind = crate::service::worker::PITCH_PROFILES;
+    let artifact = match super::results::stored_artifact(&state, &id.0, kind).await {
+        Err(e) if e.code == Code::InvalidId => {
+            return Err(ApiError::new(
+                Code::NotFound,
+                "this inspection kept no pitch profiles (it finished before crestscan kept them): inspect the \
+                 bundle again to pair it with CMM data",
+            ));
+        }
+        other => other?,
+    };
+    let set = crate::eval::pairs::ProfileSet::decode(&artifact.body).map_err(ApiError::internal)?;
+    let measurements =
+        CmmMeasurements { instrument: stored.instrument, measured_at: stored.measured_at, points: stored.points };
+    let mut body = Vec::new();
+    for pair in set.with_cmm(&id.0, &measurements) {
+        serde_json::to_writer(&mut body, &pair).map_err(ApiError::internal)?;
+        body.push(b'\n');
+    }
+    Ok(([(header::CONTENT_TYPE, "application/x-ndjson")], body).into_response())
 }

@@ -375,7 +375,7 @@ pub async fn get_image(
 }
 
 /// A stored mesh or image, or 410 when the retention deleted it.
-async fn stored_artifact(
+pub(super) async fn stored_artifact(
     state: &AppState,
     id: &str,
     kind: &str,
