@@ -130,6 +130,32 @@ def export(model, path: pathlib.Path, example: torch.Tensor):
     onnx.save(m, str(path))
 
 
+def card_markdown(card) -> str:
+    """The model card for people, from the same figures as the JSON card."""
+    t, m = card["training"], card["metrics"]
+    lines = [
+        f"# Model card: {card['name']}",
+        "",
+        f"- **Role:** {card['role']} (one pitch of reconstructed profile in, the corrected pitch out; heights are read off it).",
+        f"- **sha256:** `{card['sha256']}`",
+        f"- **Architecture:** {card['architecture']}; input `{card['input']['name']}` {card['input']['shape']}, output `{card['output']['name']}` {card['output']['shape']}.",
+        f"- **Input:** {card['input']['meaning']}.",
+        f"- **Data:** {t['pairs']} training pairs from {len(t['files'])} bundles rendered at random stations by `training/render.py` (station and part seeds {', '.join(f.split('@')[1].split('.')[0] for f in t['files'])}), validation bundles {', '.join(t['validation_sources']) or 'none'}.",
+        f"- **Held out:** {len(t['heldout_files'])} bundles at stations never trained on: {', '.join(f.split('.jsonl')[0] for f in t['heldout_files'])}.",
+        f"- **Training:** {t['optimizer']}; {t['loss']}; {t['epochs']} epochs (best at {m.get('best_epoch')}), lr {t['lr']}, seed {t['seed']}, torch {t['torch']}, {t['seconds']} s on this machine's CPU{'; refitted from ' + t['init'] if t.get('init') else ''}.",
+        "",
+    ]
+    if "heldout_height_rms_um" in m:
+        lines += ["## Held-out heights (each bin's own height, before the trimmed mean along the helix)", "",
+                  "| stations | bins | classical fit RMS µm | read off the MLP's pitch RMS µm |", "|---|---|---|---|"]
+        for cls, v in list(m.get("heldout_by_class", {}).items()) + [("all", m["heldout_height_rms_um"])]:
+            lines.append(f"| {cls} | {v['bins']} | {v['before']} | {v['after']} |")
+        lines.append("")
+    lines += ["Reproduce: `python training/profile_mlp.py` (docs/models.md). The whole pipeline's figures with and without",
+              "the model are in docs/models.md, measured by `crestscan bench --profile-correction on|off`.", ""]
+    return "\n".join(lines)
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--pairs", nargs="*", help="training pair files [default: training/data/pairs/train/*.jsonl]")
@@ -228,12 +254,13 @@ def main():
         "training": {
             "pairs": n, "files": [pathlib.Path(f).name for f in train_files], "validation_sources": sorted(val_sources),
             "heldout_files": [pathlib.Path(f).name for f in heldout_files], "epochs": a.epochs, "lr": a.lr,
-            "optimizer": "AdamW (weight decay 1e-4), cosine schedule, batch 256", "loss": "MSE on the pitch (simulated) or on the height (CMM)",
+            "optimizer": "AdamW (weight decay 1e-4), cosine schedule, batch 256", "loss": "MSE on the pitch plus MSE on the height read off it (simulated pairs); on the height alone (CMM pairs)",
             "seed": a.seed, "seconds": round(seconds, 1), "torch": torch.__version__, "init": a.init,
         },
         "metrics": metrics,
     }
     (out / f"{a.name}.json").write_text(json.dumps(card, indent=1) + "\n")
+    (out / f"{a.name}.md").write_text(card_markdown(card))
     print(f"{onnx_path}: sha256 {sha}, {seconds:.0f} s")
 
 

@@ -58,7 +58,8 @@ enum Command {
 #[derive(Args, Debug)]
 struct LearnedArgs {
     /// Correct each bin's pitch of profile with the seed's MLP before its height is taken (needs
-    /// ONNX Runtime: scripts/setup-onnxruntime).
+    /// ONNX Runtime: scripts/setup-onnxruntime); `auto` where the station's pixels are coarse
+    /// (docs/models.md).
     #[arg(long, value_enum, default_value_t = CorrectionArg::from(ProfileOptions::default().correction))]
     profile_correction: CorrectionArg,
     /// The correction model by name [default: the shipped one]; an installed one is
@@ -74,6 +75,8 @@ struct LearnedArgs {
 enum CorrectionArg {
     On,
     Off,
+    /// Where the station's object pixel exceeds the options' `profile.correction_min_pixel_mm`.
+    Auto,
 }
 
 impl From<Correction> for CorrectionArg {
@@ -81,6 +84,7 @@ impl From<Correction> for CorrectionArg {
         match c {
             Correction::On => CorrectionArg::On,
             Correction::Off => CorrectionArg::Off,
+            Correction::Auto => CorrectionArg::Auto,
         }
     }
 }
@@ -93,6 +97,7 @@ impl LearnedArgs {
             correction: match self.profile_correction {
                 CorrectionArg::On => Correction::On,
                 CorrectionArg::Off => Correction::Off,
+                CorrectionArg::Auto => Correction::Auto,
             },
             correction_model: self.correction_model,
             ..profile

@@ -164,7 +164,7 @@ fn run_stages(
     let registered = register_views(recording, options, &depth_maps, &mut run)?;
     let (map, map_implausible_share) =
         fuse_views(recording, options, &depth_maps, &registered.poses, &registered.encoder_z_ranges_mm, &mut run)?;
-    let (mesh, helix, mut threads, models) =
+    let (mesh, helix, mut threads, learned) =
         mesh_and_profile(recording, options, models, &map, map_implausible_share, &mut run)?;
     let measured_threads = threads.clone();
     let (assessment, crest, rule_input) = crest_and_rules(recording, options, &helix, &threads, &mut run);
@@ -175,13 +175,24 @@ fn run_stages(
         ),
         ..domain::station::Station::of(recording.optics(), recording.views(), part.pipe_od_mm / 2.0)
     };
-    let quality = quality::assess(
+    let mut quality = quality::assess(
         &station,
         &registered.registration,
         recording.views(),
         &assessment,
         &quality::SurfaceFit::of(&helix, part, depth_coverage),
     );
+    if let Some(e) = &learned.unavailable {
+        quality.flag(
+            quality::QualityStatus::Degraded,
+            quality::QualityCode::ProfileCorrectionUnavailable,
+            format!(
+                "this station's object pixel called for the profile-correction MLP (profile.correction auto) and it \
+                 could not run: the heights are the classical fits, which at such stations erred about twice as much \
+                 (docs/models.md). {e}"
+            ),
+        );
+    }
     let (uncertainty, thread_mean_u) = uncertainty::heights(
         &mut threads,
         &uncertainty::Scales {
@@ -231,7 +242,7 @@ fn run_stages(
         depth_prefiltered_views: depth_maps.iter().filter(|d| d.prefiltered).count(),
         map_coverage: map.coverage(),
         map_implausible_share,
-        models,
+        models: learned.used,
         timings: run.into_timings(),
     });
     Ok(Inspection { report, map, depth_maps, poses: registered.poses, mesh, threads: measured_threads })
@@ -425,7 +436,7 @@ fn mesh_and_profile(
     map: &UnrolledMap,
     map_implausible_share: f64,
     run: &mut Run,
-) -> Step<(mesh::Mesh, Helix, Vec<ThreadMeasure>, Vec<crate::learned::ModelUse>)> {
+) -> Step<(mesh::Mesh, Helix, Vec<ThreadMeasure>, Learned)> {
     run.progress(Stage::Mesh, 0.0);
     run.progress(Stage::Profile, 0.0);
     let form = &recording.part().form;
@@ -458,20 +469,52 @@ fn mesh_and_profile(
     // and its own sessions' threads.
     let started = Instant::now();
     let mut models_used = Vec::new();
-    if options.profile.correction == profile::Correction::On {
-        let model = models
-            .get(crate::learned::ModelRole::ProfileCorrection, options.profile.correction_model.as_deref())
-            .map_err(PipelineError::from)?;
-        profile::pitch::correct_heights(map, form, &helix, &mut threads, &options.profile, &model)
-            .map_err(PipelineError::from)?;
-        models_used.push(model.identity.clone());
+    let mut unavailable = None;
+    let optics = recording.optics();
+    let pixel_mm = optics.object_pixel_mm(optics.focus_distance_mm);
+    let profile_options = &options.profile;
+    if profile_options.correction.wanted(pixel_mm, profile_options.correction_min_pixel_mm) {
+        let corrected = models
+            .get(crate::learned::ModelRole::ProfileCorrection, profile_options.correction_model.as_deref())
+            .and_then(|model| {
+                let mut corrected = threads.clone();
+                profile::pitch::correct_heights(map, form, &helix, &mut corrected, profile_options, &model)?;
+                Ok((model, corrected))
+            });
+        match corrected {
+            Ok((model, corrected)) => {
+                threads = corrected;
+                models_used.push(model.identity.clone());
+            }
+            // Asked for by name or by `on`: an error. Chosen by `auto` for the station: the
+            // classical heights, and the report says so.
+            Err(e)
+                if profile_options.correction == profile::Correction::Auto
+                    && matches!(
+                        e,
+                        crate::learned::LearnedError::RuntimeMissing { .. }
+                            | crate::learned::LearnedError::Model { .. }
+                    ) =>
+            {
+                unavailable = Some(e)
+            }
+            Err(e) => return Err(PipelineError::from(e).into()),
+        }
     }
-    run.record_side_by_side(&[
-        (Stage::Mesh, mesh_seconds),
-        (Stage::Profile, profile_seconds + started.elapsed().as_secs_f64()),
-    ]);
+    let correction_seconds = started.elapsed().as_secs_f64();
+    run.record_side_by_side(&[(Stage::Mesh, mesh_seconds), (Stage::Profile, profile_seconds + correction_seconds)]);
+    if !models_used.is_empty() {
+        // Inside the profile stage's time, named so that benchmarks can set it against depth's.
+        run.record_part(report::PROFILE_CORRECTION, correction_seconds);
+    }
     run.check()?;
-    Ok((mesh, helix, threads, models_used))
+    Ok((mesh, helix, threads, Learned { used: models_used, unavailable }))
+}
+
+/// The learned models a run used, and the one `auto` wanted and could not run.
+struct Learned {
+    used: Vec<crate::learned::ModelUse>,
+    unavailable: Option<crate::learned::LearnedError>,
 }
 
 /// Black-crest observations from the per-thread measures, then the API 5B rules on them.

@@ -59,8 +59,12 @@ impl PipelineOptions {
     /// service checks at submission, so that a missing model is refused then rather than failing
     /// the job. Nothing is asked of a classical run.
     pub fn check_learned(&self, models: &crate::learned::Models) -> Result<(), crate::learned::LearnedError> {
-        if self.profile.correction == crate::pipeline::profile::Correction::On {
+        // `auto` may want the model at the bundle's station: it must exist (a name is checked);
+        // the runtime's absence is said in the report instead.
+        if self.profile.correction != crate::pipeline::profile::Correction::Off {
             models.get(crate::learned::ModelRole::ProfileCorrection, self.profile.correction_model.as_deref())?;
+        }
+        if self.profile.correction == crate::pipeline::profile::Correction::On {
             crate::learned::runtime()?;
         }
         Ok(())
@@ -120,6 +124,7 @@ pub const RANGES: &[OptionRange] = &[
     count("uncertainty.noise_half_bins", 1.0, 180.0),
     range("uncertainty.encoder_axial_bound_mm", 0.0, 10.0),
     range("cell_px", 1.0, 10.0),
+    range("profile.correction_min_pixel_mm", 0.0, 1.0),
 ];
 
 /// An option outside its documented range.

@@ -47,6 +47,9 @@ pub enum QualityCode {
     DepthCoverageLow,
     /// The report was stored before quality was assessed.
     NotAssessed,
+    /// The station called for the profile-correction MLP and it could not run: the heights are
+    /// the classical fits.
+    ProfileCorrectionUnavailable,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -62,6 +65,12 @@ pub struct Quality {
 }
 
 impl Quality {
+    /// Adds a reason of at least `at`.
+    pub fn flag(&mut self, at: QualityStatus, code: QualityCode, message: String) {
+        self.status = self.status.max(at);
+        self.reasons.push(QualityReason { code, message });
+    }
+
     /// What a report stored before quality was assessed reads as: not known to be ok.
     pub fn not_assessed() -> Self {
         Self {

@@ -81,6 +81,12 @@ impl<'a> Run<'a> {
         self.clock = Instant::now();
     }
 
+    /// Records a part of a stage under its own name (not a stage of its own for progress), without
+    /// restarting the clock.
+    pub(crate) fn record_part(&mut self, name: &str, seconds: f64) {
+        self.timings.push(StageTiming { stage: name.into(), seconds });
+    }
+
     pub(crate) fn into_timings(self) -> Vec<StageTiming> {
         self.timings
     }

@@ -49,8 +49,15 @@ fn profile_correction_changes_heights_and_the_report_names_the_model() {
     let run = |options: &PipelineOptions| {
         pipeline::inspect(&bundle, options, &|_, _| {}, &AtomicBool::new(false)).unwrap().unwrap().report
     };
-    let classic = run(&PipelineOptions::default());
+    let heights = |r: &pipeline::report::Report| -> Vec<Option<f64>> {
+        r.threads.iter().flat_map(|t| t.height_mm.values.iter().copied()).collect()
+    };
     let mut options = PipelineOptions::default();
+    // The ci station's pixels are fine: `auto`, the default, leaves its heights classical.
+    assert_eq!(options.profile.correction, Correction::Auto);
+    let classic = run(&options);
+    options.profile.correction = Correction::Off;
+    assert_eq!(heights(&run(&options)), heights(&classic));
     options.profile.correction = Correction::On;
     let corrected = run(&options);
     let provenance = corrected.provenance.as_ref().unwrap();
@@ -59,9 +66,6 @@ fn profile_correction_changes_heights_and_the_report_names_the_model() {
     assert_eq!(provenance.models[0], shipped[0]);
     assert_eq!(provenance.models[0].sha256.len(), 64);
     assert!(classic.provenance.as_ref().unwrap().models.is_empty());
-    let heights = |r: &pipeline::report::Report| -> Vec<Option<f64>> {
-        r.threads.iter().flat_map(|t| t.height_mm.values.iter().copied()).collect()
-    };
     let (a, b) = (heights(&classic), heights(&corrected));
     assert_eq!(a.len(), b.len());
     let changed =
@@ -102,4 +106,22 @@ fn without_onnx_runtime_the_cli_says_what_is_missing_and_the_classical_path_runs
     let off = run("off");
     assert!(off.status.success(), "{}", String::from_utf8_lossy(&off.stderr));
     assert!(String::from_utf8_lossy(&off.stdout).contains("ACCEPT"));
+    // `auto` at a station whose pixels call for the MLP (every station, with a bound of 0): the
+    // classical heights, and the report says why.
+    let options = tempfile::NamedTempFile::new().unwrap();
+    std::fs::write(options.path(), r#"{"profile": {"correction_min_pixel_mm": 0.0}}"#).unwrap();
+    let auto = std::process::Command::new(bin)
+        .args(["inspect", "--quiet", "--json", "--profile-correction", "auto", "--options"])
+        .arg(options.path())
+        .arg(ci_bundle())
+        .env("CRESTSCAN_ORT_LIB", "/nonexistent/libonnxruntime.so")
+        .output()
+        .unwrap();
+    assert!(auto.status.success(), "{}", String::from_utf8_lossy(&auto.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&auto.stdout).unwrap();
+    let reasons = report["quality"]["reasons"].as_array().unwrap();
+    let reason = reasons.iter().find(|r| r["code"] == "profile_correction_unavailable").expect("the reason");
+    assert!(reason["message"].as_str().unwrap().contains("ONNX Runtime is not available"), "{reason}");
+    assert_ne!(report["quality"]["status"], "ok");
+    assert!(report["provenance"].get("models").is_none(), "{}", report["provenance"]);
 }

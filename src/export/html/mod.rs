@@ -217,7 +217,7 @@ fn header(page: &mut String, r: &Report, inputs: &PageInputs, title: &str) {
             st.frame_noise_percent.map(|n| format!(", frame noise {n:.2}%")).unwrap_or_default()
         );
     }
-    let total: f64 = r.timings.iter().map(|t| t.seconds).sum();
+    let total: f64 = r.timings.iter().filter(|t| !t.is_part()).map(|t| t.seconds).sum();
     let stages: Vec<String> = r.timings.iter().map(|t| format!("{} {:.2} s", t.stage, t.seconds)).collect();
     let _ = writeln!(
         page,

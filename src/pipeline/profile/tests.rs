@@ -228,3 +228,15 @@ fn a_window_whose_own_surface_lies_to_one_side_gives_no_value() {
     let level = fit_at_centre(&pts, Section::Flat, 0.7);
     assert!(level.is_none_or(|l| (l - 50.0 - 1.5748).abs() < 0.01), "{level:?}");
 }
+
+#[test]
+fn auto_corrects_only_where_the_pixels_are_coarser_than_its_bound() {
+    let bound = ProfileOptions::default().correction_min_pixel_mm;
+    assert!(!Correction::Auto.wanted(bound, bound));
+    assert!(Correction::Auto.wanted(bound * 1.01, bound));
+    assert!(Correction::On.wanted(0.001, bound));
+    assert!(!Correction::Off.wanted(1.0, bound));
+    // The standard station (41 µm pixels) and the envelope the uncertainty was measured in stay
+    // classical.
+    assert!(!Correction::Auto.wanted(0.045, bound));
+}

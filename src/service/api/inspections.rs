@@ -194,8 +194,11 @@ fn pipeline_options_schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::
             }
             serde_json::Value::String(_) if path == "profile.correction" => builder
                 .schema_type(SchemaType::new(Type::String))
-                .enum_values(Some(["off", "on"]))
-                .description(Some("Correct each pitch of profile with the seed's MLP (needs ONNX Runtime)")),
+                .enum_values(Some(["off", "on", "auto"]))
+                .description(Some(
+                    "Correct each pitch of profile with the seed's MLP (needs ONNX Runtime); auto: where the \
+                     station's object pixel exceeds correction_min_pixel_mm",
+                )),
             serde_json::Value::Null if path == "profile.correction_model" => builder
                 .schema_type(SchemaType::from_iter([Type::String, Type::Null]))
                 .pattern(Some("^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"))
