@@ -118,8 +118,9 @@ pub struct Inspection {
     /// The refined view poses.
     pub poses: Vec<ViewPose>,
     pub mesh: mesh::Mesh,
-    /// The measured threads before the uncertainty stage (their bins' own fits in
-    /// `raw_height_mm`), for [`profile::pitch::pitch_profiles`] on the map.
+    /// The measured threads as the classical fits left them (their bins' own fits in
+    /// `raw_height_mm`, before any profile correction and the uncertainty stage), for
+    /// [`profile::pitch::pitch_profiles`] on the map.
     pub threads: Vec<ThreadMeasure>,
 }
 
@@ -166,7 +167,8 @@ fn run_stages(
         fuse_views(recording, options, &depth_maps, &registered.poses, &registered.encoder_z_ranges_mm, &mut run)?;
     let (mesh, helix, mut threads, learned) =
         mesh_and_profile(recording, options, models, &map, map_implausible_share, &mut run)?;
-    let measured_threads = threads.clone();
+    // The classical fits, for the training pairs (`eval::pairs`), whether or not the MLP ran.
+    let measured_threads = learned.classical.clone().unwrap_or_else(|| threads.clone());
     let (assessment, crest, rule_input) = crest_and_rules(recording, options, &helix, &threads, &mut run);
     let part = recording.part();
     let station = domain::station::Station {
@@ -465,11 +467,11 @@ fn mesh_and_profile(
         map_implausible_share,
     })?;
     let mut threads = threads.expect("measured whenever the helix was found");
-    // The MLP runs after the side by side: it is the profile stage's, but needs the whole map
-    // and its own sessions' threads.
+    // The MLP runs after mesh and profile, not beside them: it needs the profile's threads, and
+    // its sessions run on the same workers.
     let started = Instant::now();
     let mut models_used = Vec::new();
-    let mut unavailable = None;
+    let (mut unavailable, mut classical) = (None, None);
     let optics = recording.optics();
     let pixel_mm = optics.object_pixel_mm(optics.focus_distance_mm);
     let profile_options = &options.profile;
@@ -483,7 +485,7 @@ fn mesh_and_profile(
             });
         match corrected {
             Ok((model, corrected)) => {
-                threads = corrected;
+                classical = Some(std::mem::replace(&mut threads, corrected));
                 models_used.push(model.identity.clone());
             }
             // Asked for by name or by `on`: an error. Chosen by `auto` for the station: the
@@ -508,13 +510,15 @@ fn mesh_and_profile(
         run.record_part(report::PROFILE_CORRECTION, correction_seconds);
     }
     run.check()?;
-    Ok((mesh, helix, threads, Learned { used: models_used, unavailable }))
+    Ok((mesh, helix, threads, Learned { used: models_used, unavailable, classical }))
 }
 
 /// The learned models a run used, and the one `auto` wanted and could not run.
 struct Learned {
     used: Vec<crate::learned::ModelUse>,
     unavailable: Option<crate::learned::LearnedError>,
+    /// The classical threads, where the MLP replaced their heights.
+    classical: Option<Vec<ThreadMeasure>>,
 }
 
 /// Black-crest observations from the per-thread measures, then the API 5B rules on them.

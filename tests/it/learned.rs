@@ -59,7 +59,13 @@ fn profile_correction_changes_heights_and_the_report_names_the_model() {
     options.profile.correction = Correction::Off;
     assert_eq!(heights(&run(&options)), heights(&classic));
     options.profile.correction = Correction::On;
-    let corrected = run(&options);
+    let corrected_run = pipeline::inspect(&bundle, &options, &|_, _| {}, &AtomicBool::new(false)).unwrap().unwrap();
+    let corrected = corrected_run.report.clone();
+    // The threads kept for training pairs are the classical fits, whatever corrected the report.
+    options.profile.correction = Correction::Off;
+    let classic_run = pipeline::inspect(&bundle, &options, &|_, _| {}, &AtomicBool::new(false)).unwrap().unwrap();
+    assert_eq!(corrected_run.threads, classic_run.threads);
+    options.profile.correction = Correction::On;
     let provenance = corrected.provenance.as_ref().unwrap();
     assert_eq!(provenance.models.len(), 1, "{:?}", provenance.models);
     let shipped = learned::models().shipped();
