@@ -35,6 +35,15 @@ pub enum ModelSource {
     Installed,
 }
 
+impl ModelSource {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ModelSource::Shipped => "shipped",
+            ModelSource::Installed => "installed",
+        }
+    }
+}
+
 /// Which model produced part of a report.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ModelUse {

@@ -203,6 +203,14 @@ impl Report {
             )),
             None => out.push_str("  z from the encoders (no end face in view)\n"),
         }
+        for m in self.provenance.iter().flat_map(|p| &p.models) {
+            out.push_str(&format!(
+                "  heights corrected by the {} model {} (sha256 {})\n",
+                m.role.as_str(),
+                m.name,
+                m.sha256
+            ));
+        }
         // The mesh and the profile run at the same time: together they take the longer of the two.
         let seconds_of = |stage: &str| self.timings.iter().find(|t| t.stage == stage).map(|t| t.seconds);
         let overlap = match (seconds_of("mesh"), seconds_of("profile")) {

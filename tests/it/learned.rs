@@ -72,6 +72,13 @@ fn profile_correction_changes_heights_and_the_report_names_the_model() {
     assert_eq!(provenance.models[0], shipped[0]);
     assert_eq!(provenance.models[0].sha256.len(), 64);
     assert!(classic.provenance.as_ref().unwrap().models.is_empty());
+    // The summary and the report page name the model.
+    assert!(corrected.summary().contains(&format!("sha256 {}", shipped[0].sha256)), "{}", corrected.summary());
+    let page = crestscan::export::html::report_page(&corrected, &Default::default());
+    assert!(page.contains(&format!("profile-mlp (shipped, sha256 {})", shipped[0].sha256)));
+    assert!(
+        crestscan::export::html::report_page(&classic, &Default::default()).contains("none: the classical pipeline")
+    );
     let (a, b) = (heights(&classic), heights(&corrected));
     assert_eq!(a.len(), b.len());
     let changed =

@@ -392,6 +392,17 @@ fn provenance(page: &mut String, r: &Report, inputs: &PageInputs) {
         if let Some(sha) = &p.bundle_sha256 {
             rows.push(("bundle sha256", sha.clone()));
         }
+        rows.push((
+            "learned models",
+            match p.models.as_slice() {
+                [] => "none: the classical pipeline".to_string(),
+                models => models
+                    .iter()
+                    .map(|m| format!("{} {} ({}, sha256 {})", m.role.as_str(), m.name, m.source.as_str(), m.sha256))
+                    .collect::<Vec<_>>()
+                    .join("; "),
+            },
+        ));
     }
     if let Some(id) = inputs.inspection_id {
         rows.push(("inspection", id.to_string()));
