@@ -43,8 +43,11 @@ pub struct InspectArgs {
     quiet: bool,
 }
 
+/// Spelt as the API spells `arc_rule` (`per_thread`); `per-thread`, the spelling before, is
+/// still taken.
 #[derive(Clone, Copy, clap::ValueEnum)]
 enum ArcRuleArg {
+    #[value(name = "per_thread", alias = "per-thread")]
     PerThread,
     Combined,
 }

@@ -143,7 +143,15 @@ fn telecentric_round_thread_inspection() {
 fn cli_inspect_writes_the_report_in_the_contract_shape() {
     let out = tempfile::tempdir().unwrap();
     let status = std::process::Command::new(env!("CARGO_BIN_EXE_crestscan"))
-        .args(["inspect", ci_bundle().to_str().unwrap(), "--out", out.path().to_str().unwrap()])
+        // The arc rule spelt as the API spells it.
+        .args([
+            "inspect",
+            ci_bundle().to_str().unwrap(),
+            "--out",
+            out.path().to_str().unwrap(),
+            "--arc-rule",
+            "per_thread",
+        ])
         .output()
         .unwrap();
     assert!(status.status.success(), "{}", String::from_utf8_lossy(&status.stderr));
