@@ -121,8 +121,8 @@ impl ProfileSet {
         }
     }
 
-    /// A JSON header line, then every bin's samples as little-endian f32 (5 MB for a whole part of
-    /// 5000 bins, a fifth of its text).
+    /// A JSON header line, then every bin's samples as little-endian f32: 1 kB a bin (2.5 MB for
+    /// the standard station's ring), a fifth of the samples' JSON text.
     pub fn encode(&self) -> Vec<u8> {
         let mut out = serde_json::to_vec(self).expect("serialises");
         out.push(b'\n');
