@@ -122,7 +122,7 @@ impl ProfileSet {
     }
 
     /// A JSON header line, then every bin's samples as little-endian f32: 1 kB a bin (2.5 MB for
-    /// the standard station's ring), a fifth of the samples' JSON text.
+    /// the standard station's ring), under half the samples' JSON text.
     pub fn encode(&self) -> Vec<u8> {
         let mut out = serde_json::to_vec(self).expect("serialises");
         out.push(b'\n');
