@@ -138,3 +138,44 @@ fn without_onnx_runtime_the_cli_says_what_is_missing_and_the_classical_path_runs
     assert_ne!(report["quality"]["status"], "ok");
     assert!(report["provenance"].get("models").is_none(), "{}", report["provenance"]);
 }
+
+#[test]
+fn cli_pairs_answer_with_the_truth_or_a_cmm_file() {
+    let bin = env!("CARGO_BIN_EXE_crestscan");
+    let dir = tempfile::tempdir().unwrap();
+    let read = |path: &std::path::Path| -> Vec<serde_json::Value> {
+        std::fs::read_to_string(path).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect()
+    };
+    let with_truth = dir.path().join("truth.jsonl");
+    let run =
+        std::process::Command::new(bin).arg("pairs").arg(ci_bundle()).arg("--out").arg(&with_truth).output().unwrap();
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let pairs = read(&with_truth);
+    assert!(pairs.len() >= 10, "{}", pairs.len());
+    for p in &pairs {
+        assert_eq!(p["input"].as_array().unwrap().len(), 256);
+        assert_eq!(p["target"].as_array().unwrap().len(), 256);
+        let (raw, truth) = (p["raw_height_mm"].as_f64().unwrap(), p["target_height_mm"].as_f64().unwrap());
+        // The ci station measures within tens of µm: a pair far off would be a pairing error.
+        assert!((raw - truth).abs() < 0.1, "{p}");
+    }
+    // The same bins against a CMM file (a thread's mean, without an angle, pairs with no bin).
+    let (thread, angle) = (pairs[0]["thread"].as_u64().unwrap(), pairs[0]["angle_deg"].as_f64().unwrap());
+    let cmm = dir.path().join("cmm.csv");
+    std::fs::write(&cmm, format!("thread,angle_deg,height_mm\n{thread},{angle},1.6\n{thread},,1.5\n")).unwrap();
+    let with_cmm = dir.path().join("cmm.jsonl");
+    let run = std::process::Command::new(bin)
+        .arg("pairs")
+        .arg(ci_bundle())
+        .arg("--cmm")
+        .arg(&cmm)
+        .arg("--out")
+        .arg(&with_cmm)
+        .output()
+        .unwrap();
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let pairs = read(&with_cmm);
+    assert_eq!(pairs.len(), 1);
+    assert_eq!(pairs[0]["target_height_mm"], 1.6);
+    assert!(pairs[0].get("target").is_none());
+}
