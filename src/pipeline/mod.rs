@@ -184,6 +184,20 @@ fn run_stages(
         &assessment,
         &quality::SurfaceFit::of(&helix, part, depth_coverage),
     );
+    for m in &learned.used {
+        quality.flag(
+            quality::QualityStatus::Degraded,
+            quality::QualityCode::ProfileCorrected,
+            format!(
+                "the heights were read off pitches corrected by the {} model {} (sha256 {}): the method's uncertainty \
+                 was measured for the classical heights, so each height's U includes the heights' dispersion along \
+                 the helix and their median's distance from nominal, and no decision is made (docs/models.md)",
+                m.role.as_str(),
+                m.name,
+                m.sha256
+            ),
+        );
+    }
     if let Some(e) = &learned.unavailable {
         quality.flag(
             quality::QualityStatus::Degraded,

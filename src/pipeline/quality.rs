@@ -50,6 +50,9 @@ pub enum QualityCode {
     /// The station called for the profile-correction MLP and it could not run: the heights are
     /// the classical fits.
     ProfileCorrectionUnavailable,
+    /// The heights were corrected by the profile-correction MLP: the method's uncertainty was
+    /// measured for the classical heights, not for the model's.
+    ProfileCorrected,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

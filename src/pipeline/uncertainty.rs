@@ -103,8 +103,9 @@ pub struct Scales<'a> {
 
 /// Whether the measurement cannot vouch for its own uncertainty: the quality checks say it failed
 /// (too little was measured, the helix does not fit the surface, or depth from focus trusted too
-/// few pixels), or the station's optics lie outside the envelope the method's uncertainty was
-/// measured in (its Type B term is known only there: on the random stations' optics heights were
+/// few pixels), a learned model corrected the heights (at the standard station the MLP's own
+/// error, about 10 µm, left the classical budget covering 30% of the errors: docs/models.md), or
+/// the station's optics lie outside the envelope the method's uncertainty was measured in (its Type B term is known only there: on the random stations' optics heights were
 /// off by tens to hundreds of µm that no local scatter shows). Such a result's heights carry the
 /// dispersion along the helix besides their local scatter, and no decision is made on it.
 pub fn measurement_failed(quality: &Quality, station: &Station) -> bool {
@@ -112,7 +113,12 @@ pub fn measurement_failed(quality: &Quality, station: &Station) -> bool {
         || quality
             .reasons
             .iter()
-            .any(|r| matches!(r.code, QualityCode::HelixResidualLarge | QualityCode::DepthCoverageLow))
+            .any(|r| {
+                matches!(
+                    r.code,
+                    QualityCode::HelixResidualLarge | QualityCode::DepthCoverageLow | QualityCode::ProfileCorrected
+                )
+            })
         || station.optics_outside(&crate::domain::station::MEASURED)
 }
 

@@ -72,6 +72,13 @@ fn profile_correction_changes_heights_and_the_report_names_the_model() {
     assert_eq!(provenance.models[0], shipped[0]);
     assert_eq!(provenance.models[0].sha256.len(), 64);
     assert!(classic.provenance.as_ref().unwrap().models.is_empty());
+    // The uncertainty was measured for classical heights: corrected ones take the failed path,
+    // with no decision, and say so.
+    let codes = |r: &pipeline::report::Report| r.quality.reasons.iter().map(|q| q.code).collect::<Vec<_>>();
+    assert!(codes(&corrected).contains(&pipeline::quality::QualityCode::ProfileCorrected));
+    assert!(!codes(&classic).contains(&pipeline::quality::QualityCode::ProfileCorrected));
+    assert!(corrected.review_required);
+    assert_eq!(corrected.decision, pipeline::uncertainty::Decision::Indeterminate);
     // The summary and the report page name the model.
     assert!(corrected.summary().contains(&format!("sha256 {}", shipped[0].sha256)), "{}", corrected.summary());
     let page = crestscan::export::html::report_page(&corrected, &Default::default());
