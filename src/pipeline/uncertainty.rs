@@ -110,15 +110,12 @@ pub struct Scales<'a> {
 /// dispersion along the helix besides their local scatter, and no decision is made on it.
 pub fn measurement_failed(quality: &Quality, station: &Station) -> bool {
     quality.status == QualityStatus::Insufficient
-        || quality
-            .reasons
-            .iter()
-            .any(|r| {
-                matches!(
-                    r.code,
-                    QualityCode::HelixResidualLarge | QualityCode::DepthCoverageLow | QualityCode::ProfileCorrected
-                )
-            })
+        || quality.reasons.iter().any(|r| {
+            matches!(
+                r.code,
+                QualityCode::HelixResidualLarge | QualityCode::DepthCoverageLow | QualityCode::ProfileCorrected
+            )
+        })
         || station.optics_outside(&crate::domain::station::MEASURED)
 }
 

@@ -166,6 +166,20 @@ pub fn start_binary(data: &Path, extra: &[&str]) -> (std::process::Child, String
     (child, format!("http://{address}"))
 }
 
+/// Submits the ci bundle to a service at `base` (one [`start_binary`] started); the new id, after
+/// checking the 202.
+pub async fn submit_ci_to(client: &reqwest::Client, base: &str) -> String {
+    let response = client
+        .post(format!("{base}/v1/inspections"))
+        .header("content-type", "application/x-tar")
+        .body(ci_tar())
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(response.status(), StatusCode::ACCEPTED);
+    response.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string()
+}
+
 /// The ci bundle (without truth/) as a tar archive.
 pub fn ci_tar() -> Vec<u8> {
     bundle_tar(ci_bundle(), &|_| true)

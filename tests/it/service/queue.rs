@@ -48,15 +48,7 @@ async fn kill_9_loses_no_accepted_inspection() {
     let (mut child, base) = start(data.path());
     let mut ids = Vec::new();
     for _ in 0..3 {
-        let r = client
-            .post(format!("{base}/v1/inspections"))
-            .header("content-type", "application/x-tar")
-            .body(ci_tar())
-            .send()
-            .await
-            .unwrap();
-        assert_eq!(r.status(), StatusCode::ACCEPTED);
-        ids.push(r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string());
+        ids.push(submit_ci_to(&client, &base).await);
     }
     // Kill it while the first is running.
     let deadline = Instant::now() + Duration::from_secs(60);

@@ -106,15 +106,7 @@ async fn the_dashboard_and_the_report_page_work_in_a_real_browser() {
     let served = serve_binary();
     let base = served.base.clone();
     let client = reqwest::Client::new();
-    let response = client
-        .post(format!("{base}/v1/inspections"))
-        .header("content-type", "application/x-tar")
-        .body(ci_tar())
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(response.status(), StatusCode::ACCEPTED);
-    let id = response.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+    let id = submit_ci_to(&client, &base).await;
     // The long poll answers at each change of status or stage: ask again until it has ended.
     let deadline = std::time::Instant::now() + Duration::from_secs(300);
     let done = loop {
