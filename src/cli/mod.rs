@@ -118,6 +118,21 @@ struct DepthArgs {
     /// half size; docs/pipeline.md, 1. Depth from focus).
     #[arg(long, default_value_t = DepthOptions::default().edge_window_radius_px as u16)]
     depth_edge_window: u16,
+    /// Depth from focus by the classical focus measure, or by the seed's U-Nets through ONNX
+    /// Runtime (scripts/setup-onnxruntime) at the pixels the classical stage trusts
+    /// (docs/models.md).
+    #[arg(long, value_enum, default_value_t = DepthMethodArg::Classic)]
+    depth: DepthMethodArg,
+    /// The depth model by name [default: the shipped one]; an installed one is
+    /// `<models-dir>/<name>.onnx` with its card `<name>.json`.
+    #[arg(long)]
+    depth_model: Option<String>,
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum DepthMethodArg {
+    Classic,
+    Cnn,
 }
 
 impl From<DepthArgs> for DepthOptions {
@@ -125,6 +140,11 @@ impl From<DepthArgs> for DepthOptions {
         Self {
             row_step: args.depth_row_step.into(),
             edge_window_radius_px: args.depth_edge_window.into(),
+            method: match args.depth {
+                DepthMethodArg::Classic => crestscan::pipeline::depth::DepthMethod::Classic,
+                DepthMethodArg::Cnn => crestscan::pipeline::depth::DepthMethod::Cnn,
+            },
+            model: args.depth_model,
             ..Default::default()
         }
     }

@@ -18,12 +18,23 @@ use std::sync::{Arc, Mutex, OnceLock};
 pub enum ModelRole {
     /// One pitch of profile in, the corrected pitch out ([`super::profile_mlp`]).
     ProfileCorrection,
+    /// A view's stack in, each pixel's in-focus plane out ([`super::depth_cnn`]).
+    Depth,
 }
 
 impl ModelRole {
     pub fn as_str(self) -> &'static str {
         match self {
             ModelRole::ProfileCorrection => "profile_correction",
+            ModelRole::Depth => "depth",
+        }
+    }
+
+    /// The pipeline option that names a model of this role.
+    pub fn option(self) -> &'static str {
+        match self {
+            ModelRole::ProfileCorrection => "profile.correction_model",
+            ModelRole::Depth => "depth.model",
         }
     }
 }
@@ -73,12 +84,20 @@ struct Shipped {
     card: &'static str,
 }
 
-const SHIPPED: &[Shipped] = &[Shipped {
-    name: "profile-mlp",
-    role: ModelRole::ProfileCorrection,
-    bytes: include_bytes!("../../models/profile-mlp.onnx"),
-    card: include_str!("../../models/profile-mlp.json"),
-}];
+const SHIPPED: &[Shipped] = &[
+    Shipped {
+        name: "profile-mlp",
+        role: ModelRole::ProfileCorrection,
+        bytes: include_bytes!("../../models/profile-mlp.onnx"),
+        card: include_str!("../../models/profile-mlp.json"),
+    },
+    Shipped {
+        name: "depth-unet",
+        role: ModelRole::Depth,
+        bytes: include_bytes!("../../models/depth-unet.onnx"),
+        card: include_str!("../../models/depth-unet.json"),
+    },
+];
 
 pub struct Models {
     shipped: Vec<Arc<Model>>,
@@ -108,12 +127,12 @@ fn sha256_hex(bytes: &[u8]) -> String {
 }
 
 /// A name that can only mean a file in the models folder.
-fn check_name(name: &str) -> Result<(), LearnedError> {
+fn check_name(role: ModelRole, name: &str) -> Result<(), LearnedError> {
     let ok = (1..=64).contains(&name.len())
         && name.starts_with(|c: char| c.is_ascii_alphanumeric())
         && name.chars().all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-'))
         && !name.contains("..");
-    if ok { Ok(()) } else { Err(LearnedError::InvalidName(name.chars().take(80).collect())) }
+    if ok { Ok(()) } else { Err(LearnedError::InvalidName { role: role.as_str(), name: name.chars().take(80).collect() }) }
 }
 
 impl Models {
@@ -147,7 +166,7 @@ impl Models {
         let Some(name) = name else {
             return Ok(of_role().next().expect("a shipped model of every role").clone());
         };
-        check_name(name)?;
+        check_name(role, name)?;
         if let Some(m) = of_role().find(|m| m.identity.name == name) {
             return Ok(m.clone());
         }
@@ -186,7 +205,7 @@ impl Models {
         let mut names: Vec<String> = entries
             .filter_map(|e| e.ok())
             .filter_map(|e| e.file_name().to_str().and_then(|n| n.strip_suffix(".json")).map(String::from))
-            .filter(|n| check_name(n).is_ok() && dir.join(format!("{n}.onnx")).is_file())
+            .filter(|n| check_name(role, n).is_ok() && dir.join(format!("{n}.onnx")).is_file())
             .filter(|n| read_role(&dir.join(format!("{n}.json"))) == Some(role))
             .collect();
         names.sort();
@@ -224,7 +243,7 @@ mod tests {
         let models = Models::new(Some(std::env::temp_dir()));
         for bad in ["../x", "a/b", "", ".hidden", "a..b", &"x".repeat(65)] {
             let err = models.get(ModelRole::ProfileCorrection, Some(bad)).err().expect(bad);
-            assert!(matches!(err, LearnedError::InvalidName(_)), "{bad}: {err}");
+            assert!(matches!(err, LearnedError::InvalidName { .. }), "{bad}: {err}");
         }
         let err = models.get(ModelRole::ProfileCorrection, Some("not-there")).err().expect("unknown");
         assert!(matches!(err, LearnedError::UnknownModel { .. }), "{err}");

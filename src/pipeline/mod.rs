@@ -89,6 +89,15 @@ pub enum PipelineError {
     Learned(#[from] crate::learned::LearnedError),
 }
 
+impl From<depth::cnn::CnnDepthError> for PipelineError {
+    fn from(e: depth::cnn::CnnDepthError) -> Self {
+        match e {
+            depth::cnn::CnnDepthError::Frame(e) => PipelineError::Frame(e),
+            depth::cnn::CnnDepthError::Learned(e) => PipelineError::Learned(e),
+        }
+    }
+}
+
 impl ErrorCode for PipelineError {
     fn code(&self) -> Code {
         match self {
@@ -161,7 +170,7 @@ fn run_stages(
     models: &crate::learned::Models,
     mut run: Run,
 ) -> Step<Inspection> {
-    let (depth_maps, depth_coverage) = measure_depth(recording, options, &mut run)?;
+    let (depth_maps, depth_coverage, depth_model) = measure_depth(recording, options, models, &mut run)?;
     let registered = register_views(recording, options, &depth_maps, &mut run)?;
     let (map, map_implausible_share) =
         fuse_views(recording, options, &depth_maps, &registered.poses, &registered.encoder_z_ranges_mm, &mut run)?;
@@ -184,6 +193,20 @@ fn run_stages(
         &assessment,
         &quality::SurfaceFit::of(&helix, part, depth_coverage),
     );
+    if let Some(m) = &depth_model {
+        quality.flag(
+            quality::QualityStatus::Degraded,
+            quality::QualityCode::DepthLearned,
+            format!(
+                "depth came from the {} model {} (sha256 {}): the method's uncertainty was measured for the \
+                 classical depth, so each height's U includes the heights' dispersion along the helix and their \
+                 median's distance from nominal, and no decision is made (docs/models.md)",
+                m.role.as_str(),
+                m.name,
+                m.sha256
+            ),
+        );
+    }
     for m in &learned.used {
         quality.flag(
             quality::QualityStatus::Degraded,
@@ -258,7 +281,7 @@ fn run_stages(
         depth_prefiltered_views: depth_maps.iter().filter(|d| d.prefiltered).count(),
         map_coverage: map.coverage(),
         map_implausible_share,
-        models: learned.used,
+        models: depth_model.into_iter().chain(learned.used).collect(),
         timings: run.into_timings(),
     });
     Ok(Inspection { report, map, depth_maps, poses: registered.poses, mesh, threads: measured_threads })
@@ -266,9 +289,25 @@ fn run_stages(
 
 /// Depth from focus per view, in parallel, then the views' sub-frame phases equalised; the maps
 /// and their mean coverage.
-fn measure_depth(recording: &dyn Recording, options: &PipelineOptions, run: &mut Run) -> Step<(Vec<DepthMap>, f64)> {
+fn measure_depth(
+    recording: &dyn Recording,
+    options: &PipelineOptions,
+    models: &crate::learned::Models,
+    run: &mut Run,
+) -> Step<(Vec<DepthMap>, f64, Option<crate::learned::ModelUse>)> {
     let views = recording.views();
     run.progress(Stage::Depth, 0.0);
+    let model = match options.depth.method {
+        depth::DepthMethod::Classic => None,
+        depth::DepthMethod::Cnn => Some(
+            models
+                .get(crate::learned::ModelRole::Depth, options.depth.model.as_deref())
+                .map_err(PipelineError::from)?,
+        ),
+    };
+    // The nets' share of the stage, summed over views (they run on the same workers as the
+    // classical measure), for benchmarks to set against the classical stage.
+    let (cnn_nanos, classic_nanos) = (std::sync::atomic::AtomicU64::new(0), std::sync::atomic::AtomicU64::new(0));
     let done = AtomicUsize::new(0);
     let total = views.len();
     // Depth buffers are handed from view to view (one set per view in flight, not one per view).
@@ -280,6 +319,7 @@ fn measure_depth(recording: &dyn Recording, options: &PipelineOptions, run: &mut
         .par_iter()
         .enumerate()
         .map(|(v, view)| {
+            let started = Instant::now();
             let mut scratch = scratches.lock().expect("no panics while held").pop().unwrap_or_default();
             let map = depth_from_focus_in(
                 &mut scratch,
@@ -290,18 +330,34 @@ fn measure_depth(recording: &dyn Recording, options: &PipelineOptions, run: &mut
                 &cancelled,
             );
             scratches.lock().expect("no panics while held").push(scratch);
-            let map = map?;
+            let mut map = map?;
+            classic_nanos.fetch_add(started.elapsed().as_nanos() as u64, Ordering::Relaxed);
+            if let (Some(model), Some(classical)) = (&model, map.as_mut()) {
+                let started = Instant::now();
+                let done = depth::cnn_depth(
+                    model,
+                    recording.optics(),
+                    view,
+                    |k| recording.read_frame(v, k),
+                    &cancelled,
+                    classical,
+                )?;
+                cnn_nanos.fetch_add(started.elapsed().as_nanos() as u64, Ordering::Relaxed);
+                if !done {
+                    map = None;
+                }
+            }
             run_ref.progress(Stage::Depth, (done.fetch_add(1, Ordering::Relaxed) + 1) as f64 / total as f64);
             Ok(map)
         })
-        .collect::<Result<_, FrameError>>()
-        .map_err(PipelineError::from)?;
+        .collect::<Result<_, PipelineError>>()?;
     if run.cancelled() || depth_maps.iter().any(Option::is_none) {
         return Err(Halt::Cancelled);
     }
     drop(scratches);
     let mut depth_maps: Vec<DepthMap> = depth_maps.into_iter().flatten().collect();
-    if options.depth.equalize_phase {
+    // The sub-frame phase bias is the classical peak finder's; the nets' planes have their own.
+    if options.depth.equalize_phase && model.is_none() {
         let grids: Vec<Option<(f64, f64)>> = views
             .iter()
             .map(|v| depth::even_frame_grid(&v.frames.iter().map(|f| f.offset_mm).collect::<Vec<_>>()))
@@ -312,8 +368,13 @@ fn measure_depth(recording: &dyn Recording, options: &PipelineOptions, run: &mut
     if depth_coverage == 0.0 {
         return Err(PipelineError::NoDepth.into());
     }
-    run.lap(Stage::Depth);
-    Ok((depth_maps, depth_coverage))
+    let stage_seconds = run.lap(Stage::Depth);
+    if model.is_some() {
+        // The views run in parallel: the stage's wall time shared by the two parts' summed times.
+        let (cnn, classic) = (cnn_nanos.into_inner() as f64, classic_nanos.into_inner() as f64);
+        run.record_part(report::DEPTH_CNN, stage_seconds * cnn / (cnn + classic).max(1.0));
+    }
+    Ok((depth_maps, depth_coverage, model.map(|m| m.identity.clone())))
 }
 
 /// What registration hands on: the refined poses, what it measured, and the views' z ranges at

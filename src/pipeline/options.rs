@@ -67,6 +67,10 @@ impl PipelineOptions {
         if self.profile.correction == crate::pipeline::profile::Correction::On {
             crate::learned::runtime()?;
         }
+        if self.depth.method == crate::pipeline::depth::DepthMethod::Cnn {
+            models.get(crate::learned::ModelRole::Depth, self.depth.model.as_deref())?;
+            crate::learned::runtime()?;
+        }
         Ok(())
     }
 }

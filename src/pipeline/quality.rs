@@ -53,6 +53,9 @@ pub enum QualityCode {
     /// The heights were corrected by the profile-correction MLP: the method's uncertainty was
     /// measured for the classical heights, not for the model's.
     ProfileCorrected,
+    /// Depth came from the U-Nets (`depth.method: cnn`): the method's uncertainty was measured for
+    /// the classical depth, not for the nets'.
+    DepthLearned,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

@@ -64,10 +64,13 @@ pub struct StageTiming {
 /// inside `profile`).
 pub const PROFILE_CORRECTION: &str = "profile_correction";
 
+/// The depth U-Nets' share of the depth stage (`depth.method: cnn`).
+pub const DEPTH_CNN: &str = "depth_cnn";
+
 impl StageTiming {
     /// Whether this timing is part of another's (not to be added to the total).
     pub fn is_part(&self) -> bool {
-        self.stage == PROFILE_CORRECTION
+        self.stage == PROFILE_CORRECTION || self.stage == DEPTH_CNN
     }
 }
 
@@ -204,12 +207,11 @@ impl Report {
             None => out.push_str("  z from the encoders (no end face in view)\n"),
         }
         for m in self.provenance.iter().flat_map(|p| &p.models) {
-            out.push_str(&format!(
-                "  heights corrected by the {} model {} (sha256 {})\n",
-                m.role.as_str(),
-                m.name,
-                m.sha256
-            ));
+            let what = match m.role {
+                crate::learned::ModelRole::ProfileCorrection => "heights corrected by the profile_correction model",
+                crate::learned::ModelRole::Depth => "depth from the depth model",
+            };
+            out.push_str(&format!("  {what} {} (sha256 {})\n", m.name, m.sha256));
         }
         // The mesh and the profile run at the same time: together they take the longer of the two.
         let seconds_of = |stage: &str| self.timings.iter().find(|t| t.stage == stage).map(|t| t.seconds);
@@ -224,6 +226,7 @@ impl Report {
             .map(|t| match t.stage.as_str() {
                 "profile" if overlap > 0.0 => format!("beside it profile {:.2}", t.seconds),
                 PROFILE_CORRECTION => format!("of it the MLP {:.2}", t.seconds),
+                DEPTH_CNN => format!("of it the U-Nets {:.2}", t.seconds),
                 _ => format!("{} {:.2}", t.stage, t.seconds),
             })
             .collect();

@@ -69,9 +69,12 @@ impl<'a> Run<'a> {
     }
 
     /// Ends `stage`: its time is the time since the previous stage ended.
-    pub(crate) fn lap(&mut self, stage: Stage) {
-        self.timings.push(StageTiming { stage: stage.as_str().into(), seconds: self.clock.elapsed().as_secs_f64() });
+    /// Records `stage`'s time since the last lap and restarts the clock; the time.
+    pub(crate) fn lap(&mut self, stage: Stage) -> f64 {
+        let seconds = self.clock.elapsed().as_secs_f64();
+        self.timings.push(StageTiming { stage: stage.as_str().into(), seconds });
         self.clock = Instant::now();
+        seconds
     }
 
     /// Records stages that ran side by side, each with its own time, and restarts the clock.

@@ -113,7 +113,10 @@ pub fn measurement_failed(quality: &Quality, station: &Station) -> bool {
         || quality.reasons.iter().any(|r| {
             matches!(
                 r.code,
-                QualityCode::HelixResidualLarge | QualityCode::DepthCoverageLow | QualityCode::ProfileCorrected
+                QualityCode::HelixResidualLarge
+                    | QualityCode::DepthCoverageLow
+                    | QualityCode::ProfileCorrected
+                    | QualityCode::DepthLearned
             )
         })
         || station.optics_outside(&crate::domain::station::MEASURED)

@@ -17,6 +17,7 @@
 //! The first frame's pixel noise is read ([`noise`]) for the report and the envelope, and, as an
 //! option, decides a Gaussian pre-filter for noisy views.
 
+pub mod cnn;
 pub mod measure;
 pub mod noise;
 mod peak;
@@ -25,6 +26,7 @@ mod resample;
 mod silhouette;
 mod speckle;
 
+pub use cnn::cnn_depth;
 pub use peak::peak_offset;
 pub use phase::{equalize_sub_frame_phase, even_frame_grid};
 pub use silhouette::{FrameEdge, frame_edge};
@@ -39,8 +41,28 @@ use rayon::prelude::*;
 use resample::{HeldFrame, Taps, axis_taps, resample_row, tap_spans};
 use serde::{Deserialize, Serialize};
 
+/// Which depth estimate a run reports.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DepthMethod {
+    /// Depth from focus by the focus measure's peak ([`depth_from_focus`]).
+    #[default]
+    Classic,
+    /// The seed's defocus and depth U-Nets ([`cnn_depth`]) at the pixels the classical stage
+    /// trusts (docs/models.md).
+    Cnn,
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct DepthOptions {
+    /// Classical depth from focus or the U-Nets (options stored before this existed load as
+    /// classic).
+    #[serde(default)]
+    pub method: DepthMethod,
+    /// The depth model (`method: cnn`): a shipped one or one installed in the models folder; none:
+    /// the shipped `depth-unet`.
+    #[serde(default)]
+    pub model: Option<String>,
     /// Half size of the box that sums the focus measure. [`DepthOptions::for_form`] sets it from
     /// the thread's profile: this value where crests and roots are arcs, `flat_window_radius_px`
     /// where they are flat.
@@ -144,6 +166,8 @@ fn edge_window_radius_px() -> usize {
 impl Default for DepthOptions {
     fn default() -> Self {
         Self {
+            method: DepthMethod::Classic,
+            model: None,
             window_radius_px: 4,
             flat_window_radius_px: 5,
             min_peak_ratio: 1.6,

@@ -199,6 +199,17 @@ fn pipeline_options_schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::
                     "Correct each pitch of profile with the seed's MLP (needs ONNX Runtime); auto: where the \
                      station's object pixel exceeds correction_min_pixel_mm",
                 )),
+            serde_json::Value::String(_) if path == "depth.method" => builder
+                .schema_type(SchemaType::new(Type::String))
+                .enum_values(Some(["classic", "cnn"]))
+                .description(Some(
+                    "Depth from focus by the classical focus measure, or by the seed's U-Nets (needs ONNX Runtime) \
+                     at the pixels the classical measure trusts",
+                )),
+            serde_json::Value::Null if path == "depth.model" => builder
+                .schema_type(SchemaType::from_iter([Type::String, Type::Null]))
+                .pattern(Some("^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"))
+                .description(Some("A shipped or installed depth model by name; null: the shipped one")),
             serde_json::Value::Null if path == "profile.correction_model" => builder
                 .schema_type(SchemaType::from_iter([Type::String, Type::Null]))
                 .pattern(Some("^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"))
@@ -397,11 +408,14 @@ pub async fn create_inspection(
                 ApiError::new(
                     Code::ModelUnavailable,
                     "this server cannot run the learned models now (ONNX Runtime or the model could not be \
-                     loaded; its log says which); with pipeline.profile.correction \"off\" the classical \
-                     pipeline runs",
+                     loaded; its log says which); with pipeline.profile.correction \"off\" and \
+                     pipeline.depth.method \"classic\" the classical pipeline runs",
                 )
             }
-            _ => ApiError::of(&e).with_culprit("pipeline.profile.correction_model"),
+            _ => {
+                let culprit = e.culprit().map(|c| format!("pipeline.{c}"));
+                ApiError::of(&e).with_culprit(culprit.as_deref().unwrap_or("pipeline"))
+            }
         })?;
     let options_json = serde_json::to_string(&options).expect("options serialise");
     let request_sha256 =

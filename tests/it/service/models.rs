@@ -99,3 +99,30 @@ async fn profile_correction_runs_through_the_api_and_names_the_model() {
     assert_eq!(models[0]["sha256"], shipped[0].sha256.as_str(), "the same bytes");
     app.stop().await;
 }
+
+#[tokio::test]
+async fn cnn_depth_runs_through_the_api_and_names_the_model() {
+    let app = spawn_app().await;
+    let unknown = submit_with(&app, r#"{"pipeline": {"depth": {"method": "cnn", "model": "plant-depth"}}}"#).await;
+    let v = problem(unknown, StatusCode::UNPROCESSABLE_ENTITY, "unknown_model").await;
+    assert_eq!(v["culprit"], "pipeline.depth.model");
+    assert!(v["detail"].as_str().unwrap().contains("depth-unet"), "{v}");
+    let bad = submit_with(&app, r#"{"pipeline": {"depth": {"method": "deep"}}}"#).await;
+    problem(bad, StatusCode::UNPROCESSABLE_ENTITY, "invalid_option").await;
+
+    let response =
+        submit_with(&app, r#"{"pipeline": {"depth": {"method": "cnn"}, "profile": {"correction": "off"}}}"#).await;
+    assert_eq!(response.status(), StatusCode::ACCEPTED);
+    let id = response.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+    let done = app.wait(&id, Duration::from_secs(300)).await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    let report: Value = app.get(&format!("/v1/inspections/{id}/report")).await.json().await.unwrap();
+    assert_eq!(report["provenance"]["settings"]["depth"]["method"], "cnn");
+    let models = report["provenance"]["models"].as_array().cloned().unwrap_or_default();
+    assert_eq!(models.len(), 1, "{models:?}");
+    assert_eq!((models[0]["name"].as_str(), models[0]["role"].as_str()), (Some("depth-unet"), Some("depth")));
+    let depth = crestscan::learned::models().get(crestscan::learned::ModelRole::Depth, None).unwrap();
+    assert_eq!(models[0]["sha256"], depth.identity.sha256.as_str());
+    let timings = report["timings"].as_array().unwrap();
+    assert!(timings.iter().any(|t| t["stage"] == "depth_cnn"), "{timings:?}");
+}
