@@ -14,7 +14,8 @@ COPY models ./models
 COPY scripts/setup-onnxruntime ./scripts/setup-onnxruntime
 RUN apt-get update -qq && apt-get install -y -qq --no-install-recommends python3-pip >/dev/null \
     && scripts/setup-onnxruntime /src/onnxruntime
-RUN cargo build --release --locked --bin crestscan
+# Stripped: the image carries no symbol tables (panics still name their message and location).
+RUN CARGO_PROFILE_RELEASE_STRIP=symbols cargo build --release --locked --bin crestscan
 
 FROM debian:bookworm-slim
 RUN useradd --system --uid 10001 --home-dir /var/lib/crestscan --create-home crestscan
@@ -28,8 +29,18 @@ WORKDIR /var/lib/crestscan
 VOLUME ["/var/lib/crestscan"]
 # Clients that reach the container by a DNS name (crestscan.plant.local, a compose service name)
 # need it listed, or get 421: -e CRESTSCAN_ALLOWED_HOSTS=crestscan.plant.local,crestscan
+# The shutdown grace fits inside Docker's default stop timeout (10 s, then SIGKILL); to give
+# running jobs longer, raise both together: docker run --stop-timeout 40 -e
+# CRESTSCAN_SHUTDOWN_GRACE_SECONDS=30 (compose: stop_grace_period). A killed job is not lost: its
+# lease expires and another claim runs it again.
+# Listening on every interface, so API keys are required (the service refuses to start otherwise).
+# The first key, from the data volume (printed alone on its last line):
+#   docker run --rm -v crestscan-data:/var/lib/crestscan crestscan keys create --name root --scopes admin
 ENV CRESTSCAN_BIND=0.0.0.0:8080 \
-    CRESTSCAN_DATA_DIR=/var/lib/crestscan
+    CRESTSCAN_AUTH=required \
+    CRESTSCAN_DATA_DIR=/var/lib/crestscan \
+    CRESTSCAN_SHUTDOWN_GRACE_SECONDS=8 \
+    CRESTSCAN_LOG_FORMAT=json
 EXPOSE 8080
 HEALTHCHECK --interval=15s --timeout=5s --start-period=10s --retries=3 CMD ["crestscan", "healthcheck"]
 # SIGTERM drains: no new claims, running jobs get the grace period (CRESTSCAN_SHUTDOWN_GRACE_SECONDS).

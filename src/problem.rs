@@ -48,6 +48,9 @@ codes! {
     NotFound = ("not_found", 404, "Not found"),
     MethodNotAllowed = ("method_not_allowed", 405, "Method not allowed"),
     OriginNotAllowed = ("origin_not_allowed", 403, "Origin not allowed"),
+    Unauthorized = ("unauthorized", 401, "API key required"),
+    InvalidKey = ("invalid_key", 401, "Invalid API key"),
+    InsufficientScope = ("insufficient_scope", 403, "Insufficient scope"),
     NotAcceptable = ("not_acceptable", 406, "Not acceptable"),
     RequestTimeout = ("request_timeout", 408, "Request timeout"),
     BodyTooLarge = ("body_too_large", 413, "Body too large"),
@@ -95,6 +98,7 @@ codes! {
     NotReady = ("not_ready", 503, "Not ready"),
     ModelUnavailable = ("model_unavailable", 503, "Learned model unavailable"),
     TooManyUploads = ("too_many_uploads", 429, "Too many uploads from this client"),
+    TooManySubmissions = ("too_many_submissions", 429, "Too many submissions with this key"),
     ServerBusy = ("server_busy", 503, "Too many uploads at once"),
     InsufficientStorage = ("insufficient_storage", 507, "Insufficient storage"),
 }

@@ -4,6 +4,7 @@ mod bench;
 mod compare;
 mod connections;
 mod inspect;
+mod keys;
 mod pairs;
 mod progress;
 mod serve;
@@ -44,6 +45,8 @@ enum Command {
     Connections(connections::ConnectionsArgs),
     /// Run the HTTP service (REST API, job queue, workers). Settings: flags > CRESTSCAN_* > config file > defaults.
     Serve(Box<serve::ServeArgs>),
+    /// API keys of a service's data directory: create (the first admin key), list, revoke.
+    Keys(keys::KeysArgs),
     /// Print the OpenAPI document of the HTTP API (JSON).
     Openapi,
     /// Exit 0 when a local service answers /healthz (for container health checks; no curl needed).
@@ -181,6 +184,7 @@ pub fn main() -> Result<()> {
         Command::Validate(args) => args.run(),
         Command::Connections(args) => args.run(),
         Command::Serve(args) => args.run(),
+        Command::Keys(args) => args.run(),
         Command::Openapi => {
             println!("{}", crestscan::service::api::openapi().to_pretty_json()?);
             Ok(())

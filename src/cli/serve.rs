@@ -126,6 +126,37 @@ pub struct ServeArgs {
     /// Log filter [default: info].
     #[arg(long, env = "CRESTSCAN_LOG")]
     log: Option<String>,
+    /// Log lines as text (colours only on a terminal) or JSON, one object a line [default: text].
+    #[arg(long, value_enum, env = "CRESTSCAN_LOG_FORMAT")]
+    log_format: Option<LogFormatArg>,
+    /// `required`: every route but /healthz and /readyz needs an API key (crestscan keys create);
+    /// `off` is allowed on a loopback address only [default: off].
+    #[arg(long, value_enum, env = "CRESTSCAN_AUTH")]
+    auth: Option<AuthArg>,
+    /// Submissions per API key per minute, 429 beyond (0: no limit) [default: 60].
+    #[arg(long, env = "CRESTSCAN_SUBMISSIONS_PER_MINUTE")]
+    submissions_per_minute: Option<u32>,
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum AuthArg {
+    Off,
+    Required,
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum LogFormatArg {
+    Text,
+    Json,
+}
+
+impl From<LogFormatArg> for crestscan::service::config::LogFormat {
+    fn from(f: LogFormatArg) -> Self {
+        match f {
+            LogFormatArg::Text => Self::Text,
+            LogFormatArg::Json => Self::Json,
+        }
+    }
 }
 
 impl ServeArgs {
@@ -167,15 +198,25 @@ impl ServeArgs {
             poll_interval_ms,
             upload_retention_days,
             artifact_retention_days,
-            log
+            log,
+            submissions_per_minute
         );
+        if let Some(auth) = self.auth {
+            s.auth = match auth {
+                AuthArg::Off => crestscan::service::config::AuthMode::Off,
+                AuthArg::Required => crestscan::service::config::AuthMode::Required,
+            };
+        }
+        if let Some(format) = self.log_format {
+            s.log_format = format.into();
+        }
         s.validate()?;
         Ok(s)
     }
 
     pub fn run(self) -> Result<()> {
         let settings = self.settings()?;
-        crestscan::service::telemetry::init_logging(&settings.log);
+        crestscan::service::telemetry::init_logging(&settings.log, settings.log_format);
         let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
         runtime.block_on(async move {
         let app = crestscan::service::startup::Application::build(settings.clone()).await?;

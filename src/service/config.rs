@@ -84,6 +84,30 @@ pub struct Settings {
     pub artifact_retention_days: f64,
     /// Tracing filter (`info`, `crestscan=debug,tower_http=info`, ...).
     pub log: String,
+    /// Log lines as text (colours only on a terminal) or as one JSON object each (for a log
+    /// collector).
+    pub log_format: LogFormat,
+    /// `required`: every route but `/healthz` and `/readyz` needs an API key (`crestscan keys
+    /// create`); `off`: none does, allowed only on a loopback address.
+    pub auth: AuthMode,
+    /// Submissions per API key per minute (429 with Retry-After beyond; 0: no limit).
+    pub submissions_per_minute: u32,
+}
+
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AuthMode {
+    #[default]
+    Off,
+    Required,
+}
+
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LogFormat {
+    #[default]
+    Text,
+    Json,
 }
 
 impl Default for Settings {
@@ -119,6 +143,9 @@ impl Default for Settings {
             upload_retention_days: 30.0,
             artifact_retention_days: 0.0,
             log: "info".into(),
+            log_format: LogFormat::Text,
+            auth: AuthMode::Off,
+            submissions_per_minute: 60,
         }
     }
 }
@@ -188,6 +215,17 @@ impl Settings {
         }
         if !(self.artifact_retention_days >= 0.0) {
             return invalid("artifact_retention_days", "must be non-negative (0 keeps them)");
+        }
+        if self.auth == AuthMode::Off && !self.bind.ip().is_loopback() {
+            return Err(ConfigError::Invalid {
+                field: "auth",
+                message: format!(
+                    "binding {} with auth off would let anyone on the network submit, read and cancel: run with \
+                     --auth required (CRESTSCAN_AUTH=required; the first key: crestscan keys create --name NAME \
+                     --scopes admin), or bind a loopback address such as 127.0.0.1",
+                    self.bind
+                ),
+            });
         }
         if !(self.upload_retention_days >= 0.0) {
             return invalid("upload_retention_days", "must be non-negative (0 keeps uploads)");

@@ -1,6 +1,7 @@
 //! The service at the edge: axum, sqlx and tokio live here and nowhere below.
 
 pub mod api;
+pub mod auth;
 pub mod config;
 pub mod queue;
 pub mod startup;

@@ -27,6 +27,7 @@ pub enum StartupError {
 pub struct Application {
     listener: TcpListener,
     state: AppState,
+    stop: watch::Sender<bool>,
     worker: WorkerContext,
     address: SocketAddr,
 }
@@ -50,6 +51,7 @@ impl Application {
         let wake = Arc::new(Notify::new());
         let settings = Arc::new(settings);
         let models = Arc::new(crate::learned::Models::new(Some(settings.models_dir())));
+        let (stop, stopping) = watch::channel(false);
         let state = AppState {
             store: store.clone(),
             table: table.clone(),
@@ -65,6 +67,8 @@ impl Application {
                 &settings.allowed_origins,
             )),
             models: models.clone(),
+            stopping,
+            submissions: Default::default(),
         };
         let worker = WorkerContext {
             store,
@@ -76,7 +80,7 @@ impl Application {
             owner: format!("{}-{}", std::process::id(), uuid::Uuid::now_v7()),
             models,
         };
-        Ok(Self { listener, state, worker, address })
+        Ok(Self { listener, state, stop, worker, address })
     }
 
     pub fn address(&self) -> SocketAddr {
@@ -86,7 +90,7 @@ impl Application {
     /// Serves until `shutdown` resolves; then stops claiming, drains requests, and gives running
     /// jobs the grace period.
     pub async fn run_until(self, shutdown: impl Future<Output = ()> + Send + 'static) -> std::io::Result<()> {
-        let (stop_tx, stop_rx) = watch::channel(false);
+        let (stop_tx, stop_rx) = (self.stop, self.state.stopping.clone());
         let workers = tokio::spawn(worker::run(self.worker.clone(), stop_rx.clone()));
         let sweeper = tokio::spawn(retention_sweep(self.state.clone(), stop_rx.clone()));
         let header_timeout = Duration::from_secs_f64(self.state.settings.header_timeout_seconds);

@@ -1,6 +1,6 @@
 //! Logs (tracing) and Prometheus metrics (prometheus-client: a registry per app, so tests can run
 //! several apps in one process): requests by matched route and status, request latency, queue
-//! depth, job outcomes and durations, pipeline stage durations.
+//! depth, job outcomes and durations, pipeline stage durations, verdicts and decisions, the build.
 
 use prometheus_client::encoding::EncodeLabelSet;
 use prometheus_client::metrics::counter::Counter;
@@ -32,6 +32,18 @@ struct OutcomeLabels {
 }
 
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct ResultLabels {
+    verdict: String,
+    decision: String,
+    review_required: String,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct BuildLabels {
+    version: String,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 struct StateLabels {
     state: String,
 }
@@ -46,6 +58,7 @@ pub struct Metrics {
     jobs: Family<OutcomeLabels, Counter>,
     job_seconds: HistogramFamily<OutcomeLabels>,
     queue: Family<StateLabels, Gauge>,
+    results: Family<ResultLabels, Counter>,
 }
 
 fn latency_histogram() -> Histogram {
@@ -87,7 +100,17 @@ impl Metrics {
         );
         registry.register("job_duration_seconds", "Job durations by outcome", job_seconds.clone());
         registry.register("queue_jobs", "Inspections queued and running", queue.clone());
-        Self { registry, requests, request_seconds, stage_seconds, jobs, job_seconds, queue }
+        let results = Family::<ResultLabels, Counter>::default();
+        registry.register(
+            "inspection_results",
+            "Succeeded inspections by verdict, ISO 14253-1 decision and whether they need review",
+            results.clone(),
+        );
+        // The build, as Prometheus's convention has it: a gauge of 1 labelled with the version.
+        let build = Family::<BuildLabels, Gauge>::default();
+        build.get_or_create(&BuildLabels { version: env!("CARGO_PKG_VERSION").into() }).set(1);
+        registry.register("build_info", "The running build (always 1), labelled with its version", build);
+        Self { registry, requests, request_seconds, stage_seconds, jobs, job_seconds, queue, results }
     }
 
     pub fn request(&self, method: &str, route: &str, status: u16, seconds: f64) {
@@ -104,6 +127,17 @@ impl Metrics {
         self.job_seconds.get_or_create(&OutcomeLabels { outcome: outcome.into() }).observe(seconds);
     }
 
+    /// One succeeded inspection's verdict (`accept`, `reject`), decision (`conforms`,
+    /// `does_not_conform`, `indeterminate`) and review flag.
+    pub fn inspection_result(&self, verdict: &str, decision: &str, review_required: bool) {
+        let labels = ResultLabels {
+            verdict: verdict.into(),
+            decision: decision.into(),
+            review_required: review_required.to_string(),
+        };
+        self.results.get_or_create(&labels).inc();
+    }
+
     pub fn set_queue(&self, queued: i64, running: i64) {
         self.queue.get_or_create(&StateLabels { state: "queued".into() }).set(queued);
         self.queue.get_or_create(&StateLabels { state: "running".into() }).set(running);
@@ -117,9 +151,16 @@ impl Metrics {
     }
 }
 
-/// Installs the log subscriber once per process (later calls are no-ops, as in tests).
-pub fn init_logging(filter: &str) {
+/// Installs the log subscriber once per process (later calls are no-ops, as in tests): text with
+/// colours only when the log goes to a terminal (a log file or journal gets no escape codes), or
+/// one JSON object a line.
+pub fn init_logging(filter: &str, format: crate::service::config::LogFormat) {
+    use std::io::IsTerminal;
     let filter =
         tracing_subscriber::EnvFilter::try_new(filter).unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
-    let _ = tracing_subscriber::fmt().with_env_filter(filter).with_target(false).try_init();
+    let builder = tracing_subscriber::fmt().with_env_filter(filter).with_target(false);
+    let _ = match format {
+        crate::service::config::LogFormat::Text => builder.with_ansi(std::io::stdout().is_terminal()).try_init(),
+        crate::service::config::LogFormat::Json => builder.json().flatten_event(true).try_init(),
+    };
 }

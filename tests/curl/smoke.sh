@@ -20,12 +20,10 @@ id=$(jq -r .id "$work/created.json")
 [ "$location" = "/v1/inspections/$id" ] || fail "Location $location"
 echo "smoke: submitted $id"
 
-# Poll until terminal (5 min at most).
-for _ in $(seq 1 600); do
-  status=$(curl -sS -f "$base$location" | jq -r .status)
-  case $status in succeeded|failed|canceled) break ;; esac
-  sleep 0.5
-done
+# Wait without polling: the event stream ends after the terminal state (5 min at most).
+curl -sS -f -N --max-time 300 "$base$location/events" > "$work/events" || fail "event stream: $(cat "$work/events")"
+status=$(grep '^data:' "$work/events" | tail -1 | cut -c6- | jq -r .status)
+grep -q '"status":"running"' "$work/events" || fail "no running state in the event stream"
 [ "$status" = succeeded ] || fail "inspection ended $status: $(curl -sS "$base$location" | jq -c .error)"
 
 # Report.

@@ -10,7 +10,7 @@ import httpx
 from crestscan_client import Client
 from crestscan_client.api.cmm import get_cmm_comparison, put_cmm
 from crestscan_client.api.connections import get_connection
-from crestscan_client.api.inspections import create_inspection, get_inspection, list_inspections
+from crestscan_client.api.inspections import create_inspection, get_inspection, inspection_events, list_inspections
 from crestscan_client.api.results import get_report, get_threads
 from crestscan_client.models import CmmMeasurements, CmmPoint, Inspection, Problem, ThreadTable
 from crestscan_client.types import File
@@ -38,6 +38,10 @@ def main(base: str, bundle: str) -> None:
         time.sleep(0.5)
     assert inspection.status.value == "succeeded", inspection.error
     assert inspection.verdict in ("accept", "reject")
+    # The event stream of a finished inspection: its one state, then the end of the stream.
+    events = inspection_events.sync(client=client, id=created.id)
+    assert isinstance(events, str) and events.count("event: state") == 1, events
+    assert '"status":"succeeded"' in events, events
 
     report = get_report.sync_detailed(client=client, id=created.id)
     assert report.status_code == 200

@@ -20,6 +20,7 @@ use utoipa_axum::routes;
 pub fn router() -> OpenApiRouter<AppState> {
     OpenApiRouter::new()
         .routes(routes!(put_cmm, get_cmm))
+        .routes(routes!(list_cmm_versions))
         .routes(routes!(get_cmm_comparison))
         .routes(routes!(get_training_pairs))
 }
@@ -29,13 +30,18 @@ const MAX_CMM_BYTES: usize = 16 << 20;
 #[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
 pub struct StoredCmm {
     pub inspection_id: String,
+    /// This upload's number among the inspection's CMM uploads (1, 2, ...): each upload is kept.
+    pub version: i64,
+    /// Who uploaded it: the client's address (NULL for uploads stored before versions).
+    pub uploaded_by: Option<String>,
     pub instrument: Option<String>,
     pub measured_at: Option<String>,
     pub uploaded_at: String,
     pub points: Vec<CmmPoint>,
 }
 
-/// Upload (or replace) the CMM measurements of an inspection: JSON
+/// Upload CMM measurements of an inspection, stored as its next version (earlier uploads are kept,
+/// `GET …/cmm/versions`; the latest is the one compared): JSON
 /// (`{"instrument", "measured_at", "points": [{"thread", "angle_deg", "height_mm"}]}`) or CSV
 /// (`thread,angle_deg,height_mm`; an empty angle is the thread's mean). CSV as CMM software
 /// exports it is read too: `;` or tab separators with decimal commas, heights in inches
@@ -61,6 +67,7 @@ pub struct StoredCmm {
 )]
 pub async fn put_cmm(
     State(state): State<AppState>,
+    axum::extract::ConnectInfo(peer): axum::extract::ConnectInfo<std::net::SocketAddr>,
     Path(id): Path<String>,
     headers: HeaderMap,
     body: axum::body::Body,
@@ -88,8 +95,27 @@ pub async fn put_cmm(
         }
     }
     .map_err(|e| ApiError::new(Code::InvalidCmm, e.to_string()).with_culprit(e.field.clone()))?;
-    state.store.put_cmm(&id.0, &parsed).await?;
-    get_cmm(State(state), Path(id.0)).await
+    let version = state.store.put_cmm(&id.0, &parsed, Some(&peer.ip().to_string())).await?;
+    tracing::info!(inspection = %id.0, version, by = %peer.ip(), points = parsed.points.len(), "CMM data stored");
+    Ok(Json(stored_cmm(&state, id, Some(version)).await?))
+}
+
+#[derive(Clone, Debug, Default, Deserialize, IntoParams)]
+#[serde(deny_unknown_fields)]
+#[into_params(parameter_in = Query)]
+pub struct CmmVersionQuery {
+    /// A stored version (default: the latest).
+    #[param(minimum = 1)]
+    pub version: Option<i64>,
+}
+
+fn checked_version(version: Option<i64>) -> Result<Option<i64>, ApiError> {
+    match version {
+        Some(v) if v < 1 => {
+            Err(ApiError::new(Code::InvalidQuery, format!("version: {v} must be 1 or more")).with_culprit("version"))
+        }
+        v => Ok(v),
+    }
 }
 
 /// The stored CMM measurements.
@@ -98,28 +124,94 @@ pub async fn put_cmm(
     path = "/v1/inspections/{id}/cmm",
     operation_id = "get_cmm",
     tag = "cmm",
-    params(("id" = uuid::Uuid, Path, description = "Inspection id")),
+    params(("id" = uuid::Uuid, Path, description = "Inspection id"), CmmVersionQuery),
     responses(
         (status = 200, description = "Stored measurements", body = StoredCmm),
-        (status = 404, description = "No such inspection, or no CMM data yet", body = Problem, content_type = "application/problem+json"),
+        (status = 400, description = "Invalid version", body = Problem, content_type = "application/problem+json"),
+        (status = 404, description = "No such inspection, no CMM data yet, or no such version", body = Problem, content_type = "application/problem+json"),
     )
 )]
-pub async fn get_cmm(State(state): State<AppState>, Path(id): Path<String>) -> Result<Json<StoredCmm>, ApiError> {
+pub async fn get_cmm(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    query: Result<Query<CmmVersionQuery>, axum::extract::rejection::QueryRejection>,
+) -> Result<Json<StoredCmm>, ApiError> {
+    let Query(q) = query?;
+    let version = checked_version(q.version)?;
     let id = InspectionId::parse(&id)?;
     state.store.inspection(&id.0).await.map_err(|e| super::missing_inspection(e, &id.0))?;
-    Ok(Json(stored_cmm(&state, id).await?))
+    Ok(Json(stored_cmm(&state, id, version).await?))
 }
 
-/// The CMM measurements stored for an inspection known to exist.
-async fn stored_cmm(state: &AppState, id: InspectionId) -> Result<StoredCmm, ApiError> {
-    let row = state.store.cmm(&id.0).await.map_err(|e| match e {
-        StoreError::NotFound => {
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
+pub struct CmmVersion {
+    pub version: i64,
+    pub instrument: Option<String>,
+    pub measured_at: Option<String>,
+    pub uploaded_at: String,
+    pub uploaded_by: Option<String>,
+    /// How many points the upload holds.
+    pub points: i64,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
+pub struct CmmVersions {
+    pub inspection_id: String,
+    /// Oldest first; the last is the one compared.
+    pub versions: Vec<CmmVersion>,
+}
+
+/// Every CMM upload of an inspection (who, when, how many points), oldest first; each is read with
+/// `GET …/cmm?version=N`.
+#[utoipa::path(
+    get,
+    path = "/v1/inspections/{id}/cmm/versions",
+    operation_id = "list_cmm_versions",
+    tag = "cmm",
+    params(("id" = uuid::Uuid, Path, description = "Inspection id")),
+    responses(
+        (status = 200, description = "The uploads (empty when none)", body = CmmVersions),
+        (status = 404, description = "No such inspection", body = Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn list_cmm_versions(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Json<CmmVersions>, ApiError> {
+    let id = InspectionId::parse(&id)?;
+    state.store.inspection(&id.0).await.map_err(|e| super::missing_inspection(e, &id.0))?;
+    let versions = state
+        .store
+        .cmm_versions(&id.0)
+        .await?
+        .into_iter()
+        .map(|v| CmmVersion {
+            version: v.version,
+            instrument: v.instrument,
+            measured_at: v.measured_at,
+            uploaded_at: rfc3339(v.uploaded_at),
+            uploaded_by: v.uploaded_by,
+            points: v.points,
+        })
+        .collect();
+    Ok(Json(CmmVersions { inspection_id: id.0, versions }))
+}
+
+/// The CMM measurements stored for an inspection known to exist: the latest, or `version`.
+async fn stored_cmm(state: &AppState, id: InspectionId, version: Option<i64>) -> Result<StoredCmm, ApiError> {
+    let row = state.store.cmm(&id.0, version).await.map_err(|e| match (e, version) {
+        (StoreError::NotFound, None) => {
             ApiError::new(Code::CmmNotFound, format!("no CMM measurements for {}; PUT them first", id.0))
         }
-        other => other.into(),
+        (StoreError::NotFound, Some(v)) => {
+            ApiError::new(Code::CmmNotFound, format!("no CMM version {v} for {}", id.0)).with_culprit("version")
+        }
+        (other, _) => other.into(),
     })?;
     Ok(StoredCmm {
         inspection_id: id.0,
+        version: row.version,
+        uploaded_by: row.uploaded_by,
         instrument: row.instrument,
         measured_at: row.measured_at,
         uploaded_at: rfc3339(row.uploaded_at),
@@ -134,7 +226,7 @@ pub(super) async fn comparison_if_uploaded(
     id: &InspectionId,
     report: &Report,
 ) -> Result<Option<crate::export::html::CmmPanel>, ApiError> {
-    let stored = match stored_cmm(state, id.clone()).await {
+    let stored = match stored_cmm(state, id.clone(), None).await {
         Ok(stored) => stored,
         Err(e) if e.code == Code::CmmNotFound => return Ok(None),
         Err(e) => return Err(e),
@@ -164,11 +256,16 @@ pub struct ComparisonQuery {
     /// Agreement tolerance in mm (default: one tenth of the thread-height tolerance band).
     #[param(exclusive_minimum = 0.0)]
     pub tolerance_mm: Option<f64>,
+    /// The CMM upload to compare with (default: the latest).
+    #[param(minimum = 1)]
+    pub version: Option<i64>,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
 pub struct CmmComparison {
     pub inspection_id: String,
+    /// The CMM upload compared with.
+    pub cmm_version: i64,
     pub instrument: Option<String>,
     pub measured_at: Option<String>,
     /// The thread-height tolerance (±) of the part.
@@ -204,8 +301,9 @@ pub async fn get_cmm_comparison(
         return Err(ApiError::new(Code::InvalidQuery, format!("tolerance_mm: {t} must be a positive number"))
             .with_culprit("tolerance_mm"));
     }
+    let version = checked_version(q.version)?;
     let id = succeeded(&state, &id).await?;
-    let stored = stored_cmm(&state, id.clone()).await?;
+    let stored = stored_cmm(&state, id.clone(), version).await?;
     let (json, _) = state.store.report(&id.0).await?;
     let report: Report = serde_json::from_str(&json).map_err(ApiError::internal)?;
     let tolerance = q.tolerance_mm.unwrap_or_else(|| cmm::default_tolerance_mm(&report));
@@ -216,6 +314,7 @@ pub async fn get_cmm_comparison(
     };
     Ok(Json(CmmComparison {
         inspection_id: id.0,
+        cmm_version: stored.version,
         instrument: stored.instrument,
         measured_at: stored.measured_at,
         height_tolerance_mm: report.height_tolerance_mm,
@@ -225,7 +324,8 @@ pub async fn get_cmm_comparison(
 
 /// The profile-correction MLP's training pairs of this inspection: one JSON object per line
 /// (`application/x-ndjson`), for each measured 1° bin that has a CMM point of its thread: the
-/// bin's pitch of reconstructed profile (256 samples), its own height fit, and the CMM's height.
+/// bin's pitch of reconstructed profile (256 samples), its own height fit, and the CMM's height
+/// (of the latest CMM upload).
 /// training/profile_mlp.py refits the MLP from such files (docs/models.md, "Recalibration from
 /// CMM data").
 #[utoipa::path(
@@ -247,7 +347,7 @@ pub async fn get_training_pairs(
 ) -> Result<axum::response::Response, ApiError> {
     use axum::response::IntoResponse;
     let id = succeeded(&state, &id).await?;
-    let stored = stored_cmm(&state, id.clone()).await?;
+    let stored = stored_cmm(&state, id.clone(), None).await?;
     let kind = crate::service::worker::PITCH_PROFILES;
     let artifact = match super::results::stored_artifact(&state, &id.0, kind).await {
         Err(e) if e.code == Code::InvalidId => {

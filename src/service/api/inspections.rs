@@ -23,6 +23,7 @@ pub fn router() -> OpenApiRouter<AppState> {
     OpenApiRouter::new()
         .routes(routes!(create_inspection, list_inspections))
         .routes(routes!(get_inspection))
+        .routes(routes!(inspection_events))
         .routes(routes!(cancel_inspection))
 }
 
@@ -638,14 +639,91 @@ pub async fn get_inspection(
     let seen = (row.status.clone(), row.progress_stage.clone());
     let deadline = tokio::time::Instant::now() + wait;
     let finished = |row: &InspectionRow| row.status.parse::<Status>().is_ok_and(Status::is_terminal);
-    while !finished(&row) && tokio::time::Instant::now() < deadline {
-        tokio::time::sleep(WAIT_POLL.min(deadline - tokio::time::Instant::now())).await;
+    let mut stopping = state.stopping.clone();
+    while !finished(&row) && tokio::time::Instant::now() < deadline && !*stopping.borrow() {
+        tokio::select! {
+            _ = tokio::time::sleep(WAIT_POLL.min(deadline - tokio::time::Instant::now())) => {}
+            _ = stopping.changed() => {}
+        }
         row = fetch().await?;
         if (&row.status, &row.progress_stage) != (&seen.0, &seen.1) {
             break;
         }
     }
     Ok(Json(row.into()))
+}
+
+/// A stream of the inspection's changes (server-sent events, `text/event-stream`): an event
+/// `state` with the inspection now, then one at each change of its status or progress stage, in
+/// order, with ids counting from 1; after a terminal status (succeeded, failed, canceled) the
+/// stream ends. When the service stops it sends `event: shutdown` and ends: reconnect.
+#[utoipa::path(
+    get,
+    path = "/v1/inspections/{id}/events",
+    operation_id = "inspection_events",
+    tag = "inspections",
+    params(("id" = uuid::Uuid, Path, description = "Inspection id")),
+    responses(
+        (status = 200, description = "Server-sent events: `event: state`, `data:` the inspection as JSON (the \
+            `Inspection` schema), one per change; `event: shutdown` when the service stops",
+            body = String, content_type = "text/event-stream"),
+        (status = 404, description = "No such inspection", body = Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn inspection_events(State(state): State<AppState>, Path(id): Path<String>) -> Result<Response, ApiError> {
+    use axum::response::sse::{Event, KeepAlive, Sse};
+    let id = InspectionId::parse(&id)?;
+    let first = state.store.inspection(&id.0).await.map_err(|e| super::missing_inspection(e, &id.0))?;
+    struct Cursor {
+        state: AppState,
+        id: String,
+        next: Option<InspectionRow>,
+        seen: Option<(String, Option<String>)>,
+        count: u64,
+        done: bool,
+    }
+    let event = |count: u64, row: InspectionRow| {
+        let inspection = Inspection::from(row);
+        Event::default().id(count.to_string()).event("state").json_data(&inspection)
+    };
+    // Re-reads the row, as the long-poll does (the worker may be another process), and yields an
+    // event at each change; the cursor holds the row read but not yet sent.
+    let cursor = Cursor { state, id: id.0, next: Some(first), seen: None, count: 0, done: false };
+    let stream = futures_util::stream::unfold(cursor, move |mut c| async move {
+        if c.done {
+            return None;
+        }
+        loop {
+            if let Some(row) = c.next.take() {
+                let key = (row.status.clone(), row.progress_stage.clone());
+                if c.seen.as_ref() != Some(&key) {
+                    c.seen = Some(key);
+                    c.count += 1;
+                    c.done = row.status.parse::<Status>().is_ok_and(Status::is_terminal);
+                    let e = event(c.count, row);
+                    return Some((e.map_err(|e| std::io::Error::other(e.to_string())), c));
+                }
+            }
+            let mut stopping = c.state.stopping.clone();
+            if *stopping.borrow() {
+                c.done = true;
+                return Some((Ok(Event::default().event("shutdown").data("the service is stopping")), c));
+            }
+            tokio::select! {
+                _ = tokio::time::sleep(WAIT_POLL) => {}
+                _ = stopping.changed() => continue,
+            }
+            match c.state.store.inspection(&c.id).await {
+                Ok(row) => c.next = Some(row),
+                Err(e) => {
+                    tracing::warn!(inspection = %c.id, error = %e, "event stream: reading the inspection failed");
+                    c.done = true;
+                    return Some((Ok(Event::default().event("error").data("reading the inspection failed")), c));
+                }
+            }
+        }
+    });
+    Ok(Sse::new(stream).keep_alive(KeepAlive::default()).into_response())
 }
 
 /// How often a long-poll re-reads its inspection.

@@ -10,6 +10,7 @@ pub mod dashboard;
 pub mod health;
 mod http;
 pub mod ingest;
+pub mod keys;
 pub mod inspections;
 pub mod problem;
 pub mod results;
@@ -46,6 +47,11 @@ pub struct AppState {
     pub browser: Arc<browser::BrowserPolicy>,
     /// The learned models: shipped, and installed in `<data_dir>/models`.
     pub models: Arc<crate::learned::Models>,
+    /// Turns true when the service is stopping: long-polls and event streams end then, so that
+    /// the drain does not wait on them.
+    pub stopping: tokio::sync::watch::Receiver<bool>,
+    /// Submissions per API key in the last minute.
+    pub submissions: Arc<keys::SubmissionLimiter>,
 }
 
 /// An inspection id: a UUID, rendered in its canonical lowercase form.
@@ -123,10 +129,77 @@ impl utoipa::ToSchema for Binary {}
         (name = "cmm", description = "CMM measurements and the comparison with crestscan"),
         (name = "connections", description = "The API 5B connection table"),
         (name = "operations", description = "Health, readiness, metrics, capabilities"),
+        (name = "admin", description = "API keys and the audit log (scope `admin`)"),
     ),
+    modifiers(&BearerKeys),
+    security(("api_key" = [])),
     components(schemas(problem::Problem))
 )]
 struct ApiDoc;
+
+/// Every operation but the health probes may be refused by the key guard (with `auth =
+/// required`): 401 and 403 are declared on each, so that a generated client parses them as problems.
+fn document_key_refusals(doc: &mut utoipa::openapi::OpenApi) {
+    use utoipa::openapi::{ContentBuilder, Ref, ResponseBuilder};
+    let refusal = |description: &str| {
+        ResponseBuilder::new()
+            .description(description)
+            .content(
+                "application/problem+json",
+                ContentBuilder::new().schema(Some(Ref::from_schema_name("Problem"))).build(),
+            )
+            .build()
+    };
+    for (path, item) in doc.paths.paths.iter_mut() {
+        if matches!(path.as_str(), "/healthz" | "/readyz") {
+            // Public: no key, and no security requirement.
+            for op in [&mut item.get, &mut item.head].into_iter().flatten() {
+                op.security = Some(Vec::new());
+            }
+            continue;
+        }
+        let operations = [
+            &mut item.get,
+            &mut item.post,
+            &mut item.put,
+            &mut item.delete,
+            &mut item.patch,
+            &mut item.head,
+        ];
+        for op in operations.into_iter().flatten() {
+            let responses = &mut op.responses.responses;
+            responses.entry("401".into()).or_insert_with(|| {
+                refusal("No API key, or an invalid or revoked one (`auth = required`)").into()
+            });
+            responses
+                .entry("403".into())
+                .or_insert_with(|| refusal("The key lacks the route's scope, or the origin is not allowed").into());
+        }
+    }
+}
+
+/// The bearer-key scheme (`Authorization: Bearer csk_…`): with `auth = required` every route but
+/// `/healthz` and `/readyz` needs a key (scopes: read, submit, admin).
+struct BearerKeys;
+
+impl utoipa::Modify for BearerKeys {
+    fn modify(&self, openapi: &mut utoipa::openapi::OpenApi) {
+        use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
+        let components = openapi.components.get_or_insert_with(Default::default);
+        components.add_security_scheme(
+            "api_key",
+            SecurityScheme::Http(
+                HttpBuilder::new()
+                    .scheme(HttpAuthScheme::Bearer)
+                    .description(Some(
+                        "An API key (`crestscan keys create`, or `POST /v1/keys`): needed when the service runs with \
+                         `auth = required`; scopes read, submit, admin",
+                    ))
+                    .build(),
+            ),
+        );
+    }
+}
 
 fn api_routes() -> OpenApiRouter<AppState> {
     OpenApiRouter::with_openapi(ApiDoc::openapi())
@@ -136,12 +209,14 @@ fn api_routes() -> OpenApiRouter<AppState> {
         .merge(connections::router())
         .merge(health::router())
         .merge(capabilities::router())
+        .merge(keys::router())
 }
 
 /// The OpenAPI document (what `/openapi.json` serves and `crestscan openapi` prints).
 pub fn openapi() -> utoipa::openapi::OpenApi {
     let mut doc = api_routes().split_for_parts().1;
     doc.info.version = env!("CARGO_PKG_VERSION").into();
+    document_key_refusals(&mut doc);
     doc
 }
 
@@ -155,6 +230,7 @@ pub fn router(state: AppState) -> Router {
         .layer(DefaultBodyLimit::disable())
         .layer(tower_http::catch_panic::CatchPanicLayer::new())
         .layer(middleware::from_fn(request_head_limits))
+        .layer(middleware::from_fn_with_state(state.clone(), keys::guard))
         .layer(tower::util::option_layer(cors(&state.settings.allowed_origins)))
         .layer(middleware::from_fn_with_state(state.clone(), browser::guard))
         .layer(middleware::from_fn_with_state(state.clone(), observe))
@@ -216,11 +292,19 @@ async fn observe(State(state): State<AppState>, request: Request, next: Next) ->
     let path = request.uri().path().to_string();
     let response = next.run(request).await;
     let response = if response.status().is_client_error() || response.status().is_server_error() {
-        problem_response(response, path).await
+        problem_response(response, path.clone()).await
     } else {
         response
     };
-    state.metrics.request(&method, &route, response.status().as_u16(), started.elapsed().as_secs_f64());
+    let (status, seconds) = (response.status().as_u16(), started.elapsed().as_secs_f64());
+    state.metrics.request(&method, &route, status, seconds);
+    // The access log: one line a request (probes and scrapes only at debug, they come every
+    // few seconds).
+    if matches!(route.as_str(), "/healthz" | "/readyz" | "/metrics") {
+        tracing::debug!(method, path, route, status, ms = 1e3 * seconds, "request");
+    } else {
+        tracing::info!(method, path, route, status, ms = 1e3 * seconds, "request");
+    }
     response
 }
 

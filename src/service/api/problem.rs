@@ -65,6 +65,16 @@ impl From<axum::extract::rejection::QueryRejection> for ApiError {
     }
 }
 
+impl From<axum::extract::rejection::JsonRejection> for ApiError {
+    fn from(r: axum::extract::rejection::JsonRejection) -> Self {
+        let code = match r {
+            axum::extract::rejection::JsonRejection::MissingJsonContentType(_) => Code::UnsupportedMediaType,
+            _ => Code::InvalidJson,
+        };
+        ApiError::new(code, r.body_text())
+    }
+}
+
 impl From<BundleError> for ApiError {
     fn from(e: BundleError) -> Self {
         match e.code() {

@@ -1,39 +1,75 @@
-//! CMM measurements stored beside an inspection.
+//! CMM measurements stored beside an inspection, every upload as a version.
 
 use super::*;
 
 #[derive(Clone, Debug, sqlx::FromRow)]
 pub struct CmmRow {
+    pub version: i64,
     pub instrument: Option<String>,
     pub measured_at: Option<String>,
     pub points_json: String,
     pub uploaded_at: i64,
+    pub uploaded_by: Option<String>,
+}
+
+/// One stored version without its points.
+#[derive(Clone, Debug, sqlx::FromRow)]
+pub struct CmmVersionRow {
+    pub version: i64,
+    pub instrument: Option<String>,
+    pub measured_at: Option<String>,
+    pub uploaded_at: i64,
+    pub uploaded_by: Option<String>,
+    pub points: i64,
 }
 
 impl Store {
-    pub async fn put_cmm(&self, id: &str, cmm: &crate::eval::cmm::CmmMeasurements) -> Result<(), StoreError> {
-        sqlx::query(
-            "INSERT INTO cmm_measurements (inspection_id, instrument, measured_at, points_json, uploaded_at) \
-             VALUES (?, ?, ?, ?, ?) ON CONFLICT (inspection_id) DO UPDATE SET instrument = excluded.instrument, \
-             measured_at = excluded.measured_at, points_json = excluded.points_json, uploaded_at = excluded.uploaded_at",
+    /// Stores an upload as the inspection's next version (earlier ones are kept); returns it.
+    pub async fn put_cmm(
+        &self,
+        id: &str,
+        cmm: &crate::eval::cmm::CmmMeasurements,
+        uploaded_by: Option<&str>,
+    ) -> Result<i64, StoreError> {
+        // One statement, so two uploads at once cannot take the same number (the primary key
+        // would refuse the second rather than overwrite).
+        let version: i64 = sqlx::query_scalar(
+            "INSERT INTO cmm_versions (inspection_id, version, instrument, measured_at, points_json, uploaded_at, \
+             uploaded_by) SELECT ?1, COALESCE(MAX(version), 0) + 1, ?2, ?3, ?4, ?5, ?6 FROM cmm_versions \
+             WHERE inspection_id = ?1 RETURNING version",
         )
         .bind(id)
         .bind(&cmm.instrument)
         .bind(&cmm.measured_at)
         .bind(serde_json::to_string(&cmm.points).expect("points serialise"))
         .bind(now_ms())
-        .execute(&self.pool)
+        .bind(uploaded_by)
+        .fetch_one(&self.pool)
         .await?;
-        Ok(())
+        Ok(version)
     }
 
-    pub async fn cmm(&self, id: &str) -> Result<CmmRow, StoreError> {
+    /// The latest version, or the one asked for.
+    pub async fn cmm(&self, id: &str, version: Option<i64>) -> Result<CmmRow, StoreError> {
         sqlx::query_as(
-            "SELECT instrument, measured_at, points_json, uploaded_at FROM cmm_measurements WHERE inspection_id = ?",
+            "SELECT version, instrument, measured_at, points_json, uploaded_at, uploaded_by FROM cmm_versions \
+             WHERE inspection_id = ?1 AND (?2 IS NULL OR version = ?2) ORDER BY version DESC LIMIT 1",
         )
         .bind(id)
+        .bind(version)
         .fetch_optional(&self.pool)
         .await?
         .ok_or(StoreError::NotFound)
+    }
+
+    /// Every version, oldest first.
+    pub async fn cmm_versions(&self, id: &str) -> Result<Vec<CmmVersionRow>, StoreError> {
+        Ok(sqlx::query_as(
+            "SELECT version, instrument, measured_at, uploaded_at, uploaded_by, json_array_length(points_json) AS points \
+             FROM cmm_versions WHERE inspection_id = ? ORDER BY version",
+        )
+        .bind(id)
+        .fetch_all(&self.pool)
+        .await?)
     }
 }

@@ -5,10 +5,12 @@
 mod cmm;
 pub mod files;
 mod inspections;
+mod keys;
 mod queue;
 mod results;
 
-pub use cmm::CmmRow;
+pub use cmm::{CmmRow, CmmVersionRow};
+pub use keys::{AuditEntry, AuditRow, KeyRow};
 pub use inspections::{Inserted, InspectionRow, ListFilter, NewInspection, UploadInfo};
 pub use queue::{Claimed, Heartbeat};
 pub use results::{Artifact, HeightRow, JobResults, StoredArtifact, ThreadRow};

@@ -93,20 +93,19 @@ impl Store {
     /// shrinks only with VACUUM).
     pub async fn purge_artifacts(&self, cutoff_ms: i64) -> Result<usize, StoreError> {
         let mut tx = self.pool.begin().await?;
+        // A write first: a transaction that read first could not take the write lock if another
+        // connection wrote in between (SQLite answers "database is locked" at once, whatever the
+        // busy timeout).
         let due: Vec<(String,)> = sqlx::query_as(
-            "SELECT id FROM inspections WHERE finished_at < ? AND artifacts_purged_at IS NULL \
-             AND EXISTS (SELECT 1 FROM artifacts a WHERE a.inspection_id = inspections.id)",
+            "UPDATE inspections SET artifacts_purged_at = ? WHERE finished_at < ? AND artifacts_purged_at IS NULL \
+             AND EXISTS (SELECT 1 FROM artifacts a WHERE a.inspection_id = inspections.id) RETURNING id",
         )
+        .bind(now_ms())
         .bind(cutoff_ms)
         .fetch_all(&mut *tx)
         .await?;
         for (id,) in &due {
             sqlx::query("DELETE FROM artifacts WHERE inspection_id = ?").bind(id).execute(&mut *tx).await?;
-            sqlx::query("UPDATE inspections SET artifacts_purged_at = ? WHERE id = ?")
-                .bind(now_ms())
-                .bind(id)
-                .execute(&mut *tx)
-                .await?;
         }
         tx.commit().await?;
         Ok(due.len())

@@ -294,3 +294,87 @@ async fn long_polls_answer_on_change_and_the_list_takes_finished_after() {
     assert!(listed(none).is_empty());
     app.stop().await;
 }
+
+/// The events of a server-sent stream, read until the server ends it: (id, event, data) each.
+async fn read_events(response: reqwest::Response, timeout: Duration) -> Vec<(String, String, String)> {
+    assert_eq!(response.status(), StatusCode::OK);
+    assert!(response.headers()["content-type"].to_str().unwrap().starts_with("text/event-stream"));
+    let mut response = response;
+    let mut text = String::new();
+    let started = Instant::now();
+    while let Some(chunk) = tokio::time::timeout(timeout.saturating_sub(started.elapsed()), response.chunk())
+        .await
+        .expect("the stream ended within the timeout")
+        .unwrap()
+    {
+        text.push_str(std::str::from_utf8(&chunk).unwrap());
+    }
+    text.split("\n\n")
+        .filter_map(|block| {
+            let field = |name: &str| {
+                block.lines().find_map(|l| l.strip_prefix(&format!("{name}:"))).map(|v| v.trim_start().to_string())
+            };
+            // Keep-alive comments (`:`) carry no event.
+            field("event").map(|event| (field("id").unwrap_or_default(), event, field("data").unwrap_or_default()))
+        })
+        .collect()
+}
+
+/// `GET /v1/inspections/{id}/events`: one event per change, every status in order (queued behind
+/// another job, running with its stages, succeeded), ids counting up, and the stream ends after
+/// the terminal state; a stream on a job that never runs ends when the service stops, so the
+/// drain does not wait on it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn event_streams_send_every_state_in_order_and_end_with_the_job_or_the_service() {
+    let app = spawn_app().await;
+    let first = app.submit(ci_tar(), "?client_reference=first").await;
+    assert_eq!(first.status(), StatusCode::ACCEPTED);
+    let second = app.submit(ci_tar(), "?client_reference=second").await;
+    let id = second.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+    let events = read_events(app.get(&format!("/v1/inspections/{id}/events")).await, Duration::from_secs(600)).await;
+    let states: Vec<Value> = events
+        .iter()
+        .map(|(_, event, data)| {
+            assert_eq!(event, "state");
+            serde_json::from_str(data).unwrap()
+        })
+        .collect();
+    let ids: Vec<String> = events.iter().map(|(id, _, _)| id.clone()).collect();
+    assert_eq!(ids, (1..=events.len()).map(|i| i.to_string()).collect::<Vec<_>>());
+    let mut statuses: Vec<&str> = states.iter().map(|s| s["status"].as_str().unwrap()).collect();
+    statuses.dedup();
+    assert_eq!(statuses, ["queued", "running", "succeeded"], "{states:?}");
+    assert!(states.iter().all(|s| s["id"] == id.as_str()));
+    let last = states.last().unwrap();
+    assert!(["accept", "reject"].contains(&last["verdict"].as_str().unwrap()), "{last}");
+    // Consecutive events differ (a change each), and the running ones name their stages.
+    for pair in states.windows(2) {
+        assert_ne!((&pair[0]["status"], &pair[0]["progress"]["stage"]), (&pair[1]["status"], &pair[1]["progress"]["stage"]));
+    }
+    assert!(states.iter().filter(|s| s["status"] == "running").count() >= 2, "stages of the run: {states:?}");
+
+    // A finished inspection: one event, and the stream ends at once.
+    let events = read_events(app.get(&format!("/v1/inspections/{id}/events")).await, Duration::from_secs(5)).await;
+    assert_eq!(events.len(), 1);
+    problem(
+        app.get("/v1/inspections/00000000-0000-0000-0000-000000000000/events").await,
+        StatusCode::NOT_FOUND,
+        "invalid_id",
+    )
+    .await;
+    app.stop().await;
+
+    // No workers: the job stays queued; stopping the service ends the stream with `shutdown`.
+    let app = spawn_app_with(|s| s.workers = 0).await;
+    let response = app.submit(ci_tar(), "").await;
+    let id = response.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+    let stream = app.get(&format!("/v1/inspections/{id}/events")).await;
+    let reading = tokio::spawn(read_events(stream, Duration::from_secs(30)));
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let started = Instant::now();
+    app.stop().await;
+    assert!(started.elapsed() < Duration::from_secs(5), "the drain waited {:?}", started.elapsed());
+    let events = reading.await.unwrap();
+    let kinds: Vec<&str> = events.iter().map(|(_, e, _)| e.as_str()).collect();
+    assert_eq!(kinds, ["state", "shutdown"]);
+}

@@ -1,6 +1,7 @@
 //! The service over real HTTP: the real app on a loopback port with a fresh SQLite file, driven by
 //! reqwest; and the real binary, killed with SIGKILL and restarted.
 
+mod auth;
 mod browser;
 mod hostile;
 mod inspections;
@@ -122,7 +123,7 @@ pub async fn spawn_app_with(edit: impl FnOnce(&mut Settings)) -> TestApp {
 
 /// Starts the real application on port 0 on an existing data directory.
 pub async fn spawn_app_in(data: &Path, edit: impl FnOnce(&mut Settings)) -> TestApp {
-    crestscan::service::telemetry::init_logging("warn");
+    crestscan::service::telemetry::init_logging("warn", Default::default());
     let mut settings = test_settings(data);
     edit(&mut settings);
     let app = Application::build(settings).await.unwrap();

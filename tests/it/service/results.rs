@@ -233,6 +233,27 @@ async fn round_trip_on_the_ci_preset() {
     assert_eq!(stored["measured_at"], "2026-11-30T10:00:00Z");
     assert!((stored["points"][0]["height_mm"].as_f64().unwrap() - 0.062 * 25.4).abs() < 1e-9, "{stored}");
     assert_eq!(stored["points"][0]["angle_deg"], 12.5);
+    // Each upload is kept as a version, with who sent it; the latest is compared unless asked.
+    assert_eq!(stored["version"], 2);
+    assert_eq!(stored["uploaded_by"], "127.0.0.1");
+    let versions: Value = app.get(&format!("{location}/cmm/versions")).await.json().await.unwrap();
+    let versions = versions["versions"].as_array().unwrap().clone();
+    assert_eq!(versions.iter().map(|v| v["version"].as_i64().unwrap()).collect::<Vec<_>>(), [1, 2]);
+    assert_eq!(versions[0]["points"].as_u64().unwrap() as usize, devs.len());
+    assert_eq!(versions[0]["instrument"], Value::Null);
+    assert_eq!((versions[1]["points"].as_u64(), versions[1]["instrument"].as_str()), (Some(1), Some("Zeiss Contura")));
+    let first: Value = app.get(&format!("{location}/cmm?version=1")).await.json().await.unwrap();
+    assert_eq!(first["points"].as_array().unwrap().len(), devs.len());
+    let latest: Value = app.get(&format!("{location}/cmm-comparison")).await.json().await.unwrap();
+    let (compared, unmatched) = (&latest["agreement"]["compared"], &latest["agreement"]["unmatched"]);
+    assert_eq!(latest["cmm_version"], 2);
+    assert_eq!(compared.as_u64().unwrap() + unmatched.as_u64().unwrap(), 1, "the one point of version 2: {latest}");
+    let again: Value = app.get(&format!("{location}/cmm-comparison?version=1")).await.json().await.unwrap();
+    assert_eq!(again["cmm_version"], 1);
+    assert!((again["agreement"]["rms_mm"].as_f64().unwrap() - rms).abs() < 1e-12);
+    let missing = problem(app.get(&format!("{location}/cmm?version=3")).await, StatusCode::NOT_FOUND, "cmm_not_found").await;
+    assert_eq!(missing["culprit"], "version");
+    problem(app.get(&format!("{location}/cmm?version=0")).await, StatusCode::BAD_REQUEST, "invalid_query").await;
 
     // The list finds it by its client reference; metrics counted the polls by route.
     let page: Value = app.get("/v1/inspections?client_reference=MES-4711&status=succeeded").await.json().await.unwrap();
@@ -246,6 +267,17 @@ async fn round_trip_on_the_ci_preset() {
     let metrics = app.get("/metrics").await.text().await.unwrap();
     assert!(metrics.contains(r#"route="/v1/inspections/{id}",status="200""#), "{metrics}");
     assert!(metrics.contains("crestscan_jobs_finished_total{outcome=\"succeeded\"} 1"), "{metrics}");
+    // The result counted by its verdict and decision, and the build by its version.
+    let spelled = |v: Value| v.as_str().unwrap().to_string();
+    let result = format!(
+        "crestscan_inspection_results_total{{verdict=\"{}\",decision=\"{}\",review_required=\"{}\"}} 1",
+        spelled(serde_json::to_value(report.verdict).unwrap()),
+        spelled(serde_json::to_value(report.decision).unwrap()),
+        report.review_required
+    );
+    assert!(metrics.contains(&result), "{result} in {metrics}");
+    let build = format!("crestscan_build_info{{version=\"{}\"}} 1", env!("CARGO_PKG_VERSION"));
+    assert!(metrics.contains(&build), "{metrics}");
     app.stop().await;
 }
 
