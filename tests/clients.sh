@@ -28,7 +28,7 @@ start curl
 tests/curl/smoke.sh "$base" "$work/ci.tar"
 kill "$server"; wait "$server" || true
 
-openapi-python-client generate --path openapi/openapi.json --output-path "$work/sdk/crestscan_client" --meta none >/dev/null 2>"$work/generate.log" \
+openapi-python-client generate --path openapi/openapi.json --config tests/sdk/generator.yaml --output-path "$work/sdk/crestscan_client" --meta none >/dev/null 2>"$work/generate.log" \
   || { cat "$work/generate.log"; exit 1; }
 start sdk
 PYTHONPATH="$work/sdk" python3 tests/sdk/smoke.py "$base" "$work/ci.tar"

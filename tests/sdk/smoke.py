@@ -1,74 +1,158 @@
-"""The service through a Python SDK generated from openapi/openapi.json (openapi-python-client).
+"""The service through a Python SDK generated from openapi/openapi.json (openapi-python-client, with
+tests/sdk/generator.yaml): every operation the document declares is called at least once, typed,
+with `raise_on_unexpected_status=True`, so an answer the document does not declare fails here.
 
     python tests/sdk/smoke.py BASE_URL BUNDLE.tar
 """
 
+import importlib
+import pkgutil
 import sys
 import time
 
 import httpx
+import crestscan_client.api
 from crestscan_client import Client
-from crestscan_client.api.cmm import get_cmm_comparison, put_cmm
-from crestscan_client.api.connections import get_connection
-from crestscan_client.api.inspections import create_inspection, get_inspection, inspection_events, list_inspections
-from crestscan_client.api.results import get_report, get_threads
-from crestscan_client.models import CmmMeasurements, CmmPoint, Inspection, Problem, ThreadTable
+from crestscan_client.api.admin import create_key, get_audit, list_keys, revoke_key
+from crestscan_client.api.cmm import get_cmm, get_cmm_comparison, get_training_pairs, list_cmm_versions, put_cmm
+from crestscan_client.api.connections import get_connection, list_connections
+from crestscan_client.api.inspections import (
+    cancel_inspection,
+    create_inspection,
+    get_inspection,
+    inspection_events,
+    list_inspections,
+)
+from crestscan_client.api.operations import get_capabilities, healthz, metrics, readyz
+from crestscan_client.api.results import get_image, get_mesh, get_report, get_threads
+from crestscan_client.models import (
+    ApiKey,
+    ApiKeys,
+    AuditPage,
+    Capabilities,
+    CmmComparison,
+    CmmMeasurements,
+    CmmPoint,
+    CmmVersions,
+    CreatedApiKey,
+    Inspection,
+    InspectionPage,
+    NewApiKey,
+    Problem,
+    Scope,
+    StoredCmm,
+    ThreadTable,
+)
+from crestscan_client.models.get_mesh_format import GetMeshFormat
 from crestscan_client.types import File
+
+called = set()
+
+
+def call(module, *args, **kwargs):
+    """`module.sync_detailed`, recorded; the answer's status and parsed body."""
+    called.add(module.__name__.rsplit(".", 1)[-1])
+    response = module.sync_detailed(*args, **kwargs)
+    return response.status_code, response.parsed
+
+
+def expect(status_and_parsed, status, kind):
+    status_code, parsed = status_and_parsed
+    assert status_code == status, (status_code, parsed)
+    assert isinstance(parsed, kind), (kind, parsed)
+    return parsed
+
+
+def every_operation():
+    names = set()
+    for tag in pkgutil.iter_modules(crestscan_client.api.__path__):
+        package = importlib.import_module(f"crestscan_client.api.{tag.name}")
+        names |= {m.name for m in pkgutil.iter_modules(package.__path__)}
+    return names
 
 
 def main(base: str, bundle: str) -> None:
     client = Client(base_url=base, timeout=httpx.Timeout(120.0), raise_on_unexpected_status=True)
+    assert call(healthz, client=client)[0] == 200
+    assert call(readyz, client=client)[0] == 200
+    status, text = call(metrics, client=client)
+    assert status == 200 and "crestscan_build_info" in text, text[:200]
+    expect(call(get_capabilities, client=client), 200, Capabilities)
+    assert call(list_connections, client=client)[0] == 200
+    assert call(get_connection, "BC 4-1/2", client=client)[0] == 200
+
     with open(bundle, "rb") as f:
-        created = create_inspection.sync(
+        created = expect(call(
+            create_inspection,
             client=client,
             body=File(payload=f, file_name="bundle.tar", mime_type="application/octet-stream"),
             client_reference="sdk-smoke",
             idempotency_key="sdk-smoke-1",
-        )
-    assert isinstance(created, Inspection), created
+        ), 202, Inspection)
     print(f"sdk: submitted {created.id}")
+    # A second one, cancelled while queued or running (or found finished: 409, a declared problem).
+    with open(bundle, "rb") as f:
+        other = expect(call(
+            create_inspection, client=client,
+            body=File(payload=f, file_name="bundle.tar", mime_type="application/octet-stream"),
+            client_reference="sdk-cancel",
+        ), 202, Inspection)
+    status, _ = call(cancel_inspection, other.id, client=client)
+    assert status in (200, 202, 409), status
 
+    # Wait by long-poll, then read the finished inspection's event stream.
     deadline = time.monotonic() + 300
     while True:
-        inspection = get_inspection.sync(client=client, id=created.id)
-        assert isinstance(inspection, Inspection), inspection
+        inspection = expect(call(get_inspection, created.id, client=client, wait="30s"), 200, Inspection)
         if inspection.status.value in ("succeeded", "failed", "canceled"):
             break
         assert time.monotonic() < deadline, "timed out"
-        time.sleep(0.5)
     assert inspection.status.value == "succeeded", inspection.error
     assert inspection.verdict in ("accept", "reject")
-    # The event stream of a finished inspection: its one state, then the end of the stream.
-    events = inspection_events.sync(client=client, id=created.id)
-    assert isinstance(events, str) and events.count("event: state") == 1, events
-    assert '"status":"succeeded"' in events, events
+    events = expect(call(inspection_events, created.id, client=client), 200, str)
+    assert events.count("event: state") == 1 and '"status":"succeeded"' in events, events
 
-    report = get_report.sync_detailed(client=client, id=created.id)
-    assert report.status_code == 200
-    assert report.headers["etag"].startswith('"')
-
-    table = get_threads.sync(client=client, id=created.id)
-    assert isinstance(table, ThreadTable), table
+    status, report = call(get_report, created.id, client=client)
+    assert status == 200 and report is not None
+    table = expect(call(get_threads, created.id, client=client), 200, ThreadTable)
     measured = [(t.thread, h.angle_deg, h.height_mm) for t in table.threads for h in t.heights if isinstance(h.height_mm, float)]
     assert measured, "no measured bins"
+    mesh = expect(call(get_mesh, created.id, client=client, format_=GetMeshFormat.GLB), 200, File)
+    assert mesh.payload.read(4) == b"glTF"
+    image = expect(call(get_image, created.id, "height-map", client=client), 200, File)
+    assert image.payload.read(8) == b"\x89PNG\r\n\x1a\n"
 
     points = [CmmPoint(thread=t, angle_deg=a, height_mm=h - 0.002) for t, a, h in measured]
-    stored = put_cmm.sync(client=client, id=created.id, body=CmmMeasurements(points=points, instrument="sdk smoke"))
-    assert not isinstance(stored, Problem), stored
-    comparison = get_cmm_comparison.sync(client=client, id=created.id)
-    assert not isinstance(comparison, Problem), comparison
+    stored = expect(call(put_cmm, created.id, client=client, body=CmmMeasurements(points=points, instrument="sdk smoke")), 200, StoredCmm)
+    assert stored.version == 1, stored
+    expect(call(get_cmm, created.id, client=client), 200, StoredCmm)
+    versions = expect(call(list_cmm_versions, created.id, client=client), 200, CmmVersions)
+    assert [v.version for v in versions.versions] == [1]
+    comparison = expect(call(get_cmm_comparison, created.id, client=client), 200, CmmComparison)
     agreement = comparison.agreement
     assert agreement.compared == len(points), agreement
     assert abs(agreement.bias_mm - 0.002) < 1e-5, agreement.bias_mm
+    pairs = expect(call(get_training_pairs, created.id, client=client), 200, str)
+    assert pairs.count("\n") >= 1, pairs[:200]
 
-    page = list_inspections.sync(client=client, client_reference="sdk-smoke")
+    page = expect(call(list_inspections, client=client, client_reference="sdk-smoke"), 200, InspectionPage)
     assert [i.id for i in page.items] == [created.id], page
+    missing = expect(call(get_inspection, "00000000-0000-0000-0000-000000000000", client=client), 404, Problem)
+    assert missing.code == "invalid_id", missing
 
-    missing = get_inspection.sync(client=client, id="not-an-id")
-    assert isinstance(missing, Problem) and missing.code == "invalid_id", missing
-    connection = get_connection.sync_detailed(client=client, designation="BC 4-1/2")
-    assert connection.status_code == 200, connection.content
-    print(f"sdk: OK (verdict {inspection.verdict}, {len(points)} CMM points, bias {agreement.bias_mm * 1000:.3f} µm)")
+    # Keys and the audit (auth is off here: the admin routes answer without a key).
+    made = expect(call(create_key, client=client, body=NewApiKey(name="sdk", scopes=[Scope.READ])), 201, CreatedApiKey)
+    assert made.token.startswith("csk_")
+    keys = expect(call(list_keys, client=client), 200, ApiKeys)
+    assert made.key.id in [k.id for k in keys.keys]
+    revoked = expect(call(revoke_key, made.key.id, client=client), 200, ApiKey)
+    assert revoked.revoked_at is not None
+    audit = expect(call(get_audit, client=client, target=str(created.id)), 200, AuditPage)
+    assert any(e.action == "PUT /v1/inspections/{id}/cmm" for e in audit.entries), audit
+
+    missed = every_operation() - called
+    assert not missed, f"operations the SDK smoke does not call: {sorted(missed)}"
+    print(f"sdk: OK, {len(called)} operations (verdict {inspection.verdict}, {len(points)} CMM points, bias {agreement.bias_mm * 1000:.3f} µm)")
 
 
 if __name__ == "__main__":

@@ -55,7 +55,7 @@ pub struct StoredCmm {
     params(("id" = uuid::Uuid, Path, description = "Inspection id")),
     request_body(content(
         (CmmMeasurements = "application/json"),
-        (String = "text/csv"),
+        (super::Binary = "text/csv"),
     )),
     responses(
         (status = 200, description = "Stored", body = StoredCmm),
