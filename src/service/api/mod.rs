@@ -230,6 +230,7 @@ pub fn router(state: AppState) -> Router {
         .layer(DefaultBodyLimit::disable())
         .layer(tower_http::catch_panic::CatchPanicLayer::new())
         .layer(middleware::from_fn(request_head_limits))
+        .layer(middleware::from_fn(unknown_query_parameters))
         .layer(middleware::from_fn_with_state(state.clone(), keys::guard))
         .layer(tower::util::option_layer(cors(&state.settings.allowed_origins)))
         .layer(middleware::from_fn_with_state(state.clone(), browser::guard))
@@ -278,6 +279,72 @@ async fn request_head_limits(request: Request, next: Next) -> Response {
         .into_response();
     }
     next.run(request).await
+}
+
+/// The query parameters each documented operation takes, by method and route, from the OpenAPI
+/// document the router is built from.
+fn declared_query_parameters() -> &'static std::collections::HashMap<(String, String), Vec<String>> {
+    static DECLARED: std::sync::OnceLock<std::collections::HashMap<(String, String), Vec<String>>> =
+        std::sync::OnceLock::new();
+    DECLARED.get_or_init(|| {
+        use utoipa::openapi::path::ParameterIn;
+        let doc = openapi();
+        let mut declared = std::collections::HashMap::new();
+        for (path, item) in &doc.paths.paths {
+            let operations = [
+                ("GET", &item.get),
+                ("POST", &item.post),
+                ("PUT", &item.put),
+                ("DELETE", &item.delete),
+                ("PATCH", &item.patch),
+                ("HEAD", &item.head),
+            ];
+            for (method, op) in operations {
+                let Some(op) = op else { continue };
+                let names = op
+                    .parameters
+                    .iter()
+                    .flatten()
+                    .filter(|p| matches!(p.parameter_in, ParameterIn::Query))
+                    .map(|p| p.name.clone())
+                    .collect();
+                declared.insert((method.to_string(), path.clone()), names);
+            }
+        }
+        declared
+    })
+}
+
+/// Refuses a query parameter the route does not declare (400 `invalid_query` naming it), on every
+/// documented route: a misspelt `?wiat=30s` would otherwise be silently ignored.
+async fn unknown_query_parameters(request: Request, next: Next) -> Response {
+    let Some(query) = request.uri().query().filter(|q| !q.is_empty()) else { return next.run(request).await };
+    let Some(route) = request.extensions().get::<MatchedPath>().map(|m| m.as_str().to_string()) else {
+        return next.run(request).await;
+    };
+    let method = if request.method() == axum::http::Method::HEAD { "GET" } else { request.method().as_str() };
+    let Some(allowed) = declared_query_parameters().get(&(method.to_string(), route.clone())) else {
+        return next.run(request).await;
+    };
+    let unknown = query
+        .split('&')
+        .map(|pair| pair.split_once('=').map_or(pair, |(k, _)| k))
+        .find(|key| !key.is_empty() && !allowed.iter().any(|a| a == key))
+        .map(str::to_string);
+    match unknown {
+        None => next.run(request).await,
+        Some(key) => {
+            let accepted = if allowed.is_empty() { "none".to_string() } else { allowed.join(", ") };
+            let response = ApiError::new(
+                Code::InvalidQuery,
+                format!("unknown query parameter {key:?} for {method} {route}; it takes: {accepted}"),
+            )
+            .with_culprit(key)
+            .into_response();
+            ingest::drain(request.into_body()).await;
+            response
+        }
+    }
 }
 
 async fn route_not_found(request: Request) -> ApiError {
