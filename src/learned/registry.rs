@@ -132,7 +132,11 @@ fn check_name(role: ModelRole, name: &str) -> Result<(), LearnedError> {
         && name.starts_with(|c: char| c.is_ascii_alphanumeric())
         && name.chars().all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-'))
         && !name.contains("..");
-    if ok { Ok(()) } else { Err(LearnedError::InvalidName { role: role.as_str(), name: name.chars().take(80).collect() }) }
+    if ok {
+        Ok(())
+    } else {
+        Err(LearnedError::InvalidName { role: role.as_str(), name: name.chars().take(80).collect() })
+    }
 }
 
 impl Models {

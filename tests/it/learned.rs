@@ -202,7 +202,8 @@ fn floats(v: &serde_json::Value) -> Vec<f32> {
 fn the_shipped_depth_unets_through_onnx_runtime_equal_the_frameworks_output() {
     use learned::depth_cnn;
     let check = depth_check();
-    let shape: Vec<usize> = check["frames_shape"].as_array().unwrap().iter().map(|x| x.as_u64().unwrap() as usize).collect();
+    let shape: Vec<usize> =
+        check["frames_shape"].as_array().unwrap().iter().map(|x| x.as_u64().unwrap() as usize).collect();
     let (n, h, w) = (shape[0], shape[2], shape[3]);
     // The planes Rust computes from the check's offsets are those the framework was given.
     let offsets = [0.3, -0.2, 0.1, 0.0, -0.1, 0.2];
@@ -243,7 +244,8 @@ fn cnn_depth_measures_the_classical_pixels_near_truth_and_the_report_names_the_m
     for (v, (a, b)) in classic.depth_maps.iter().zip(&cnn.depth_maps).enumerate() {
         let truth_path = ci_bundle().join(format!("truth/{}.depth.pfm", bundle.views[v].id));
         let (_, _, truth) = crestscan::sim::pfm::read(&std::fs::read(truth_path).unwrap()).unwrap();
-        for ((x, y), t) in a.depth_mm.iter().zip(&b.depth_mm).zip(truth.chunks_exact(a.width).step_by(a.row_step).flatten())
+        for ((x, y), t) in
+            a.depth_mm.iter().zip(&b.depth_mm).zip(truth.chunks_exact(a.width).step_by(a.row_step).flatten())
         {
             assert_eq!(x.is_finite(), y.is_finite());
             if x.is_finite() && t.is_finite() {

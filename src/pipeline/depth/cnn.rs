@@ -5,8 +5,8 @@
 //! end-face silhouettes: the nets replace depth values, not the judgement of where depth exists,
 //! so the two methods are compared on the same pixels.
 
-use super::resample::{HeldFrame, Taps, axis_taps};
 use super::DepthMap;
+use super::resample::{HeldFrame, Taps, axis_taps};
 use crate::domain::frame::{Frame, FrameError, View};
 use crate::domain::optics::{Optics, Projection};
 use crate::learned::{LearnedError, Model, depth_cnn};

@@ -23,10 +23,7 @@ use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
 pub fn router() -> OpenApiRouter<AppState> {
-    OpenApiRouter::new()
-        .routes(routes!(list_keys, create_key))
-        .routes(routes!(revoke_key))
-        .routes(routes!(get_audit))
+    OpenApiRouter::new().routes(routes!(list_keys, create_key)).routes(routes!(revoke_key)).routes(routes!(get_audit))
 }
 
 /// Who made a request: a key (auth required), or nobody in particular (auth off).
@@ -338,7 +335,9 @@ pub async fn get_audit(
     let Query(q) = query?;
     let limit = q.limit.unwrap_or(100);
     if !(1..=1000).contains(&limit) {
-        return Err(ApiError::new(Code::InvalidQuery, format!("limit: {limit} is not within 1–1000")).with_culprit("limit"));
+        return Err(
+            ApiError::new(Code::InvalidQuery, format!("limit: {limit} is not within 1–1000")).with_culprit("limit")
+        );
     }
     let rows = state.store.audit_log(limit, q.before, q.target.as_deref()).await?;
     let next_before = (rows.len() as i64 == limit).then(|| rows.last().map(|r| r.seq)).flatten();

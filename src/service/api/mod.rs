@@ -10,8 +10,8 @@ pub mod dashboard;
 pub mod health;
 mod http;
 pub mod ingest;
-pub mod keys;
 pub mod inspections;
+pub mod keys;
 pub mod problem;
 pub mod results;
 
@@ -158,19 +158,13 @@ fn document_key_refusals(doc: &mut utoipa::openapi::OpenApi) {
             }
             continue;
         }
-        let operations = [
-            &mut item.get,
-            &mut item.post,
-            &mut item.put,
-            &mut item.delete,
-            &mut item.patch,
-            &mut item.head,
-        ];
+        let operations =
+            [&mut item.get, &mut item.post, &mut item.put, &mut item.delete, &mut item.patch, &mut item.head];
         for op in operations.into_iter().flatten() {
             let responses = &mut op.responses.responses;
-            responses.entry("401".into()).or_insert_with(|| {
-                refusal("No API key, or an invalid or revoked one (`auth = required`)").into()
-            });
+            responses
+                .entry("401".into())
+                .or_insert_with(|| refusal("No API key, or an invalid or revoked one (`auth = required`)").into());
             responses
                 .entry("403".into())
                 .or_insert_with(|| refusal("The key lacks the route's scope, or the origin is not allowed").into());

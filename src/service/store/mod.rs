@@ -10,8 +10,8 @@ mod queue;
 mod results;
 
 pub use cmm::{CmmRow, CmmVersionRow};
-pub use keys::{AuditEntry, AuditRow, KeyRow};
 pub use inspections::{Inserted, InspectionRow, ListFilter, NewInspection, UploadInfo};
+pub use keys::{AuditEntry, AuditRow, KeyRow};
 pub use queue::{Claimed, Heartbeat};
 pub use results::{Artifact, HeightRow, JobResults, StoredArtifact, ThreadRow};
 

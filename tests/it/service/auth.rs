@@ -7,21 +7,12 @@ use crestscan::service::auth::Scope;
 /// Every route of the OpenAPI document (the router's own list) and the pages beside it, with a
 /// concrete path.
 fn every_route() -> Vec<(reqwest::Method, String)> {
-    let doc: Value = serde_json::from_str(&crestscan::service::api::openapi().to_pretty_json().unwrap()).unwrap();
     let mut routes = vec![
         (reqwest::Method::GET, "/".to_string()),
         (reqwest::Method::GET, "/openapi.json".to_string()),
         (reqwest::Method::GET, "/docs/".to_string()),
     ];
-    for (path, item) in doc["paths"].as_object().unwrap() {
-        let concrete = path
-            .replace("{id}", if path.starts_with("/v1/keys") { "0123456789ab" } else { "00000000-0000-0000-0000-000000000000" })
-            .replace("{designation}", "BC%204-1%2F2")
-            .replace("{kind}", "height-map");
-        for method in item.as_object().unwrap().keys() {
-            routes.push((method.to_uppercase().parse().unwrap(), concrete.clone()));
-        }
-    }
+    routes.extend(documented_operations().into_iter().map(|(method, _, concrete)| (method, concrete)));
     assert!(routes.len() > 20, "{routes:?}");
     routes
 }
@@ -58,7 +49,9 @@ async fn the_authorisation_matrix_over_every_route() {
             }
             request.send()
         };
-        for (label, token) in [("no key", None), ("wrong key", Some(wrong.as_str())), ("revoked key", Some(revoked_token.as_str()))] {
+        for (label, token) in
+            [("no key", None), ("wrong key", Some(wrong.as_str())), ("revoked key", Some(revoked_token.as_str()))]
+        {
             let response = send(token).await.unwrap();
             if public.contains(&path.as_str()) {
                 assert!(response.status().is_success(), "{method} {path} with {label}: {}", response.status());
@@ -87,7 +80,10 @@ async fn the_authorisation_matrix_over_every_route() {
                 Some(n) => *scope == Some(n) || *scope == Some(Scope::Admin),
             };
             if allowed {
-                assert!(status != StatusCode::UNAUTHORIZED && status != StatusCode::FORBIDDEN, "{method} {path} with {scope:?}: {status}");
+                assert!(
+                    status != StatusCode::UNAUTHORIZED && status != StatusCode::FORBIDDEN,
+                    "{method} {path} with {scope:?}: {status}"
+                );
             } else {
                 assert_eq!(status, StatusCode::FORBIDDEN, "{method} {path} with {scope:?}");
                 let body: Value = response.json().await.unwrap();
@@ -172,8 +168,15 @@ async fn the_cli_key_works_against_the_served_binary_and_the_audit_names_it() {
     assert_eq!(audit.status(), StatusCode::FORBIDDEN);
     let mut entries = Vec::new();
     for _ in 0..50 {
-        let audit: Value =
-            client.get(format!("{base}/v1/audit?target={id}")).bearer_auth(&admin).send().await.unwrap().json().await.unwrap();
+        let audit: Value = client
+            .get(format!("{base}/v1/audit?target={id}"))
+            .bearer_auth(&admin)
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
         entries = audit["entries"].as_array().unwrap().clone();
         if entries.len() >= 2 {
             break;
@@ -191,7 +194,8 @@ async fn the_cli_key_works_against_the_served_binary_and_the_audit_names_it() {
     );
     assert_eq!(entries[0]["client"], "127.0.0.1");
     // Revoked over the API: the key stops working at once.
-    let keys: Value = client.get(format!("{base}/v1/keys")).bearer_auth(&admin).send().await.unwrap().json().await.unwrap();
+    let keys: Value =
+        client.get(format!("{base}/v1/keys")).bearer_auth(&admin).send().await.unwrap().json().await.unwrap();
     let mes_id = keys["keys"].as_array().unwrap().iter().find(|k| k["name"] == "mes-line-3").unwrap()["id"]
         .as_str()
         .unwrap()

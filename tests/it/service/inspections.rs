@@ -349,7 +349,10 @@ async fn event_streams_send_every_state_in_order_and_end_with_the_job_or_the_ser
     assert!(["accept", "reject"].contains(&last["verdict"].as_str().unwrap()), "{last}");
     // Consecutive events differ (a change each), and the running ones name their stages.
     for pair in states.windows(2) {
-        assert_ne!((&pair[0]["status"], &pair[0]["progress"]["stage"]), (&pair[1]["status"], &pair[1]["progress"]["stage"]));
+        assert_ne!(
+            (&pair[0]["status"], &pair[0]["progress"]["stage"]),
+            (&pair[1]["status"], &pair[1]["progress"]["stage"])
+        );
     }
     assert!(states.iter().filter(|s| s["status"] == "running").count() >= 2, "stages of the run: {states:?}");
 

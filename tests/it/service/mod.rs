@@ -212,3 +212,19 @@ async fn problem(response: reqwest::Response, status: StatusCode, code: &str) ->
     assert!(!v["detail"].as_str().unwrap().is_empty(), "{v}");
     v
 }
+
+/// Every operation of the OpenAPI document (the router's own list): method, template, and a
+/// concrete path (ids that exist nowhere, a real connection, a real image kind).
+pub fn documented_operations() -> Vec<(reqwest::Method, String, String)> {
+    let doc: Value = serde_json::from_str(&crestscan::service::api::openapi().to_pretty_json().unwrap()).unwrap();
+    let mut operations = Vec::new();
+    for (path, item) in doc["paths"].as_object().unwrap() {
+        let id = if path.starts_with("/v1/keys") { "0123456789ab" } else { "00000000-0000-0000-0000-000000000000" };
+        let concrete =
+            path.replace("{id}", id).replace("{designation}", "BC%204-1%2F2").replace("{kind}", "height-map");
+        for method in item.as_object().unwrap().keys() {
+            operations.push((method.to_uppercase().parse().unwrap(), path.clone(), concrete.clone()));
+        }
+    }
+    operations
+}

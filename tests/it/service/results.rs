@@ -251,7 +251,8 @@ async fn round_trip_on_the_ci_preset() {
     let again: Value = app.get(&format!("{location}/cmm-comparison?version=1")).await.json().await.unwrap();
     assert_eq!(again["cmm_version"], 1);
     assert!((again["agreement"]["rms_mm"].as_f64().unwrap() - rms).abs() < 1e-12);
-    let missing = problem(app.get(&format!("{location}/cmm?version=3")).await, StatusCode::NOT_FOUND, "cmm_not_found").await;
+    let missing =
+        problem(app.get(&format!("{location}/cmm?version=3")).await, StatusCode::NOT_FOUND, "cmm_not_found").await;
     assert_eq!(missing["culprit"], "version");
     problem(app.get(&format!("{location}/cmm?version=0")).await, StatusCode::BAD_REQUEST, "invalid_query").await;
 
