@@ -1,7 +1,7 @@
 //! `crestscan keys`: API keys in a service's data directory, from the machine it runs on (the
 //! first admin key comes from here; later ones may come from `POST /v1/keys`).
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use std::path::PathBuf;
 
@@ -71,10 +71,7 @@ impl KeysCommand {
         match self {
             KeysCommand::Create { data, name, scopes } => {
                 let scopes = auth::parse_scopes(&scopes).map_err(anyhow::Error::msg).context("--scopes")?;
-                let name = name.trim();
-                if name.is_empty() || name.chars().count() > 100 {
-                    bail!("--name: 1 to 100 characters");
-                }
+                let name = auth::key_name(&name).map_err(anyhow::Error::msg).context("--name")?;
                 let (row, token) = data.store().await?.create_key(name, &scopes).await?;
                 println!("created key {} ({}) with scopes {}; it is shown once:", row.id, row.name, row.scopes);
                 println!("{token}");

@@ -38,19 +38,34 @@ impl Scope {
 
 /// A comma-separated scope list (`read,submit`), as the CLI and the store write it.
 pub fn parse_scopes(text: &str) -> Result<Vec<Scope>, String> {
-    let mut scopes = Vec::new();
-    for part in text.split(',').filter(|p| !p.trim().is_empty()) {
-        let scope = Scope::parse(part)
-            .ok_or_else(|| format!("unknown scope {:?}: the scopes are read, submit and admin", part.trim()))?;
-        if !scopes.contains(&scope) {
-            scopes.push(scope);
-        }
-    }
+    let scopes = text
+        .split(',')
+        .filter(|p| !p.trim().is_empty())
+        .map(|part| {
+            Scope::parse(part)
+                .ok_or_else(|| format!("unknown scope {:?}: the scopes are read, submit and admin", part.trim()))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    scope_set(scopes)
+}
+
+/// A key's scopes, each once and in order; at least one.
+pub fn scope_set(mut scopes: Vec<Scope>) -> Result<Vec<Scope>, String> {
+    scopes.sort();
+    scopes.dedup();
     if scopes.is_empty() {
         return Err("a key needs at least one scope (read, submit, admin)".into());
     }
-    scopes.sort();
     Ok(scopes)
+}
+
+/// A key's name, trimmed: 1 to 100 characters.
+pub fn key_name(name: &str) -> Result<&str, String> {
+    let name = name.trim();
+    if name.is_empty() || name.chars().count() > 100 {
+        return Err("a key's name has 1 to 100 characters".into());
+    }
+    Ok(name)
 }
 
 pub fn scopes_text(scopes: &[Scope]) -> String {

@@ -205,7 +205,7 @@ async fn process(ctx: &WorkerContext, job: Claimed, lease_token: &str, shutdown:
                 ctx.metrics.observe_stage(&t.stage, t.seconds);
             }
             let r = &results.report;
-            finding = Some((label_of(&r.verdict), label_of(&r.decision), r.review_required));
+            finding = Some((r.verdict.as_str(), r.decision.as_str(), r.review_required));
             ("succeeded", ctx.store.complete_success(&job.id, lease_token, &results).await)
         }
         Outcome::Canceled => {
@@ -229,8 +229,8 @@ async fn process(ctx: &WorkerContext, job: Claimed, lease_token: &str, shutdown:
     match stored {
         Ok(true) => {
             ctx.metrics.job_finished(label, elapsed);
-            if let Some((verdict, decision, review)) = &finding {
-                ctx.metrics.inspection_result(verdict, decision, *review);
+            if let Some((verdict, decision, review)) = finding {
+                ctx.metrics.inspection_result(verdict, decision, review);
             }
             tracing::info!(inspection = %job.id, outcome = label, seconds = elapsed, "job done");
         }
@@ -404,13 +404,5 @@ mod tests {
         assert_eq!((p.code.as_str(), p.culprit.as_deref()), ("missing_file", Some("a/0.png")));
         let Outcome::Fail(p) = failure(&pipeline::PipelineError::NoDepth) else { panic!() };
         assert_eq!((p.code.as_str(), p.status), ("no_depth", 422));
-    }
-}
-
-/// An enum's wire spelling (its serde name), for a metric label.
-fn label_of(value: &impl serde::Serialize) -> String {
-    match serde_json::to_value(value) {
-        Ok(serde_json::Value::String(s)) => s,
-        _ => "unknown".into(),
     }
 }

@@ -97,11 +97,10 @@ pub async fn guard(State(state): State<AppState>, request: Request, next: Next) 
     secured(next.run(request).await, &path)
 }
 
-/// Answers `error`, after reading (a bounded part of) the refused body, so that a client sending
-/// an upload whole reads the problem instead of a reset connection.
+/// Answers `error` as [`super::refuse`] does, with the security headers (this guard adds them to
+/// every other answer on its way out).
 async fn refuse(request: Request, error: ApiError) -> Response {
-    super::ingest::drain(request.into_body()).await;
-    secured(error.into_response(), "")
+    secured(super::refuse(request, error.into_response()).await, "")
 }
 
 /// The API browser (Swagger UI) runs its own scripts and styles, some inline; every other answer

@@ -636,9 +636,8 @@ pub async fn get_inspection(
     let mut row = fetch().await?;
     // Long-poll by re-reading the row: the worker may be another process on the same database,
     // so an in-process notification would miss its changes.
-    let seen = (row.status.clone(), row.progress_stage.clone());
+    let seen = watched(&row);
     let deadline = tokio::time::Instant::now() + wait;
-    let finished = |row: &InspectionRow| row.status.parse::<Status>().is_ok_and(Status::is_terminal);
     let mut stopping = state.stopping.clone();
     while !finished(&row) && tokio::time::Instant::now() < deadline && !*stopping.borrow() {
         tokio::select! {
@@ -646,11 +645,22 @@ pub async fn get_inspection(
             _ = stopping.changed() => {}
         }
         row = fetch().await?;
-        if (&row.status, &row.progress_stage) != (&seen.0, &seen.1) {
+        if watched(&row) != seen {
             break;
         }
     }
     Ok(Json(row.into()))
+}
+
+/// What a waiter watches of an inspection (the long-poll, the event stream): its status and
+/// progress stage; a change of either is news.
+fn watched(row: &InspectionRow) -> (String, Option<String>) {
+    (row.status.clone(), row.progress_stage.clone())
+}
+
+/// Whether no more news will come: the status is terminal.
+fn finished(row: &InspectionRow) -> bool {
+    row.status.parse::<Status>().is_ok_and(Status::is_terminal)
 }
 
 /// A stream of the inspection's changes (server-sent events, `text/event-stream`): an event
@@ -695,11 +705,11 @@ pub async fn inspection_events(State(state): State<AppState>, Path(id): Path<Str
         }
         loop {
             if let Some(row) = c.next.take() {
-                let key = (row.status.clone(), row.progress_stage.clone());
+                let key = watched(&row);
                 if c.seen.as_ref() != Some(&key) {
                     c.seen = Some(key);
                     c.count += 1;
-                    c.done = row.status.parse::<Status>().is_ok_and(Status::is_terminal);
+                    c.done = finished(&row);
                     let e = event(c.count, row);
                     return Some((e.map_err(|e| std::io::Error::other(e.to_string())), c));
                 }

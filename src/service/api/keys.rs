@@ -101,7 +101,7 @@ impl SubmissionLimiter {
 
 /// Checks the key (auth required), its scope and its submission rate, then records what the
 /// audit keeps: every change, and every read of an inspection's results.
-pub async fn guard(State(state): State<AppState>, mut request: Request, next: Next) -> Response {
+pub async fn guard(State(state): State<AppState>, request: Request, next: Next) -> Response {
     let peer = request.extensions().get::<ConnectInfo<SocketAddr>>().map(|c| c.0.ip().to_string());
     let method = request.method().clone();
     let path = request.uri().path().to_string();
@@ -112,7 +112,7 @@ pub async fn guard(State(state): State<AppState>, mut request: Request, next: Ne
     {
         let (row, scopes) = match authenticate(&state, request.headers()).await {
             Ok(found) => found,
-            Err(response) => return refuse(request, response).await,
+            Err(response) => return super::refuse(request, response).await,
         };
         if !auth::allows(&scopes, needed) {
             let response = ApiError::new(
@@ -127,7 +127,7 @@ pub async fn guard(State(state): State<AppState>, mut request: Request, next: Ne
             )
             .with_culprit("Authorization")
             .into_response();
-            return refuse(request, response).await;
+            return super::refuse(request, response).await;
         }
         let per_minute = state.settings.submissions_per_minute;
         if per_minute > 0
@@ -141,12 +141,11 @@ pub async fn guard(State(state): State<AppState>, mut request: Request, next: Ne
             )
             .into_response();
             response.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from(wait));
-            return refuse(request, response).await;
+            return super::refuse(request, response).await;
         }
         principal = Principal { key_id: Some(row.id), key_name: Some(row.name) };
     }
     let route = request.extensions().get::<MatchedPath>().map(|m| m.as_str().to_string());
-    request.extensions_mut().insert(principal.clone());
     let response = next.run(request).await;
     if let Some(route) = route.filter(|r| audited(&method, r)) {
         let target = target_of(&path, &response);
@@ -166,13 +165,6 @@ pub async fn guard(State(state): State<AppState>, mut request: Request, next: Ne
             }
         });
     }
-    response
-}
-
-/// Answers a refused request once its body is read (for a bounded time, as the upload's own
-/// refusals do), so that a client still sending an upload gets the answer, not a broken pipe.
-async fn refuse(request: Request, response: Response) -> Response {
-    super::ingest::drain(request.into_body()).await;
     response
 }
 
@@ -261,12 +253,9 @@ pub async fn create_key(
     body: Result<Json<NewApiKey>, axum::extract::rejection::JsonRejection>,
 ) -> Result<(StatusCode, Json<CreatedApiKey>), ApiError> {
     let Json(new) = body?;
-    let name = new.name.trim();
-    if name.is_empty() || name.chars().count() > 100 {
-        return Err(ApiError::new(Code::InvalidOption, "name: 1 to 100 characters").with_culprit("name"));
-    }
-    let scopes = auth::parse_scopes(&auth::scopes_text(&new.scopes))
-        .map_err(|e| ApiError::new(Code::InvalidOption, e).with_culprit("scopes"))?;
+    let name = auth::key_name(&new.name).map_err(|e| ApiError::new(Code::InvalidOption, e).with_culprit("name"))?;
+    let scopes =
+        auth::scope_set(new.scopes).map_err(|e| ApiError::new(Code::InvalidOption, e).with_culprit("scopes"))?;
     let (row, token) = state.store.create_key(name, &scopes).await?;
     tracing::info!(key = row.id, name = row.name, scopes = row.scopes, "API key created");
     Ok((StatusCode::CREATED, Json(CreatedApiKey { key: row.into(), token })))

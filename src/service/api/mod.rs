@@ -335,10 +335,17 @@ async fn unknown_query_parameters(request: Request, next: Next) -> Response {
             )
             .with_culprit(key)
             .into_response();
-            ingest::drain(request.into_body()).await;
-            response
+            refuse(request, response).await
         }
     }
+}
+
+/// Answers a request refused before its handler once its body is read (for a bounded time, as
+/// the upload's own refusals do), so that a client still sending an upload gets the answer, not a
+/// broken pipe.
+async fn refuse(request: Request, response: Response) -> Response {
+    ingest::drain(request.into_body()).await;
+    response
 }
 
 async fn route_not_found(request: Request) -> ApiError {
