@@ -68,6 +68,7 @@ codes! {
     ResultExpired = ("result_expired", 410, "Result deleted by retention"),
     UnknownDesignation = ("unknown_designation", 404, "Unknown connection designation"),
     UnknownModel = ("unknown_model", 422, "Unknown model"),
+    CallbackNotAllowed = ("callback_not_allowed", 422, "Callback destination not allowed"),
     // Bundle validation (the bundle reader's codes).
     UnsupportedFormatVersion = ("unsupported_format_version", 422, "Unsupported bundle format"),
     InvalidManifest = ("invalid_manifest", 422, "Invalid manifest"),

@@ -47,6 +47,9 @@ enum Command {
     Serve(Box<serve::ServeArgs>),
     /// API keys of a service's data directory: create (the first admin key), list, revoke.
     Keys(keys::KeysArgs),
+    /// Print a new webhook signing secret (whsec_…, 32 random bytes) for a `[[webhooks]]`
+    /// endpoint's `secrets` or `callback_secrets`, and for the receiver that verifies them.
+    WebhookSecret,
     /// Print the OpenAPI document of the HTTP API (JSON).
     Openapi,
     /// Exit 0 when a local service answers /healthz (for container health checks; no curl needed).
@@ -185,6 +188,12 @@ pub fn main() -> Result<()> {
         Command::Connections(args) => args.run(),
         Command::Serve(args) => args.run(),
         Command::Keys(args) => args.run(),
+        Command::WebhookSecret => {
+            let secret = crestscan::service::webhooks::Secret::generate()
+                .map_err(|e| anyhow::anyhow!("the operating system gave no random bytes: {e}"))?;
+            println!("{secret}");
+            Ok(())
+        }
         Command::Openapi => {
             println!("{}", crestscan::service::api::openapi().to_pretty_json()?);
             Ok(())

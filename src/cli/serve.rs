@@ -136,6 +136,23 @@ pub struct ServeArgs {
     /// Submissions per API key per minute, 429 beyond (0: no limit) [default: 60].
     #[arg(long, env = "CRESTSCAN_SUBMISSIONS_PER_MINUTE")]
     submissions_per_minute: Option<u32>,
+    /// The only origins (scheme://host:port) a submission's callback_url may point to,
+    /// comma-separated [default: none: callbacks are refused]. Webhook endpoints of the service's
+    /// own are `[[webhooks]]` tables of the config file.
+    #[arg(long, env = "CRESTSCAN_CALLBACK_ORIGINS", value_delimiter = ',')]
+    callback_origins: Option<Vec<String>>,
+    /// Secrets signing callbacks (whsec_…, crestscan webhook-secret), comma-separated; each signs.
+    #[arg(long, env = "CRESTSCAN_CALLBACK_SECRETS", value_delimiter = ',', hide_env_values = true)]
+    callback_secrets: Option<Vec<String>>,
+    /// The longest one webhook attempt may take, seconds [default: 10].
+    #[arg(long, env = "CRESTSCAN_WEBHOOK_TIMEOUT_SECONDS")]
+    webhook_timeout_seconds: Option<f64>,
+    /// Attempts of a webhook delivery before it is given up [default: 15].
+    #[arg(long, env = "CRESTSCAN_WEBHOOK_MAX_ATTEMPTS")]
+    webhook_max_attempts: Option<u32>,
+    /// The wait after a delivery's first failure, seconds, doubling to an hour [default: 5].
+    #[arg(long, env = "CRESTSCAN_WEBHOOK_RETRY_SECONDS")]
+    webhook_retry_seconds: Option<f64>,
 }
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
@@ -199,7 +216,12 @@ impl ServeArgs {
             upload_retention_days,
             artifact_retention_days,
             log,
-            submissions_per_minute
+            submissions_per_minute,
+            callback_origins,
+            callback_secrets,
+            webhook_timeout_seconds,
+            webhook_max_attempts,
+            webhook_retry_seconds
         );
         if let Some(auth) = self.auth {
             s.auth = match auth {

@@ -2,6 +2,7 @@
 //! (`CRESTSCAN_*`) < command-line flags; the CLI layer (clap, with `env`) merges the last two.
 
 use crate::bundle::Limits;
+use crate::service::webhooks::{EndpointSettings, Secret};
 use serde::{Deserialize, Serialize};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -92,6 +93,22 @@ pub struct Settings {
     pub auth: AuthMode,
     /// Submissions per API key per minute (429 with Retry-After beyond; 0: no limit).
     pub submissions_per_minute: u32,
+    /// Endpoints told of every inspection's terminal state (`[[webhooks]]` tables of the config
+    /// file: `name`, `url`, `secrets`, `events`; docs/service.md, Webhooks).
+    pub webhooks: Vec<EndpointSettings>,
+    /// The only origins (`https://mes.plant.local:8443`: scheme, host and port) a submission's
+    /// `callback_url` may point to; none by default, so `callback_url` is refused and the service
+    /// calls nothing a client names.
+    pub callback_origins: Vec<String>,
+    /// Secrets signing `callback_url` deliveries (`whsec_…`; each one signs, for rotation).
+    pub callback_secrets: Vec<String>,
+    /// The longest one webhook attempt may take, seconds.
+    pub webhook_timeout_seconds: f64,
+    /// Attempts of a delivery before it is given up (recorded as failed).
+    pub webhook_max_attempts: u32,
+    /// The wait after a delivery's first failed attempt, seconds; it doubles per attempt up to an
+    /// hour, with ±25% jitter.
+    pub webhook_retry_seconds: f64,
 }
 
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -146,6 +163,12 @@ impl Default for Settings {
             log_format: LogFormat::Text,
             auth: AuthMode::Off,
             submissions_per_minute: 60,
+            webhooks: Vec::new(),
+            callback_origins: Vec::new(),
+            callback_secrets: Vec::new(),
+            webhook_timeout_seconds: 10.0,
+            webhook_max_attempts: 15,
+            webhook_retry_seconds: 5.0,
         }
     }
 }
@@ -229,6 +252,72 @@ impl Settings {
         }
         if !(self.upload_retention_days >= 0.0) {
             return invalid("upload_retention_days", "must be non-negative (0 keeps uploads)");
+        }
+        self.validate_webhooks()
+    }
+
+    #[allow(clippy::neg_cmp_op_on_partial_ord)]
+    fn validate_webhooks(&self) -> Result<(), ConfigError> {
+        use crate::service::webhooks::{CALLBACK, origin_of};
+        let invalid = |field, message: String| Err(ConfigError::Invalid { field, message });
+        if !(self.webhook_timeout_seconds > 0.0) {
+            return invalid("webhook_timeout_seconds", "must be positive".into());
+        }
+        if !(self.webhook_retry_seconds > 0.0) {
+            return invalid("webhook_retry_seconds", "must be positive".into());
+        }
+        if self.webhook_max_attempts == 0 {
+            return invalid("webhook_max_attempts", "must be at least 1".into());
+        }
+        let mut names = std::collections::HashSet::new();
+        for (i, endpoint) in self.webhooks.iter().enumerate() {
+            let name = &endpoint.name;
+            let well_formed = !name.is_empty()
+                && name.len() <= 64
+                && name.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_');
+            if !well_formed || name == CALLBACK {
+                return invalid(
+                    "webhooks",
+                    format!("[{i}].name {name:?}: 1–64 letters, digits, - or _, and not {CALLBACK:?}"),
+                );
+            }
+            if !names.insert(name) {
+                return invalid("webhooks", format!("[{i}].name {name:?} is used twice"));
+            }
+            if let Err(e) = origin_of(&endpoint.url) {
+                return invalid("webhooks", format!("[{i}] ({name}).url: {e}"));
+            }
+            if endpoint.secrets.is_empty() {
+                return invalid("webhooks", format!("[{i}] ({name}).secrets: at least one (crestscan webhook-secret)"));
+            }
+            if let Some(e) = endpoint.secrets.iter().find_map(|s| Secret::parse(s).err()) {
+                return invalid("webhooks", format!("[{i}] ({name}).secrets: {e}"));
+            }
+            if endpoint.events.is_empty() {
+                return invalid("webhooks", format!("[{i}] ({name}).events: at least one, or leave it out for all"));
+            }
+        }
+        for origin in &self.callback_origins {
+            let parsed = reqwest::Url::parse(origin).map_err(|e| e.to_string());
+            let bare = parsed.as_ref().is_ok_and(|u| u.path() == "/" && u.query().is_none() && u.fragment().is_none());
+            if let Err(e) = origin_of(origin) {
+                return invalid("callback_origins", e);
+            }
+            if !bare {
+                return invalid(
+                    "callback_origins",
+                    format!("{origin:?}: an origin is a scheme, host and port, without a path (https://mes.plant.local:8443)"),
+                );
+            }
+        }
+        if let Some(e) = self.callback_secrets.iter().find_map(|s| Secret::parse(s).err()) {
+            return invalid("callback_secrets", e);
+        }
+        if !self.callback_origins.is_empty() && self.callback_secrets.is_empty() {
+            return invalid(
+                "callback_secrets",
+                "callback_origins allows callbacks but no secret signs them: add one (crestscan webhook-secret)".into(),
+            );
         }
         Ok(())
     }
@@ -315,6 +404,39 @@ mod tests {
         assert!(e.contains("wokers"), "{e}");
         let bad = Settings { lease_seconds: 1.0, heartbeat_seconds: 2.0, ..Settings::default() };
         assert!(bad.validate().unwrap_err().to_string().starts_with("lease_seconds"));
+    }
+
+    #[test]
+    fn webhook_settings_read_from_the_file_and_are_checked() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("crestscan.toml");
+        let secret = "whsec_MfKQ9r8GKYqrTwjUPD8ILPZIo2LaLaSw";
+        std::fs::write(
+            &path,
+            format!(
+                "callback_origins = [\"https://mes.plant.local\"]\ncallback_secrets = [\"{secret}\"]\n\
+                 [[webhooks]]\nname = \"mes\"\nurl = \"https://mes.plant.local/in\"\nsecrets = [\"{secret}\"]\n\
+                 events = [\"inspection.failed\"]\n"
+            ),
+        )
+        .unwrap();
+        let s = Settings::from_file(&path).unwrap();
+        s.validate().unwrap();
+        assert_eq!(s.webhooks[0].events, vec![crate::service::webhooks::EventType::Failed]);
+        let endpoint = s.webhooks[0].clone();
+        let refused = |edit: &dyn Fn(&mut Settings)| {
+            let mut bad = s.clone();
+            edit(&mut bad);
+            bad.validate().unwrap_err().to_string()
+        };
+        assert!(refused(&|b| b.webhooks[0].secrets = vec!["whsec_c2hvcnQ=".into()]).contains("24 to 64"));
+        assert!(refused(&|b| b.webhooks[0].secrets.clear()).contains("at least one"));
+        assert!(refused(&|b| b.webhooks[0].url = "ftp://x/".into()).contains("http"));
+        assert!(refused(&|b| b.webhooks[0].name = "callback".into()).starts_with("webhooks"));
+        assert!(refused(&|b| b.webhooks.push(endpoint.clone())).contains("twice"));
+        assert!(refused(&|b| b.callback_origins = vec!["https://mes.plant.local/in".into()]).contains("without a path"));
+        assert!(refused(&|b| b.callback_secrets.clear()).starts_with("callback_secrets"));
+        assert!(refused(&|b| b.webhook_max_attempts = 0).starts_with("webhook_max_attempts"));
     }
 
     #[test]

@@ -11,6 +11,10 @@ use crate::service::config::Settings;
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct JobOptions {
     pub pipeline: PipelineOptions,
+    /// Where the inspection's terminal state is POSTed (a webhook; its origin is in
+    /// `callback_origins`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub callback_url: Option<String>,
 }
 
 /// A bundle whose inspection would need more memory than a worker may take.

@@ -1,5 +1,5 @@
-//! Building and running the service: open the store (migrations), bind, spawn the workers and the
-//! retention sweep, serve until a shutdown signal, then drain.
+//! Building and running the service: open the store (migrations), bind, spawn the workers, the
+//! webhook dispatcher and the retention sweep, serve until a shutdown signal, then drain.
 
 use crate::domain::thread::ConnectionTable;
 use crate::service::api::{self, AppState};
@@ -93,6 +93,11 @@ impl Application {
         let (stop_tx, stop_rx) = (self.stop, self.state.stopping.clone());
         let workers = tokio::spawn(worker::run(self.worker.clone(), stop_rx.clone()));
         let sweeper = tokio::spawn(retention_sweep(self.state.clone(), stop_rx.clone()));
+        let webhooks = tokio::spawn(crate::service::webhooks::run(
+            self.state.store.clone(),
+            self.state.settings.clone(),
+            stop_rx.clone(),
+        ));
         let header_timeout = Duration::from_secs_f64(self.state.settings.header_timeout_seconds);
         let app = api::router(self.state);
         let mut http_stop = stop_rx.clone();
@@ -106,6 +111,8 @@ impl Application {
         });
         server.await?;
         let _ = workers.await;
+        // A delivery cut off here is attempted again by the next process (its lease lapses).
+        webhooks.abort();
         sweeper.abort();
         signal.abort();
         tracing::info!("stopped");

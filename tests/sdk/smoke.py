@@ -13,7 +13,7 @@ import time
 import httpx
 import crestscan_client.api
 from crestscan_client import Client
-from crestscan_client.api.admin import create_key, get_audit, list_keys, revoke_key
+from crestscan_client.api.admin import create_key, get_audit, list_keys, list_webhook_deliveries, revoke_key
 from crestscan_client.api.cmm import get_cmm, get_cmm_comparison, get_training_pairs, list_cmm_versions, put_cmm
 from crestscan_client.api.connections import get_connection, list_connections
 from crestscan_client.api.inspections import (
@@ -35,6 +35,7 @@ from crestscan_client.models import (
     CmmPoint,
     CmmVersions,
     CreatedApiKey,
+    DeliveryPage,
     Inspection,
     InspectionPage,
     NewApiKey,
@@ -149,6 +150,9 @@ def main(base: str, bundle: str) -> None:
     assert revoked.revoked_at is not None
     audit = expect(call(get_audit, client=client, target=str(created.id)), 200, AuditPage)
     assert any(e.action == "PUT /v1/inspections/{id}/cmm" for e in audit.entries), audit
+    # No webhook endpoint is configured here: the record is empty, and typed.
+    deliveries = expect(call(list_webhook_deliveries, client=client, inspection_id=str(created.id)), 200, DeliveryPage)
+    assert deliveries.deliveries == [], deliveries
 
     missed = every_operation() - called
     assert not missed, f"operations the SDK smoke does not call: {sorted(missed)}"

@@ -151,6 +151,12 @@ pub struct SubmitOptions {
     #[param(schema_with = arc_rule_values)]
     #[schema(schema_with = arc_rule_values)]
     pub arc_rule: Option<ArcRule>,
+    /// Where to POST the inspection's terminal state (a webhook signed per Standard Webhooks;
+    /// docs/service.md). Its origin must be among the server's `callback_origins`, else 422
+    /// `callback_not_allowed`.
+    #[param(max_length = 2048)]
+    #[schema(max_length = 2048)]
+    pub callback_url: Option<String>,
     /// Pipeline options to override (JSON object, same shape as the inspection's `options.pipeline`).
     /// Only in the multipart `options` part.
     #[serde(default)]
@@ -237,7 +243,7 @@ pub struct BundleForm {
     /// The bundle as a zip or tar archive.
     #[schema(value_type = String, format = Binary)]
     bundle: Vec<u8>,
-    /// Submission options (a JSON part): `client_reference`, `arc_rule`, `pipeline`.
+    /// Submission options (a JSON part): `client_reference`, `arc_rule`, `callback_url`, `pipeline`.
     options: Option<SubmitOptions>,
 }
 
@@ -287,7 +293,11 @@ fn merge(base: &mut serde_json::Value, patch: &serde_json::Value, path: &str) ->
     }
 }
 
-pub fn resolve_options(query: SubmitOptions, part: Option<&[u8]>) -> Result<(Option<String>, JobOptions), ApiError> {
+pub fn resolve_options(
+    query: SubmitOptions,
+    part: Option<&[u8]>,
+    settings: &crate::service::config::Settings,
+) -> Result<(Option<String>, JobOptions), ApiError> {
     let part: SubmitOptions = match part {
         Some(bytes) => {
             let de = &mut serde_json::Deserializer::from_slice(bytes);
@@ -314,7 +324,12 @@ pub fn resolve_options(query: SubmitOptions, part: Option<&[u8]>) -> Result<(Opt
         pipeline.arc_rule = rule;
     }
     pipeline.check_ranges().map_err(|e| ApiError::of(&e))?;
-    Ok((reference, JobOptions { pipeline }))
+    let callback_url = part.callback_url.or(query.callback_url);
+    if let Some(url) = &callback_url {
+        crate::service::webhooks::callback_allowed(settings, url)
+            .map_err(|e| ApiError::new(Code::CallbackNotAllowed, e).with_culprit("callback_url"))?;
+    }
+    Ok((reference, JobOptions { pipeline, callback_url }))
 }
 
 fn accepted(row: InspectionRow, replayed: bool) -> Response {
@@ -360,7 +375,7 @@ fn accepted(row: InspectionRow, replayed: bool) -> Response {
         (status = 413, description = "Body or bundle too large", body = Problem, content_type = "application/problem+json"),
         (status = 415, description = "Unsupported Content-Type", body = Problem, content_type = "application/problem+json"),
         (status = 408, description = "The upload stalled or came too slowly (upload_idle_seconds, min_upload_kib_per_s)", body = Problem, content_type = "application/problem+json"),
-        (status = 422, description = "Invalid bundle, option (out of its range), over the worker's memory budget, or Idempotency-Key reused with another body", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Invalid bundle, option (out of its range), callback_url not allowed, over the worker's memory budget, or Idempotency-Key reused with another body", body = Problem, content_type = "application/problem+json"),
         (status = 429, description = "Too many uploads from this client at once", body = Problem, content_type = "application/problem+json",
             headers(("Retry-After" = String, description = "Seconds to wait"))),
         (status = 500, description = "Server error", body = Problem, content_type = "application/problem+json"),
@@ -395,7 +410,7 @@ pub async fn create_inspection(
     let received = ingest::receive(request, &state.store.files, ingest::UploadRules::of(&state.settings)).await;
     drop(pass);
     let received = received?;
-    let (reference, options) = resolve_options(query, received.options_part.as_deref())?;
+    let (reference, options) = resolve_options(query, received.options_part.as_deref(), &state.settings)?;
     // A learned part that cannot run is refused now, not found out by the worker (loading ONNX
     // Runtime the first time reads a 29 MB library: off the async threads).
     let (models, pipeline) = (state.models.clone(), options.pipeline.clone());

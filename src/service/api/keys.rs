@@ -34,13 +34,13 @@ pub struct Principal {
 }
 
 /// The scope a request needs; None for what anyone may call (`/healthz`, `/readyz`, CORS
-/// preflights). Keys and the audit log need `admin`; every other read `read`; every other change
+/// preflights). Keys, the audit log and webhook deliveries need `admin`; every other read `read`; every other change
 /// `submit`.
 pub fn required_scope(method: &Method, path: &str) -> Option<Scope> {
     if method == Method::OPTIONS || matches!(path, "/healthz" | "/readyz") {
         return None;
     }
-    if path == "/v1/keys" || path.starts_with("/v1/keys/") || path == "/v1/audit" {
+    if path == "/v1/keys" || path.starts_with("/v1/keys/") || path == "/v1/audit" || path.starts_with("/v1/webhooks") {
         return Some(Scope::Admin);
     }
     if method == Method::GET || method == Method::HEAD { Some(Scope::Read) } else { Some(Scope::Submit) }
@@ -370,5 +370,6 @@ mod tests {
         assert_eq!(required_scope(&Method::GET, "/v1/keys"), Some(Scope::Admin));
         assert_eq!(required_scope(&Method::DELETE, "/v1/keys/abc"), Some(Scope::Admin));
         assert_eq!(required_scope(&Method::GET, "/v1/audit"), Some(Scope::Admin));
+        assert_eq!(required_scope(&Method::GET, "/v1/webhooks/deliveries"), Some(Scope::Admin));
     }
 }

@@ -14,6 +14,7 @@ pub mod inspections;
 pub mod keys;
 pub mod problem;
 pub mod results;
+pub mod webhooks;
 
 use crate::domain::thread::ConnectionTable;
 use crate::problem::Code;
@@ -204,6 +205,7 @@ fn api_routes() -> OpenApiRouter<AppState> {
         .merge(health::router())
         .merge(capabilities::router())
         .merge(keys::router())
+        .merge(webhooks::router())
 }
 
 /// The OpenAPI document (what `/openapi.json` serves and `crestscan openapi` prints).

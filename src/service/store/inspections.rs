@@ -40,7 +40,7 @@ impl InspectionRow {
     }
 }
 
-const SELECT_INSPECTION: &str = "SELECT i.id, i.status, i.upload_sha256, i.serial, i.connection, i.client_reference, \
+pub(super) const SELECT_INSPECTION: &str = "SELECT i.id, i.status, i.upload_sha256, i.serial, i.connection, i.client_reference, \
      i.options_json, i.verdict, i.review_required, i.decision, i.created_at, i.updated_at, i.started_at, i.finished_at, i.progress_stage, \
      i.progress_fraction, i.attempts, i.max_attempts, i.cancel_requested, i.error_json, i.request_sha256, \
      u.size_bytes, u.views, u.frames FROM inspections i JOIN uploads u ON u.sha256 = i.upload_sha256";

@@ -65,7 +65,7 @@ async fn the_authorisation_matrix_over_every_route() {
         }
         let needed = if public.contains(&path.as_str()) {
             None
-        } else if path.starts_with("/v1/keys") || path == "/v1/audit" {
+        } else if path.starts_with("/v1/keys") || path == "/v1/audit" || path.starts_with("/v1/webhooks") {
             Some(Scope::Admin)
         } else if method == reqwest::Method::GET {
             Some(Scope::Read)

@@ -10,6 +10,7 @@ mod openapi;
 mod queue;
 mod report_page;
 mod results;
+mod webhooks;
 
 use crate::common::{ci_bundle, walk};
 use crestscan::service::config::Settings;
