@@ -18,6 +18,10 @@ RUN apt-get update -qq && apt-get install -y -qq --no-install-recommends python3
 RUN CARGO_PROFILE_RELEASE_STRIP=symbols cargo build --release --locked --bin crestscan
 
 FROM debian:bookworm-slim
+# Webhooks over HTTPS verify their receivers against the system's roots: add a plant's own CA with
+# a layer that copies it to /usr/local/share/ca-certificates/ and runs update-ca-certificates.
+RUN apt-get update -qq && apt-get install -y -qq --no-install-recommends ca-certificates >/dev/null \
+    && rm -rf /var/lib/apt/lists/*
 RUN useradd --system --uid 10001 --home-dir /var/lib/crestscan --create-home crestscan
 COPY --from=build /src/target/release/crestscan /usr/local/bin/crestscan
 # Found beside the binary (docs/models.md); installed models go in /var/lib/crestscan/models.

@@ -8,27 +8,36 @@ use serde::{Deserialize, Serialize};
 
 pub const FORMAT_V1: &str = "crestscan.focal-stack/1";
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+#[schema(
+    description = "manifest.json of a focal-stack bundle (docs/bundle.md); fields not named here are accepted and ignored"
+)]
 pub struct Manifest {
+    /// `crestscan.focal-stack/1`.
     pub format: String,
     pub part: PartManifest,
     pub optics: Optics,
+    /// The views, each a focal stack at one pose; at least one.
     pub views: Vec<ViewManifest>,
 }
 
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct PartManifest {
+    /// The part's serial number, as the plant names it.
     #[serde(default)]
     pub serial: Option<String>,
+    /// A designation of the API 5B connection table (`GET /v1/connections`): `BC 4-1/2`, `LC 5-1/2`.
     #[serde(default)]
     pub connection: Option<String>,
+    /// A custom thread form, or overrides of the connection's values; one of `connection` and
+    /// `thread` is needed.
     #[serde(default)]
     pub thread: Option<CustomThread>,
 }
 
 /// A custom thread form, or overrides of the connection table's values. The contract's fields plus
 /// optional profile details (flank angles, crest width, root truncation).
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct CustomThread {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub family: Option<Family>,
@@ -59,9 +68,11 @@ pub struct CustomThread {
     pub root_truncation_mm: Option<f64>,
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct ViewManifest {
+    /// Unique within the bundle.
     pub id: String,
     pub pose: ViewPose,
+    /// The focal stack, offsets growing from near to far; at least 3 frames.
     pub frames: Vec<FrameEntry>,
 }

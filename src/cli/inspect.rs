@@ -87,7 +87,7 @@ impl InspectArgs {
         if let Some(dir) = &out {
             std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
             let report_path = dir.join("report.json");
-            std::fs::write(&report_path, serde_json::to_vec_pretty(&inspection.report)?)
+            std::fs::write(&report_path, crestscan::export::json::to_vec_pretty(&inspection.report)?)
                 .with_context(|| format!("writing {}", report_path.display()))?;
             let height_map = png::height_map_png(&inspection.map)?;
             let mosaic = png::mosaic_png(&inspection.map)?;
@@ -131,7 +131,7 @@ impl InspectArgs {
             }
         }
         if json {
-            println!("{}", serde_json::to_string_pretty(&inspection.report)?);
+            println!("{}", String::from_utf8(crestscan::export::json::to_vec_pretty(&inspection.report)?)?);
         } else {
             println!("{}", inspection.report.summary());
             if let Some(dir) = &out {

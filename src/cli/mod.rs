@@ -50,8 +50,12 @@ enum Command {
     /// Print a new webhook signing secret (whsec_…, 32 random bytes) for a `[[webhooks]]`
     /// endpoint's `secrets` or `callback_secrets`, and for the receiver that verifies them.
     WebhookSecret,
-    /// Print the OpenAPI document of the HTTP API (JSON).
-    Openapi,
+    /// Print the OpenAPI document of the HTTP API (JSON), or the bundle manifest's JSON Schema.
+    Openapi {
+        /// The JSON Schema of a bundle's manifest.json instead (what `GET /v1/schemas/manifest` serves).
+        #[arg(long)]
+        manifest_schema: bool,
+    },
     /// Exit 0 when a local service answers /healthz (for container health checks; no curl needed).
     Healthcheck {
         /// The service's address [default: CRESTSCAN_BIND's port on 127.0.0.1, else 127.0.0.1:8080].
@@ -194,8 +198,12 @@ pub fn main() -> Result<()> {
             println!("{secret}");
             Ok(())
         }
-        Command::Openapi => {
+        Command::Openapi { manifest_schema: false } => {
             println!("{}", crestscan::service::api::openapi().to_pretty_json()?);
+            Ok(())
+        }
+        Command::Openapi { manifest_schema: true } => {
+            println!("{}", serde_json::to_string_pretty(&crestscan::service::api::schemas::manifest_schema())?);
             Ok(())
         }
         Command::Healthcheck { addr } => serve::healthcheck(addr),

@@ -145,9 +145,11 @@ impl Frame {
     }
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct FrameEntry {
+    /// The frame's path in the bundle (PNG or TIFF, 8 or 16 bits, grey or RGB).
     pub file: String,
+    /// How far the camera moved away from the pipe for this frame, mm.
     pub offset_mm: f64,
 }
 

@@ -4,23 +4,28 @@
 use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum Projection {
     Perspective,
     Telecentric,
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Optics {
+    /// `perspective` (thin lens) or `telecentric` (then `magnification` is required and `f_number`
+    /// is the image-side working f-number).
     pub projection: Projection,
     /// Required for a perspective (thin-lens) projection; a telecentric one is described by its
     /// magnification, and may leave it out or null.
     #[serde(default)]
     pub focal_length_mm: Option<f64>,
     pub f_number: f64,
+    /// The object distance in focus at frame offset 0, mm.
     pub focus_distance_mm: f64,
+    /// The sensor's pixel pitch, µm.
     pub pixel_pitch_um: f64,
+    /// `[cx, cy]`, pixels; null: the image centre.
     #[serde(default)]
     pub principal_point_px: Option<[f64; 2]>,
     #[serde(default)]
@@ -169,10 +174,13 @@ impl Optics {
 }
 
 /// A view's pose as the fixture's encoders give it (bundle v1 `pose`).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct ViewPose {
+    /// θ of the view's radial optical axis, degrees (approximate: registration refines it).
     pub angle_deg: f64,
+    /// Where the optical axis meets the pipe axis, mm from the end face toward the body.
     pub axial_mm: f64,
+    /// The lens centre's radius at frame offset 0, mm.
     pub lens_radius_mm: f64,
 }
 

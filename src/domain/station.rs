@@ -11,7 +11,7 @@ use serde::{Deserialize, Serialize};
 /// The blur circle, in pixels, within which a point counts as in focus for the depth of field.
 pub const IN_FOCUS_BLUR_PX: f64 = 1.0;
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Station {
     pub projection: Projection,
     /// One pixel on the part at the focus distance, mm.

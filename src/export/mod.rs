@@ -3,6 +3,7 @@
 
 pub mod glb;
 pub mod html;
+pub mod json;
 pub mod ply;
 pub mod png;
 pub mod stl;

@@ -15,7 +15,7 @@ use crate::pipeline::profile::Helix;
 use crate::pipeline::register::{PairStatus, Registration};
 use serde::{Deserialize, Serialize};
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum QualityStatus {
     /// Everything the verdict rests on was measured.
@@ -26,7 +26,7 @@ pub enum QualityStatus {
     Insufficient,
 }
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum QualityCode {
     /// Some candidate overlaps were not measured.
@@ -58,13 +58,13 @@ pub enum QualityCode {
     DepthLearned,
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct QualityReason {
     pub code: QualityCode,
     pub message: String,
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Quality {
     pub status: QualityStatus,
     pub reasons: Vec<QualityReason>,

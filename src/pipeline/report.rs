@@ -15,7 +15,7 @@ use crate::pipeline::register::{EndFace, Registration};
 use crate::pipeline::uncertainty::{self, Decision, DecisionFinding, HeightFinding, UncertaintyBudget};
 use serde::{Deserialize, Serialize};
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct HeightSeries {
     pub angles_deg: Vec<f64>,
     /// null where the views did not cover the bin.
@@ -26,7 +26,7 @@ pub struct HeightSeries {
     pub uncertainty_mm: Vec<Option<f64>>,
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct ThreadReport {
     pub index: u32,
     pub height_mm: HeightSeries,
@@ -45,7 +45,7 @@ pub struct ThreadReport {
     pub height_finding: Option<ThreadHeightFinding>,
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct ThreadHeightFinding {
     pub finding: HeightFinding,
     pub mean_height_mm: Option<f64>,
@@ -54,7 +54,7 @@ pub struct ThreadHeightFinding {
     pub bins: usize,
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct StageTiming {
     pub stage: String,
     pub seconds: f64,
@@ -74,7 +74,7 @@ impl StageTiming {
     }
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Report {
     pub connection: Option<String>,
     pub family: Family,
@@ -249,10 +249,12 @@ fn indeterminate() -> Decision {
 }
 
 /// What made a report.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Provenance {
     pub software_version: String,
-    /// Every option the pipeline ran with, defaults filled in.
+    /// Every option the pipeline ran with, defaults filled in (the shape of `POST
+    /// /v1/inspections`'s `pipeline` option).
+    #[schema(value_type = Object)]
     pub settings: PipelineOptions,
     /// Set by the service: the inspection's id and the sha256 of its uploaded bundle.
     pub inspection_id: Option<String>,

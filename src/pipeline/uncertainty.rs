@@ -60,7 +60,7 @@ impl Default for UncertaintyOptions {
 }
 
 /// The components of the heights' uncertainty, as the report states them.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct UncertaintyBudget {
     pub coverage_factor: f64,
     /// Standard uncertainties, µm: the method's (Type B) and registration's, the same for every
@@ -248,7 +248,7 @@ fn along_helix_rms(threads: &[ThreadMeasure]) -> f64 {
 }
 
 /// The decision per ISO 14253-1 on the black-crest rules.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum Decision {
     /// The verdict is accept at both bounds of the uncertainty.
@@ -270,7 +270,7 @@ impl Decision {
 }
 
 /// The decision and how it was reached.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct DecisionFinding {
     pub decision: Decision,
     /// The rules' verdict at the bound toward reject and at the bound toward accept.
@@ -479,7 +479,7 @@ fn narrow(t: &mut ThreadObservation, deg: f64, bins: usize) {
 
 /// One thread's height against nominal ± tolerance, with its uncertainty (ISO 14253-1 on the
 /// thread's mean height): a finding of its own, apart from the black-crest verdict.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum HeightFinding {
     /// The mean ± its uncertainty lies within the tolerance.

@@ -306,7 +306,9 @@ impl Settings {
             if !bare {
                 return invalid(
                     "callback_origins",
-                    format!("{origin:?}: an origin is a scheme, host and port, without a path (https://mes.plant.local:8443)"),
+                    format!(
+                        "{origin:?}: an origin is a scheme, host and port, without a path (https://mes.plant.local:8443)"
+                    ),
                 );
             }
         }
@@ -434,7 +436,9 @@ mod tests {
         assert!(refused(&|b| b.webhooks[0].url = "ftp://x/".into()).contains("http"));
         assert!(refused(&|b| b.webhooks[0].name = "callback".into()).starts_with("webhooks"));
         assert!(refused(&|b| b.webhooks.push(endpoint.clone())).contains("twice"));
-        assert!(refused(&|b| b.callback_origins = vec!["https://mes.plant.local/in".into()]).contains("without a path"));
+        assert!(
+            refused(&|b| b.callback_origins = vec!["https://mes.plant.local/in".into()]).contains("without a path")
+        );
         assert!(refused(&|b| b.callback_secrets.clear()).starts_with("callback_secrets"));
         assert!(refused(&|b| b.webhook_max_attempts = 0).starts_with("webhook_max_attempts"));
     }

@@ -22,6 +22,8 @@ pub enum StartupError {
     Store(#[from] StoreError),
     #[error("cannot listen on {addr}: {source}")]
     Bind { addr: SocketAddr, source: std::io::Error },
+    #[error("webhooks: no HTTP client ({0})")]
+    Webhooks(String),
 }
 
 pub struct Application {
@@ -30,11 +32,14 @@ pub struct Application {
     stop: watch::Sender<bool>,
     worker: WorkerContext,
     address: SocketAddr,
+    webhooks: reqwest::Client,
 }
 
 impl Application {
     pub async fn build(settings: Settings) -> Result<Self, StartupError> {
         settings.validate()?;
+        let webhooks =
+            crate::service::webhooks::client(&settings).map_err(|e| StartupError::Webhooks(e.to_string()))?;
         let mut store = Store::open(&settings.database_path(), &settings.uploads_dir(), &settings.tmp_dir()).await?;
         store.files = store.files.with_free_floor(settings.min_free_disk_mb.saturating_mul(1 << 20));
         store.max_interruptions = settings.max_interruptions as i64;
@@ -80,7 +85,7 @@ impl Application {
             owner: format!("{}-{}", std::process::id(), uuid::Uuid::now_v7()),
             models,
         };
-        Ok(Self { listener, state, stop, worker, address })
+        Ok(Self { listener, state, stop, worker, address, webhooks })
     }
 
     pub fn address(&self) -> SocketAddr {
@@ -95,6 +100,7 @@ impl Application {
         let sweeper = tokio::spawn(retention_sweep(self.state.clone(), stop_rx.clone()));
         let webhooks = tokio::spawn(crate::service::webhooks::run(
             self.state.store.clone(),
+            self.webhooks,
             self.state.settings.clone(),
             stop_rx.clone(),
         ));

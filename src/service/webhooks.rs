@@ -171,9 +171,8 @@ struct Event<'a> {
 /// The deliveries an inspection's terminal state makes under `settings`.
 fn deliveries_for(settings: &Settings, row: InspectionRow) -> Vec<NewDelivery> {
     let Some(event) = EventType::of_status(&row.status) else { return Vec::new() };
-    let callback = serde_json::from_str::<crate::service::queue::JobOptions>(&row.options_json)
-        .ok()
-        .and_then(|o| o.callback_url);
+    let callback =
+        serde_json::from_str::<crate::service::queue::JobOptions>(&row.options_json).ok().and_then(|o| o.callback_url);
     let timestamp = crate::service::api::rfc3339(row.finished_at.unwrap_or(row.updated_at));
     let body = Event { type_: event.as_str(), timestamp, data: Inspection::from(row) };
     let payload_json = serde_json::to_string(&body).expect("an event serialises");
@@ -225,20 +224,19 @@ pub fn backoff(base_seconds: f64, id: &str, attempts: i64) -> Duration {
     Duration::from_secs_f64(doubled.min(3600.0) * (0.75 + 0.5 * unit))
 }
 
-/// The dispatcher: announces newly terminal inspections and delivers what is due, until `stop`.
-pub async fn run(store: Store, settings: Arc<Settings>, mut stop: watch::Receiver<bool>) {
-    let client = match reqwest::Client::builder()
+/// The client deliveries go out with: no redirects, the attempt's time limit, the system's roots.
+/// Built at start-up, so that a machine whose certificate store cannot be read refuses to start
+/// rather than never delivering.
+pub fn client(settings: &Settings) -> Result<reqwest::Client, reqwest::Error> {
+    reqwest::Client::builder()
         .redirect(reqwest::redirect::Policy::none())
         .timeout(Duration::from_secs_f64(settings.webhook_timeout_seconds))
         .user_agent(concat!("crestscan/", env!("CARGO_PKG_VERSION")))
         .build()
-    {
-        Ok(c) => c,
-        Err(e) => {
-            tracing::error!(error = %e, "webhooks: no HTTP client; nothing will be delivered");
-            return;
-        }
-    };
+}
+
+/// The dispatcher: announces newly terminal inspections and delivers what is due, until `stop`.
+pub async fn run(store: Store, client: reqwest::Client, settings: Arc<Settings>, mut stop: watch::Receiver<bool>) {
     let owner = format!("{}-{}", std::process::id(), uuid::Uuid::now_v7());
     // Long enough for an attempt at its timeout; a process that dies holding one lets it lapse.
     let lease = Duration::from_secs_f64(2.0 * settings.webhook_timeout_seconds + 5.0);
@@ -316,7 +314,9 @@ async fn attempt(store: &Store, client: &reqwest::Client, settings: &Settings, o
             _ => {}
         },
         Ok(false) => tracing::warn!(webhook_id = %delivery.id, "webhook lease lapsed; another process has it"),
-        Err(e) => tracing::warn!(webhook_id = %delivery.id, error = %e, "webhook attempt not recorded; it will be retried"),
+        Err(e) => {
+            tracing::warn!(webhook_id = %delivery.id, error = %e, "webhook attempt not recorded; it will be retried")
+        }
     }
 }
 

@@ -359,13 +359,17 @@ pub fn encode_results(
     ply::write(&inspection.mesh, &mut ply)?;
     let mut stl = Vec::new();
     stl::write(&inspection.mesh, &mut stl)?;
+    // The report as stored and served, its numbers rounded to their resolution; the thread tables
+    // are filled from the same rounded values, so the report, the table and its CSV agree.
+    let report_json = String::from_utf8(crate::export::json::to_vec(report)?)?;
+    let report: crate::pipeline::report::Report = serde_json::from_str(&report_json)?;
     Ok(JobResults {
         verdict: match report.verdict {
             Verdict::Accept => "accept",
             Verdict::Reject => "reject",
         },
-        report_json: serde_json::to_string(report)?,
-        report: report.clone(),
+        report_json,
+        report,
         artifacts: vec![
             Artifact { kind: "mesh.ply", content_type: "application/x-ply", body: ply },
             Artifact { kind: "mesh.stl", content_type: "model/stl", body: stl },

@@ -6,11 +6,14 @@ with `raise_on_unexpected_status=True`, so an answer the document does not decla
 """
 
 import importlib
+import json
+import tarfile
 import pkgutil
 import sys
 import time
 
 import httpx
+import jsonschema
 import crestscan_client.api
 from crestscan_client import Client
 from crestscan_client.api.admin import create_key, get_audit, list_keys, list_webhook_deliveries, revoke_key
@@ -23,7 +26,7 @@ from crestscan_client.api.inspections import (
     inspection_events,
     list_inspections,
 )
-from crestscan_client.api.operations import get_capabilities, healthz, metrics, readyz
+from crestscan_client.api.operations import get_capabilities, get_manifest_schema, healthz, metrics, readyz
 from crestscan_client.api.results import get_image, get_mesh, get_report, get_threads
 from crestscan_client.models import (
     ApiKey,
@@ -40,6 +43,7 @@ from crestscan_client.models import (
     InspectionPage,
     NewApiKey,
     Problem,
+    Report,
     Scope,
     StoredCmm,
     ThreadTable,
@@ -113,8 +117,10 @@ def main(base: str, bundle: str) -> None:
     events = expect(call(inspection_events, created.id, client=client), 200, str)
     assert events.count("event: state") == 1 and '"status":"succeeded"' in events, events
 
-    status, report = call(get_report, created.id, client=client)
-    assert status == 200 and report is not None
+    report = expect(call(get_report, created.id, client=client), 200, Report)
+    # Typed: the verdict and decision are enums, the heights parallel their uncertainties.
+    assert report.verdict.value == inspection.verdict.value and report.decision.value == inspection.decision.value, report
+    assert all(len(t.height_mm.values) == len(t.height_mm.uncertainty_mm) for t in report.threads)
     table = expect(call(get_threads, created.id, client=client), 200, ThreadTable)
     measured = [(t.thread, h.angle_deg, h.height_mm) for t in table.threads for h in t.heights if isinstance(h.height_mm, float)]
     assert measured, "no measured bins"
@@ -153,6 +159,21 @@ def main(base: str, bundle: str) -> None:
     # No webhook endpoint is configured here: the record is empty, and typed.
     deliveries = expect(call(list_webhook_deliveries, client=client, inspection_id=str(created.id)), 200, DeliveryPage)
     assert deliveries.deliveries == [], deliveries
+
+    # The manifest's published schema, checked by a real JSON Schema validator against the bundle
+    # this script submitted, and against a broken copy of it.
+    status, schema = call(get_manifest_schema, client=client)
+    assert status == 200, status
+    schema = schema.to_dict() if hasattr(schema, "to_dict") else schema
+    validator = jsonschema.Draft202012Validator(schema)
+    validator.check_schema(schema)
+    with tarfile.open(bundle) as tar:
+        manifest = json.load(tar.extractfile("./manifest.json" if "./manifest.json" in tar.getnames() else "manifest.json"))
+    errors = list(validator.iter_errors(manifest))
+    assert not errors, [e.message for e in errors]
+    broken = dict(manifest, views=[dict(manifest["views"][0], pose={"angle_deg": "north"})])
+    del broken["optics"]
+    assert len(list(validator.iter_errors(broken))) >= 3, "the schema catches a broken manifest"
 
     missed = every_operation() - called
     assert not missed, f"operations the SDK smoke does not call: {sorted(missed)}"

@@ -16,7 +16,7 @@ use crate::domain::thread::Family;
 use serde::{Deserialize, Serialize};
 
 /// How the buttress 25% limit applies; the public paraphrases of 5B do not settle it.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum ArcRule {
     #[default]
@@ -90,7 +90,7 @@ pub struct RuleInput {
     pub threads: Vec<ThreadObservation>,
 }
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum Verdict {
     Accept,
@@ -109,7 +109,7 @@ impl Verdict {
 }
 
 /// How a black crest was recognised.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum BlackCrestEvidence {
     /// Mill-scale appearance on the crest.
@@ -120,7 +120,7 @@ pub enum BlackCrestEvidence {
 }
 
 /// A thread with black crests within Lc.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct BlackThread {
     pub index: u32,
     pub arcs_deg: Vec<[f64; 2]>,
@@ -129,7 +129,7 @@ pub struct BlackThread {
 }
 
 /// Stable machine codes of the reasons.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum ReasonCode {
     NoBlackCrestWithinLc,
@@ -145,7 +145,7 @@ pub enum ReasonCode {
     PartialCoverage,
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Reason {
     pub code: ReasonCode,
     pub message: String,
@@ -160,7 +160,7 @@ pub struct Reason {
     pub unit: Option<String>,
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Assessment {
     pub verdict: Verdict,
     pub reasons: Vec<Reason>,
@@ -177,7 +177,7 @@ pub struct Assessment {
 }
 
 /// Arcs [from, to] in degrees of one thread.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct ThreadArcs {
     pub index: u32,
     pub arcs_deg: Vec<[f64; 2]>,

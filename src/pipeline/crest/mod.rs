@@ -86,7 +86,7 @@ impl Default for CrestOptions {
 }
 
 /// The machined crest cone r = a + b·z + c·cos θ + d·sin θ fitted to the part's crests.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct CrestCone {
     pub radius_at_end_mm: f64,
     /// Radial growth per mm of z (half the taper on diameter).

@@ -27,7 +27,7 @@ use rustfft::num_complex::Complex;
 use serde::{Deserialize, Serialize};
 use std::f64::consts::TAU;
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Helix {
     /// z of thread 1's crest centre line at θ = 0, in [0, pitch).
     pub z_h_mm: f64,

@@ -17,7 +17,7 @@ use crate::pipeline::depth::FrameEdge;
 use serde::{Deserialize, Serialize};
 
 /// The ring's axial offset found on the end face: the z the reconstruction gives the corner.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct EndFace {
     /// Views that saw the end.
     pub views: usize,

@@ -33,7 +33,7 @@ use pose_graph::solve_axis;
 use serde::{Deserialize, Serialize};
 use std::f64::consts::TAU;
 
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct PoseCorrection {
     pub angle_deg: f64,
     pub axial_mm: f64,
@@ -51,7 +51,7 @@ impl PoseCorrection {
 }
 
 /// One overlapping pair: how far view b's content must move to match view a's.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct PairMeasure {
     pub a: usize,
     pub b: usize,
@@ -74,7 +74,7 @@ pub struct PairMeasure {
 }
 
 /// What became of a candidate overlap (two views whose footprints overlap at their encoder poses).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum PairStatus {
     /// Measured and in the solve.
@@ -94,7 +94,7 @@ pub enum PairStatus {
 }
 
 /// A candidate overlap and what became of it, with what its correlation found.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct PairCandidate {
     pub a: usize,
     pub b: usize,
@@ -111,7 +111,7 @@ pub struct PairCandidate {
 
 /// The loop closure of a ring in one axial row: the measured shifts summed around the ring, which
 /// is zero for perfect measurements; its size is the ring's accumulated measurement error.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct RingClosure {
     /// Views in the ring.
     pub views: usize,
@@ -119,7 +119,7 @@ pub struct RingClosure {
     pub axial_um: f64,
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Registration {
     pub corrections: Vec<PoseCorrection>,
     /// The measured pairs (status measured or outlier), with their residuals.

@@ -71,7 +71,7 @@ pub async fn put_cmm(
     Path(id): Path<String>,
     headers: HeaderMap,
     body: axum::body::Body,
-) -> Result<Json<StoredCmm>, ApiError> {
+) -> Result<super::Rounded<StoredCmm>, ApiError> {
     let id = succeeded(&state, &id).await?;
     let body: Bytes = axum::body::to_bytes(body, MAX_CMM_BYTES).await.map_err(|e| {
         if std::error::Error::source(&e).is_some_and(|s| s.is::<http_body_util::LengthLimitError>()) {
@@ -97,7 +97,7 @@ pub async fn put_cmm(
     .map_err(|e| ApiError::new(Code::InvalidCmm, e.to_string()).with_culprit(e.field.clone()))?;
     let version = state.store.put_cmm(&id.0, &parsed, Some(&peer.ip().to_string())).await?;
     tracing::info!(inspection = %id.0, version, by = %peer.ip(), points = parsed.points.len(), "CMM data stored");
-    Ok(Json(stored_cmm(&state, id, Some(version)).await?))
+    Ok(super::Rounded(stored_cmm(&state, id, Some(version)).await?))
 }
 
 #[derive(Clone, Debug, Default, Deserialize, IntoParams)]
@@ -135,12 +135,12 @@ pub async fn get_cmm(
     State(state): State<AppState>,
     Path(id): Path<String>,
     query: Result<Query<CmmVersionQuery>, axum::extract::rejection::QueryRejection>,
-) -> Result<Json<StoredCmm>, ApiError> {
+) -> Result<super::Rounded<StoredCmm>, ApiError> {
     let Query(q) = query?;
     let version = checked_version(q.version)?;
     let id = InspectionId::parse(&id)?;
     state.store.inspection(&id.0).await.map_err(|e| super::missing_inspection(e, &id.0))?;
-    Ok(Json(stored_cmm(&state, id, version).await?))
+    Ok(super::Rounded(stored_cmm(&state, id, version).await?))
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
@@ -293,7 +293,7 @@ pub async fn get_cmm_comparison(
     State(state): State<AppState>,
     Path(id): Path<String>,
     query: Result<Query<ComparisonQuery>, axum::extract::rejection::QueryRejection>,
-) -> Result<Json<CmmComparison>, ApiError> {
+) -> Result<super::Rounded<CmmComparison>, ApiError> {
     let Query(q) = query?;
     if let Some(t) = q.tolerance_mm
         && !(t.is_finite() && t > 0.0)
@@ -312,7 +312,7 @@ pub async fn get_cmm_comparison(
         measured_at: stored.measured_at.clone(),
         points: stored.points,
     };
-    Ok(Json(CmmComparison {
+    Ok(super::Rounded(CmmComparison {
         inspection_id: id.0,
         cmm_version: stored.version,
         instrument: stored.instrument,

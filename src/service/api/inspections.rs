@@ -10,7 +10,6 @@ use crate::problem::{Code, ErrorCode};
 use crate::service::queue::JobOptions;
 use crate::service::store::files::sha256_hex;
 use crate::service::store::{Inserted, InspectionRow, ListFilter, NewInspection, Status};
-use axum::Json;
 use axum::extract::{Path, Query, Request, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
@@ -64,6 +63,8 @@ pub struct Inspection {
     pub status: Status,
     /// While running: the pipeline stage and how far it is.
     pub progress: Option<Progress>,
+    /// Once succeeded: the black-crest rules' verdict on the best estimates.
+    #[schema(value_type = Option<crate::domain::rules::Verdict>)]
     pub verdict: Option<String>,
     /// Once succeeded: whether the result needs a person's review before its verdict is acted on
     /// (the report's `quality` says why). Null before, and for inspections that succeeded before
@@ -72,6 +73,7 @@ pub struct Inspection {
     /// Once succeeded: the decision per ISO 14253-1 (conforms, does_not_conform or
     /// indeterminate: whether the verdict holds with every measured value moved by its
     /// uncertainty). Null before, and for inspections that succeeded before it was made.
+    #[schema(value_type = Option<crate::pipeline::uncertainty::Decision>)]
     pub decision: Option<String>,
     pub serial: Option<String>,
     pub connection: Option<String>,
@@ -334,7 +336,7 @@ pub fn resolve_options(
 
 fn accepted(row: InspectionRow, replayed: bool) -> Response {
     let location = format!("/v1/inspections/{}", row.id);
-    let mut response = (StatusCode::ACCEPTED, Json(Inspection::from(row))).into_response();
+    let mut response = (StatusCode::ACCEPTED, super::Rounded(Inspection::from(row))).into_response();
     let headers = response.headers_mut();
     headers.insert(header::LOCATION, HeaderValue::from_str(&location).expect("ids are ASCII"));
     if replayed {
@@ -575,7 +577,7 @@ pub struct InspectionPage {
 pub async fn list_inspections(
     State(state): State<AppState>,
     query: Result<Query<ListQuery>, axum::extract::rejection::QueryRejection>,
-) -> Result<Json<InspectionPage>, ApiError> {
+) -> Result<super::Rounded<InspectionPage>, ApiError> {
     let Query(q) = query?;
     let invalid = |field: &str, message: String| {
         ApiError::new(Code::InvalidQuery, format!("{field}: {message}")).with_culprit(field)
@@ -623,7 +625,7 @@ pub async fn list_inspections(
     } else {
         None
     };
-    Ok(Json(InspectionPage { items: rows.into_iter().map(Inspection::from).collect(), next_cursor }))
+    Ok(super::Rounded(InspectionPage { items: rows.into_iter().map(Inspection::from).collect(), next_cursor }))
 }
 
 /// Get an inspection: status, progress, timestamps, verdict, and the error if it failed.
@@ -643,7 +645,7 @@ pub async fn get_inspection(
     State(state): State<AppState>,
     Path(id): Path<String>,
     query: Result<Query<WaitQuery>, axum::extract::rejection::QueryRejection>,
-) -> Result<Json<Inspection>, ApiError> {
+) -> Result<super::Rounded<Inspection>, ApiError> {
     let Query(q) = query?;
     let wait = q.wait.as_deref().map(parse_wait).transpose()?.unwrap_or_default();
     let id = InspectionId::parse(&id)?;
@@ -664,7 +666,7 @@ pub async fn get_inspection(
             break;
         }
     }
-    Ok(Json(row.into()))
+    Ok(super::Rounded(row.into()))
 }
 
 /// What a waiter watches of an inspection (the long-poll, the event stream): its status and
@@ -709,7 +711,8 @@ pub async fn inspection_events(State(state): State<AppState>, Path(id): Path<Str
     }
     let event = |count: u64, row: InspectionRow| {
         let inspection = Inspection::from(row);
-        Event::default().id(count.to_string()).event("state").json_data(&inspection)
+        let json = crate::export::json::to_vec(&inspection).map(|j| String::from_utf8_lossy(&j).into_owned());
+        json.map(|data| Event::default().id(count.to_string()).event("state").data(data))
     };
     // Re-reads the row, as the long-poll does (the worker may be another process), and yields an
     // event at each change; the cursor holds the row read but not yet sent.
@@ -805,5 +808,5 @@ pub async fn cancel_inspection(State(state): State<AppState>, Path(id): Path<Str
     }
     let row = state.store.request_cancel(&id.0).await?;
     let code = if row.status() == Status::Canceled { StatusCode::OK } else { StatusCode::ACCEPTED };
-    Ok((code, Json(Inspection::from(row))).into_response())
+    Ok((code, super::Rounded(Inspection::from(row))).into_response())
 }

@@ -14,6 +14,7 @@ pub mod inspections;
 pub mod keys;
 pub mod problem;
 pub mod results;
+pub mod schemas;
 pub mod webhooks;
 
 use crate::domain::thread::ConnectionTable;
@@ -80,6 +81,18 @@ pub fn missing_inspection(e: crate::service::store::StoreError, id: &str) -> Api
     }
 }
 
+/// A JSON answer whose numbers are rounded to their resolution ([`crate::export::json`]).
+pub struct Rounded<T>(pub T);
+
+impl<T: serde::Serialize> IntoResponse for Rounded<T> {
+    fn into_response(self) -> Response {
+        match crate::export::json::to_vec(&self.0) {
+            Ok(body) => ([(header::CONTENT_TYPE, HeaderValue::from_static("application/json"))], body).into_response(),
+            Err(e) => ApiError::internal(e).into_response(),
+        }
+    }
+}
+
 pub fn rfc3339(ms: i64) -> String {
     time::OffsetDateTime::from_unix_timestamp_nanos(ms as i128 * 1_000_000)
         .ok()
@@ -129,12 +142,12 @@ impl utoipa::ToSchema for Binary {}
         (name = "results", description = "Reports, per-thread tables, meshes and images of succeeded inspections"),
         (name = "cmm", description = "CMM measurements and the comparison with crestscan"),
         (name = "connections", description = "The API 5B connection table"),
-        (name = "operations", description = "Health, readiness, metrics, capabilities"),
-        (name = "admin", description = "API keys and the audit log (scope `admin`)"),
+        (name = "operations", description = "Health, readiness, metrics, capabilities, the bundle manifest's schema"),
+        (name = "admin", description = "API keys, the audit log and webhook deliveries (scope `admin`)"),
     ),
     modifiers(&BearerKeys),
     security(("api_key" = [])),
-    components(schemas(problem::Problem))
+    components(schemas(problem::Problem, crate::bundle::Manifest))
 )]
 struct ApiDoc;
 
@@ -206,6 +219,7 @@ fn api_routes() -> OpenApiRouter<AppState> {
         .merge(capabilities::router())
         .merge(keys::router())
         .merge(webhooks::router())
+        .merge(schemas::router())
 }
 
 /// The OpenAPI document (what `/openapi.json` serves and `crestscan openapi` prints).

@@ -47,7 +47,7 @@ pub(super) async fn succeeded(state: &AppState, id: &str) -> Result<InspectionId
     params(("id" = uuid::Uuid, Path, description = "Inspection id"), ReportFormatQuery),
     responses(
         (status = 200, description = "The report: JSON (with an ETag), or an HTML page", content(
-            (Object = "application/json"),
+            (crate::pipeline::report::Report = "application/json"),
             (String = "text/html"),
         ), headers(("ETag" = String))),
         (status = 304, description = "Not modified"),
@@ -166,6 +166,7 @@ pub struct ThreadRow {
     pub black_crest_length_mm: f64,
     /// The thread's height against nominal ± tolerance with its uncertainty: within, outside,
     /// indeterminate or not_judged (the report's `threads[].height_finding` has its figures).
+    #[schema(value_type = Option<crate::pipeline::uncertainty::HeightFinding>)]
     pub height_finding: Option<String>,
     /// The expanded uncertainty (k = 2) of the mean the finding judged.
     pub mean_height_uncertainty_mm: Option<f64>,
@@ -276,7 +277,7 @@ pub async fn get_threads(
             })
             .collect(),
     };
-    let body = serde_json::to_vec(&table).map_err(ApiError::internal)?;
+    let body = crate::export::json::to_vec(&table).map_err(ApiError::internal)?;
     let etag = crate::service::store::etag_of(&body);
     Ok(immutable(&headers, &etag, media, body))
 }

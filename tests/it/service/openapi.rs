@@ -133,3 +133,155 @@ async fn every_operation_refuses_unknown_query_parameters() {
     assert_eq!(app.get("/v1/connections?kind=BC").await.status(), StatusCode::OK);
     app.stop().await;
 }
+
+/// Where `value` departs from `schema` (a schema of `doc`'s, `$ref`s resolved): wrong types,
+/// values outside an enum, missing required properties, and properties the schema does not
+/// declare (the document is the contract: an answer may not carry more than it says).
+fn departures(doc: &Value, schema: &Value, value: &Value, at: &str, out: &mut Vec<String>) {
+    if let Some(reference) = schema["$ref"].as_str() {
+        let target = match reference.strip_prefix("#/$defs/") {
+            Some(name) => &doc["$defs"][name],
+            None => &doc["components"]["schemas"][reference.trim_start_matches("#/components/schemas/")],
+        };
+        assert!(target.is_object(), "{at}: {reference} resolves to nothing");
+        return departures(doc, target, value, at, out);
+    }
+    for key in ["oneOf", "anyOf"] {
+        if let Some(options) = schema[key].as_array() {
+            let fits = options.iter().any(|o| {
+                let mut inner = Vec::new();
+                departures(doc, o, value, at, &mut inner);
+                inner.is_empty()
+            });
+            if !fits {
+                out.push(format!("{at}: {value} fits none of {key} {schema}"));
+            }
+            return;
+        }
+    }
+    if let Some(all) = schema["allOf"].as_array() {
+        for s in all {
+            departures(doc, s, value, at, out);
+        }
+    }
+    let types: Vec<&str> = match &schema["type"] {
+        Value::String(t) => vec![t.as_str()],
+        Value::Array(ts) => ts.iter().filter_map(Value::as_str).collect(),
+        _ => Vec::new(),
+    };
+    let kind = match value {
+        Value::Null => "null",
+        Value::Bool(_) => "boolean",
+        Value::Number(n) if n.is_i64() || n.is_u64() => "integer",
+        Value::Number(_) => "number",
+        Value::String(_) => "string",
+        Value::Array(_) => "array",
+        Value::Object(_) => "object",
+    };
+    if !types.is_empty() && !types.contains(&kind) && !(kind == "integer" && types.contains(&"number")) {
+        out.push(format!("{at}: a {kind} where the schema says {types:?}"));
+        return;
+    }
+    if let Some(values) = schema["enum"].as_array()
+        && !values.contains(value)
+    {
+        out.push(format!("{at}: {value} is not one of {values:?}"));
+    }
+    match value {
+        Value::Array(items) => {
+            for (i, item) in items.iter().enumerate() {
+                departures(doc, &schema["items"], item, &format!("{at}[{i}]"), out);
+            }
+        }
+        Value::Object(map) => {
+            let properties = schema["properties"].as_object();
+            for required in schema["required"].as_array().into_iter().flatten() {
+                if !map.contains_key(required.as_str().unwrap()) {
+                    out.push(format!("{at}: required {required} missing"));
+                }
+            }
+            let Some(properties) = properties else { return };
+            for (key, item) in map {
+                match properties.get(key) {
+                    Some(s) => departures(doc, s, item, &format!("{at}.{key}"), out),
+                    None if schema.get("additionalProperties").is_some() => {}
+                    None => out.push(format!("{at}.{key}: not declared by the schema")),
+                }
+            }
+        }
+        _ => {}
+    }
+}
+
+/// The report, the thread table and the inspection a real run answers with are exactly what the
+/// document declares for them: typed, every enum value among its values, nothing undeclared.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn answers_are_what_the_document_declares() {
+    let app = spawn_app().await;
+    let doc: Value = serde_json::from_str(&crestscan::service::api::openapi().to_pretty_json().unwrap()).unwrap();
+    let created: Value = app.submit(ci_tar(), "").await.json().await.unwrap();
+    let id = created["id"].as_str().unwrap();
+    let inspection = app.wait(id, Duration::from_secs(300)).await;
+    assert_eq!(inspection["status"], "succeeded", "{inspection}");
+    let declared =
+        |path: &str| doc["paths"][path]["get"]["responses"]["200"]["content"]["application/json"]["schema"].clone();
+    for (path, template) in [
+        (format!("/v1/inspections/{id}"), "/v1/inspections/{id}"),
+        (format!("/v1/inspections/{id}/report"), "/v1/inspections/{id}/report"),
+        (format!("/v1/inspections/{id}/threads"), "/v1/inspections/{id}/threads"),
+        ("/v1/inspections".to_string(), "/v1/inspections"),
+    ] {
+        let body: Value = app.get(&path).await.json().await.unwrap();
+        let schema = declared(template);
+        assert!(schema.is_object() && schema != serde_json::json!({"type": "object"}), "{template}: {schema}");
+        let mut out = Vec::new();
+        departures(&doc, &schema, &body, template, &mut out);
+        assert!(out.is_empty(), "{template} departs from its schema:\n{}", out.join("\n"));
+    }
+    // The checker itself finds a departure.
+    let mut report: Value = app.get(&format!("/v1/inspections/{id}/report")).await.json().await.unwrap();
+    report["decision"] = "maybe".into();
+    report["threads"][0]["colour"] = "black".into();
+    report.as_object_mut().unwrap().remove("verdict");
+    let mut out = Vec::new();
+    departures(&doc, &declared("/v1/inspections/{id}/report"), &report, "report", &mut out);
+    assert_eq!(out.len(), 3, "{out:?}");
+    app.stop().await;
+}
+
+/// The manifest's JSON Schema is served, is the committed file, and fits the bundles the simulator
+/// writes (perspective and telecentric) while catching a broken one.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_manifest_schema_is_published_and_fits_real_bundles() {
+    let app = spawn_app_with(|s| s.workers = 0).await;
+    let response = app.get("/v1/schemas/manifest").await;
+    assert_eq!(response.status(), StatusCode::OK);
+    assert_eq!(response.headers()["content-type"], "application/schema+json");
+    let schema: Value = response.json().await.unwrap();
+    assert_eq!(schema["$schema"], "https://json-schema.org/draft/2020-12/schema");
+    let committed: Value = serde_json::from_slice(
+        &std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("openapi/manifest.schema.json"))
+            .expect("openapi/manifest.schema.json committed"),
+    )
+    .unwrap();
+    assert!(
+        committed == schema,
+        "openapi/manifest.schema.json is stale: run `cargo run -- openapi --manifest-schema > openapi/manifest.schema.json`"
+    );
+    assert!(!schema.to_string().contains("#/components/"), "standalone: every reference is under $defs");
+    for preset in ["ci", "ci-telecentric"] {
+        let manifest: Value =
+            serde_json::from_slice(&std::fs::read(crate::common::rendered(preset).join("manifest.json")).unwrap())
+                .unwrap();
+        let mut out = Vec::new();
+        departures(&schema, &schema, &manifest, "manifest", &mut out);
+        assert!(out.is_empty(), "{preset}'s manifest departs from the schema:\n{}", out.join("\n"));
+        let mut broken = manifest.clone();
+        broken.as_object_mut().unwrap().remove("optics");
+        broken["views"][0]["pose"]["angle_deg"] = "north".into();
+        let mut out = Vec::new();
+        departures(&schema, &schema, &broken, "manifest", &mut out);
+        assert_eq!(out.len(), 2, "{out:?}");
+    }
+    app.stop().await;
+}

@@ -194,8 +194,10 @@ async fn round_trip_on_the_ci_preset() {
     assert_eq!(agreement["compared"], devs.len());
     let bias = devs.iter().sum::<f64>() / devs.len() as f64;
     let rms = (devs.iter().map(|d| d * d).sum::<f64>() / devs.len() as f64).sqrt();
-    assert!((agreement["bias_mm"].as_f64().unwrap() - bias).abs() < 1e-12);
-    assert!((agreement["rms_mm"].as_f64().unwrap() - rms).abs() < 1e-12);
+    // The answer's numbers are rounded to 0.1 µm (docs/service.md): the statistics of the rounded
+    // deviations agree with the rounded statistics to that resolution.
+    assert!((agreement["bias_mm"].as_f64().unwrap() - bias).abs() <= 1e-4, "{agreement} {bias}");
+    assert!((agreement["rms_mm"].as_f64().unwrap() - rms).abs() <= 1e-4, "{agreement} {rms}");
     assert!(bias < -0.005 + 0.015 && bias > -0.005 - 0.015, "bias {bias}: crestscan's own error is within 15 µm");
     let [lo, hi] = [
         agreement["limits_of_agreement_mm"][0].as_f64().unwrap(),
@@ -204,7 +206,7 @@ async fn round_trip_on_the_ci_preset() {
     assert!(lo < bias && bias < hi);
     // Default tolerance: a tenth of the ±tolerance band.
     let tol = cmp["height_tolerance_mm"].as_f64().unwrap();
-    assert!((agreement["tolerance_mm"].as_f64().unwrap() - 2.0 * tol / 10.0).abs() < 1e-12);
+    assert!((agreement["tolerance_mm"].as_f64().unwrap() - 2.0 * tol / 10.0).abs() <= 1e-4);
     let strict: Value =
         app.get(&format!("{location}/cmm-comparison?tolerance_mm=0.000001")).await.json().await.unwrap();
     assert_eq!(strict["agreement"]["within_tolerance"], false);
@@ -250,7 +252,7 @@ async fn round_trip_on_the_ci_preset() {
     assert_eq!(compared.as_u64().unwrap() + unmatched.as_u64().unwrap(), 1, "the one point of version 2: {latest}");
     let again: Value = app.get(&format!("{location}/cmm-comparison?version=1")).await.json().await.unwrap();
     assert_eq!(again["cmm_version"], 1);
-    assert!((again["agreement"]["rms_mm"].as_f64().unwrap() - rms).abs() < 1e-12);
+    assert!((again["agreement"]["rms_mm"].as_f64().unwrap() - rms).abs() <= 1e-4);
     let missing =
         problem(app.get(&format!("{location}/cmm?version=3")).await, StatusCode::NOT_FOUND, "cmm_not_found").await;
     assert_eq!(missing["culprit"], "version");

@@ -200,11 +200,8 @@ async fn webhooks_survive_kill_9_signed_and_only_to_allowed_destinations() {
     }
 
     // Then every terminal state arrives: to `mes` for all three, to the callback for the run.
-    let expected: Vec<(String, &str)> = ids
-        .iter()
-        .map(|id| (id.clone(), "/hook"))
-        .chain([(run.clone(), "/callback")])
-        .collect();
+    let expected: Vec<(String, &str)> =
+        ids.iter().map(|id| (id.clone(), "/hook")).chain([(run.clone(), "/callback")]).collect();
     let deadline = Instant::now() + Duration::from_secs(300);
     loop {
         let delivered = {
@@ -234,7 +231,9 @@ async fn webhooks_survive_kill_9_signed_and_only_to_allowed_destinations() {
         let status = inspection_status(&client, &base, id).await.unwrap();
         let events: Vec<&Received> = got.iter().filter(|r| r.event["data"]["id"] == id.as_str()).collect();
         assert!(
-            events.iter().all(|r| r.event["type"] == format!("inspection.{status}") && r.event["data"]["status"] == status),
+            events
+                .iter()
+                .all(|r| r.event["type"] == format!("inspection.{status}") && r.event["data"]["status"] == status),
             "{id} is {status}: {events:?}"
         );
     }
