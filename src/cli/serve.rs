@@ -153,6 +153,10 @@ pub struct ServeArgs {
     /// The wait after a delivery's first failure, seconds, doubling to an hour [default: 5].
     #[arg(long, env = "CRESTSCAN_WEBHOOK_RETRY_SECONDS")]
     webhook_retry_seconds: Option<f64>,
+    /// Export traces (OpenTelemetry, OTLP/HTTP protobuf) to this collector URL, e.g.
+    /// http://collector:4318/v1/traces [default: none].
+    #[arg(long, env = "CRESTSCAN_OTLP_ENDPOINT")]
+    otlp_endpoint: Option<String>,
 }
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
@@ -223,6 +227,9 @@ impl ServeArgs {
             webhook_max_attempts,
             webhook_retry_seconds
         );
+        if let Some(url) = self.otlp_endpoint {
+            s.otlp_endpoint = Some(url);
+        }
         if let Some(auth) = self.auth {
             s.auth = match auth {
                 AuthArg::Off => crestscan::service::config::AuthMode::Off,
@@ -238,19 +245,25 @@ impl ServeArgs {
 
     pub fn run(self) -> Result<()> {
         let settings = self.settings()?;
-        crestscan::service::telemetry::init_logging(&settings.log, settings.log_format);
+        let traces =
+            crestscan::service::telemetry::init(&settings.log, settings.log_format, settings.otlp_endpoint.as_deref())
+                .map_err(anyhow::Error::msg)?;
         let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
-        runtime.block_on(async move {
+        let served = runtime.block_on(async move {
         let app = crestscan::service::startup::Application::build(settings.clone()).await?;
         // One line on stdout that scripts (and the tests) read to find the port.
         println!("crestscan listening on http://{}", app.address());
         tracing::info!(address = %app.address(), data_dir = %settings.data_dir.display(), workers = settings.workers, "serving");
         app.run_until(crestscan::service::startup::shutdown_signal()).await?;
         Ok::<_, anyhow::Error>(())
-    })?;
+    });
         // A job that ignored its stop request still holds a blocking thread: the process ends
         // without it (its lease was released, or lapses).
         runtime.shutdown_timeout(std::time::Duration::from_secs(1));
-        Ok(())
+        // The spans still batched go to the collector before the process ends.
+        if let Some(traces) = traces {
+            traces.shutdown();
+        }
+        served
     }
 }

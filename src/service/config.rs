@@ -109,6 +109,9 @@ pub struct Settings {
     /// The wait after a delivery's first failed attempt, seconds; it doubles per attempt up to an
     /// hour, with ±25% jitter.
     pub webhook_retry_seconds: f64,
+    /// An OpenTelemetry collector's OTLP/HTTP traces URL (`http://collector:4318/v1/traces`):
+    /// spans of requests and inspection runs are exported there; none by default.
+    pub otlp_endpoint: Option<String>,
 }
 
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -169,6 +172,7 @@ impl Default for Settings {
             webhook_timeout_seconds: 10.0,
             webhook_max_attempts: 15,
             webhook_retry_seconds: 5.0,
+            otlp_endpoint: None,
         }
     }
 }
@@ -314,6 +318,11 @@ impl Settings {
         }
         if let Some(e) = self.callback_secrets.iter().find_map(|s| Secret::parse(s).err()) {
             return invalid("callback_secrets", e);
+        }
+        if let Some(url) = &self.otlp_endpoint
+            && let Err(e) = origin_of(url)
+        {
+            return invalid("otlp_endpoint", e);
         }
         if !self.callback_origins.is_empty() && self.callback_secrets.is_empty() {
             return invalid(

@@ -155,12 +155,78 @@ impl Metrics {
 /// colours only when the log goes to a terminal (a log file or journal gets no escape codes), or
 /// one JSON object a line.
 pub fn init_logging(filter: &str, format: crate::service::config::LogFormat) {
+    let _ = init(filter, format, None);
+}
+
+/// The trace export while it runs; [`Traces::shutdown`] sends the spans still batched.
+pub struct Traces(opentelemetry_sdk::trace::SdkTracerProvider);
+
+impl Traces {
+    pub fn shutdown(self) {
+        if let Err(e) = self.0.shutdown() {
+            tracing::warn!(error = %e, "the last spans were not exported");
+        }
+    }
+}
+
+/// Installs the log subscriber and, with an `otlp_endpoint`, OpenTelemetry trace export over
+/// OTLP/HTTP (protobuf): a span per request (`POST /v1/inspections`, by route) and per inspection
+/// run, with the pipeline's stages as its events. Spans are batched on a thread of their own, so a
+/// slow or absent collector holds nothing up (spans beyond the batch queue are dropped).
+pub fn init(
+    filter: &str,
+    format: crate::service::config::LogFormat,
+    otlp_endpoint: Option<&str>,
+) -> Result<Option<Traces>, String> {
+    use opentelemetry::trace::TracerProvider as _;
     use std::io::IsTerminal;
+    use tracing_subscriber::Layer as _;
+    use tracing_subscriber::layer::SubscriberExt as _;
+    use tracing_subscriber::util::SubscriberInitExt as _;
     let filter =
         tracing_subscriber::EnvFilter::try_new(filter).unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
-    let builder = tracing_subscriber::fmt().with_env_filter(filter).with_target(false);
-    let _ = match format {
-        crate::service::config::LogFormat::Text => builder.with_ansi(std::io::stdout().is_terminal()).try_init(),
-        crate::service::config::LogFormat::Json => builder.json().flatten_event(true).try_init(),
+    let (otel, traces) = match otlp_endpoint {
+        None => (None, None),
+        Some(url) => {
+            use opentelemetry_otlp::WithExportConfig as _;
+            let exporter = opentelemetry_otlp::SpanExporter::builder()
+                .with_http()
+                .with_endpoint(url)
+                .with_timeout(std::time::Duration::from_secs(10))
+                .build()
+                .map_err(|e| format!("otlp_endpoint: {e}"))?;
+            let resource = opentelemetry_sdk::Resource::builder()
+                .with_service_name("crestscan")
+                .with_attribute(opentelemetry::KeyValue::new("service.version", env!("CARGO_PKG_VERSION")))
+                .build();
+            let provider = opentelemetry_sdk::trace::SdkTracerProvider::builder()
+                .with_batch_exporter(exporter)
+                .with_resource(resource)
+                .build();
+            let tracer = provider.tracer("crestscan");
+            // The service's own spans and events, whatever the log filter shows.
+            let ours = tracing_subscriber::filter::Targets::new().with_target("crestscan", tracing::Level::DEBUG);
+            (Some(tracing_opentelemetry::layer().with_tracer(tracer).with_filter(ours)), Some(Traces(provider)))
+        }
     };
+    let base = tracing_subscriber::registry().with(otel);
+    let installed = match format {
+        crate::service::config::LogFormat::Text => base
+            .with(
+                tracing_subscriber::fmt::layer()
+                    .with_target(false)
+                    .with_ansi(std::io::stdout().is_terminal())
+                    .with_filter(filter),
+            )
+            .try_init(),
+        crate::service::config::LogFormat::Json => base
+            .with(tracing_subscriber::fmt::layer().json().flatten_event(true).with_target(false).with_filter(filter))
+            .try_init(),
+    };
+    match (installed, traces) {
+        (Ok(()), traces) => Ok(traces),
+        // Already installed (tests start many apps in one process): the first one stands.
+        (Err(_), None) => Ok(None),
+        (Err(e), Some(_)) => Err(format!("otlp_endpoint: a log subscriber was already installed ({e})")),
+    }
 }

@@ -118,7 +118,17 @@ async fn worker_loop(ctx: WorkerContext, slot: usize, mut shutdown: watch::Recei
         match ctx.store.claim(&lease_token, lease).await {
             Ok(Some(job)) => {
                 tracing::info!(inspection = %job.id, attempt = job.attempts, interruptions = job.interruptions, slot, "claimed");
-                process(&ctx, job, &lease_token, &mut shutdown).await;
+                // The run's span (trace export): the inspection, its attempt, how it ended, and
+                // the pipeline's stages as its events.
+                let span = tracing::info_span!(
+                    "inspection",
+                    otel.name = "inspection",
+                    inspection.id = %job.id,
+                    attempt = job.attempts,
+                    outcome = tracing::field::Empty,
+                );
+                let run = process(&ctx, job, &lease_token, &mut shutdown);
+                tracing::Instrument::instrument(run, span).await;
             }
             Ok(None) => {
                 tokio::select! {
@@ -203,6 +213,7 @@ async fn process(ctx: &WorkerContext, job: Claimed, lease_token: &str, shutdown:
         Outcome::Succeeded(results) => {
             for t in &results.report.timings {
                 ctx.metrics.observe_stage(&t.stage, t.seconds);
+                tracing::debug!(stage = %t.stage, seconds = t.seconds, "stage");
             }
             let r = &results.report;
             finding = Some((r.verdict.as_str(), r.decision.as_str(), r.review_required));
@@ -226,6 +237,7 @@ async fn process(ctx: &WorkerContext, job: Claimed, lease_token: &str, shutdown:
             ("retry", result)
         }
     };
+    tracing::Span::current().record("outcome", label);
     match stored {
         Ok(true) => {
             ctx.metrics.job_finished(label, elapsed);

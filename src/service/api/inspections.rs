@@ -700,12 +700,17 @@ fn finished(row: &InspectionRow) -> bool {
 pub async fn inspection_events(State(state): State<AppState>, Path(id): Path<String>) -> Result<Response, ApiError> {
     use axum::response::sse::{Event, KeepAlive, Sse};
     let id = InspectionId::parse(&id)?;
+    // Subscribed before the first read, so no change after it is missed.
+    let changes = state.store.changes.subscribe();
     let first = state.store.inspection(&id.0).await.map_err(|e| super::missing_inspection(e, &id.0))?;
     struct Cursor {
         state: AppState,
+        changes: tokio::sync::broadcast::Receiver<std::sync::Arc<InspectionRow>>,
         id: String,
         next: Option<InspectionRow>,
         seen: Option<(String, Option<String>)>,
+        /// `updated_at` of the newest row taken.
+        read_at: i64,
         count: u64,
         done: bool,
     }
@@ -714,9 +719,11 @@ pub async fn inspection_events(State(state): State<AppState>, Path(id): Path<Str
         let json = crate::export::json::to_vec(&inspection).map(|j| String::from_utf8_lossy(&j).into_owned());
         json.map(|data| Event::default().id(count.to_string()).event("state").data(data))
     };
-    // Re-reads the row, as the long-poll does (the worker may be another process), and yields an
-    // event at each change; the cursor holds the row read but not yet sent.
-    let cursor = Cursor { state, id: id.0, next: Some(first), seen: None, count: 0, done: false };
+    // Takes every change this process writes from the store's feed, and re-reads the row as the
+    // long-poll does (a worker in another process writes only to the database); yields an event
+    // at each change. The cursor holds the row read but not yet sent.
+    let read_at = first.updated_at;
+    let cursor = Cursor { state, changes, id: id.0, next: Some(first), seen: None, read_at, count: 0, done: false };
     let stream = futures_util::stream::unfold(cursor, move |mut c| async move {
         if c.done {
             return None;
@@ -738,11 +745,28 @@ pub async fn inspection_events(State(state): State<AppState>, Path(id): Path<Str
                 return Some((Ok(Event::default().event("shutdown").data("the service is stopping")), c));
             }
             tokio::select! {
+                change = c.changes.recv() => match change {
+                    // A snapshot older than what was read already (a database read can overtake
+                    // the feed) would step back: skipped.
+                    Ok(row) if row.id == c.id && row.updated_at >= c.read_at => {
+                        c.read_at = row.updated_at;
+                        c.next = Some((*row).clone());
+                        continue;
+                    }
+                    Ok(_) => continue,
+                    // Fell behind the feed: the database says where things are.
+                    Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => {}
+                    Err(tokio::sync::broadcast::error::RecvError::Closed) => tokio::time::sleep(WAIT_POLL).await,
+                },
                 _ = tokio::time::sleep(WAIT_POLL) => {}
                 _ = stopping.changed() => continue,
             }
             match c.state.store.inspection(&c.id).await {
-                Ok(row) => c.next = Some(row),
+                Ok(row) if row.updated_at >= c.read_at => {
+                    c.read_at = row.updated_at;
+                    c.next = Some(row);
+                }
+                Ok(_) => {}
                 Err(e) => {
                     tracing::warn!(inspection = %c.id, error = %e, "event stream: reading the inspection failed");
                     c.done = true;

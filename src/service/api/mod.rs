@@ -374,7 +374,14 @@ async fn observe(State(state): State<AppState>, request: Request, next: Next) ->
     let method = request.method().as_str().to_string();
     let route = request.extensions().get::<MatchedPath>().map_or("unmatched", |m| m.as_str()).to_string();
     let path = request.uri().path().to_string();
-    let response = next.run(request).await;
+    // The request's span: what trace export (otlp_endpoint) sends, named by method and route.
+    let span = tracing::info_span!(
+        "request",
+        otel.name = %format_args!("{method} {route}"),
+        otel.kind = "server",
+        http.response.status_code = tracing::field::Empty,
+    );
+    let response = tracing::Instrument::instrument(next.run(request), span.clone()).await;
     let response = if response.status().is_client_error() || response.status().is_server_error() {
         problem_response(response, path.clone()).await
     } else {
@@ -382,6 +389,7 @@ async fn observe(State(state): State<AppState>, request: Request, next: Next) ->
     };
     let (status, seconds) = (response.status().as_u16(), started.elapsed().as_secs_f64());
     state.metrics.request(&method, &route, status, seconds);
+    span.record("http.response.status_code", status);
     // The access log: one line a request (probes and scrapes only at debug, they come every
     // few seconds).
     if matches!(route.as_str(), "/healthz" | "/readyz" | "/metrics") {

@@ -227,6 +227,10 @@ impl Store {
             .bind(id)
             .execute(&self.pool)
             .await?;
-        self.inspection(id).await
+        let row = self.inspection(id).await?;
+        if self.changes.receiver_count() > 0 {
+            let _ = self.changes.send(std::sync::Arc::new(row.clone()));
+        }
+        Ok(row)
     }
 }

@@ -125,6 +125,11 @@ pub struct Store {
     /// Deaths of the worker's process while running one job before that job is failed as
     /// poisonous ([`queue`]).
     pub max_interruptions: i64,
+    /// Each change this process writes to an inspection's status or progress, as the row reads
+    /// right after it: event streams see every state in order, however short, where a reading of
+    /// the database every so often could miss one. Changes written by other processes reach
+    /// them through the database only.
+    pub changes: tokio::sync::broadcast::Sender<std::sync::Arc<InspectionRow>>,
 }
 
 impl Store {
@@ -144,7 +149,18 @@ impl Store {
         let pool = SqlitePoolOptions::new().max_connections(8).connect_with(options).await?;
         MIGRATOR.run(&pool).await?;
         let files = FileStore::open(uploads, tmp)?;
-        Ok(Self { pool, files, max_interruptions: 5 })
+        let (changes, _) = tokio::sync::broadcast::channel(256);
+        Ok(Self { pool, files, max_interruptions: 5, changes })
+    }
+
+    /// Sends the inspection's row as it now reads to the change feed, when anyone listens.
+    pub async fn publish(&self, id: &str) {
+        if self.changes.receiver_count() == 0 {
+            return;
+        }
+        if let Ok(row) = self.inspection(id).await {
+            let _ = self.changes.send(std::sync::Arc::new(row));
+        }
     }
 
     pub async fn ping(&self) -> Result<(), StoreError> {

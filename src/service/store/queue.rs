@@ -102,6 +102,9 @@ impl Store {
         .bind(now)
         .execute(&self.pool)
         .await?;
+        if let Some(job) = &claimed {
+            self.publish(&job.id).await;
+        }
         Ok(claimed)
     }
 
@@ -127,6 +130,9 @@ impl Store {
         .bind(owner)
         .fetch_optional(&self.pool)
         .await?;
+        if row.is_some() && progress.is_some() {
+            self.publish(id).await;
+        }
         Ok(match row {
             Some((cancel_requested,)) => Heartbeat::Held { cancel_requested },
             None => Heartbeat::Lost,
@@ -214,6 +220,7 @@ impl Store {
             q.build().execute(&mut *tx).await?;
         }
         tx.commit().await?;
+        self.publish(id).await;
         Ok(true)
     }
 
@@ -238,6 +245,9 @@ impl Store {
         .bind(owner)
         .execute(&self.pool)
         .await?;
+        if updated.rows_affected() == 1 {
+            self.publish(id).await;
+        }
         Ok(updated.rows_affected() == 1)
     }
 
@@ -268,6 +278,9 @@ impl Store {
         .bind(owner)
         .execute(&self.pool)
         .await?;
+        if updated.rows_affected() == 1 {
+            self.publish(id).await;
+        }
         Ok(updated.rows_affected() == 1)
     }
 

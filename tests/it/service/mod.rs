@@ -10,6 +10,7 @@ mod openapi;
 mod queue;
 mod report_page;
 mod results;
+mod traces;
 mod webhooks;
 
 use crate::common::{ci_bundle, walk};
