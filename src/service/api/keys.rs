@@ -322,12 +322,7 @@ pub async fn get_audit(
     query: Result<Query<AuditQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Json<AuditPage>, ApiError> {
     let Query(q) = query?;
-    let limit = q.limit.unwrap_or(100);
-    if !(1..=1000).contains(&limit) {
-        return Err(
-            ApiError::new(Code::InvalidQuery, format!("limit: {limit} is not within 1–1000")).with_culprit("limit")
-        );
-    }
+    let limit = super::page_limit(q.limit, 100, 1000)?;
     let rows = state.store.audit_log(limit, q.before, q.target.as_deref()).await?;
     let next_before = (rows.len() as i64 == limit).then(|| rows.last().map(|r| r.seq)).flatten();
     let entries = rows

@@ -81,6 +81,17 @@ pub fn missing_inspection(e: crate::service::store::StoreError, id: &str) -> Api
     }
 }
 
+/// A page's `limit` parameter: `default` when absent, else within 1 to `max` (400 `invalid_query`).
+pub fn page_limit(limit: Option<i64>, default: i64, max: i64) -> Result<i64, ApiError> {
+    let limit = limit.unwrap_or(default);
+    if !(1..=max).contains(&limit) {
+        return Err(
+            ApiError::new(Code::InvalidQuery, format!("limit: {limit} is not within 1–{max}")).with_culprit("limit")
+        );
+    }
+    Ok(limit)
+}
+
 /// A JSON answer whose numbers are rounded to their resolution ([`crate::export::json`]).
 pub struct Rounded<T>(pub T);
 

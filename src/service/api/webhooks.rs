@@ -98,12 +98,7 @@ pub async fn list_deliveries(
     query: Result<Query<DeliveryQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Json<DeliveryPage>, ApiError> {
     let Query(q) = query?;
-    let limit = q.limit.unwrap_or(100);
-    if !(1..=1000).contains(&limit) {
-        return Err(
-            ApiError::new(Code::InvalidQuery, format!("limit: {limit} is not within 1–1000")).with_culprit("limit")
-        );
-    }
+    let limit = super::page_limit(q.limit, 100, 1000)?;
     if let Some(status) = q.status.as_deref().filter(|s| !DELIVERY_STATUSES.contains(s)) {
         return Err(ApiError::new(
             Code::InvalidQuery,

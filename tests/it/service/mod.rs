@@ -183,6 +183,11 @@ pub async fn submit_ci_to(client: &reqwest::Client, base: &str) -> String {
     response.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string()
 }
 
+/// GETs `url` and reads its JSON body.
+pub async fn get_json(client: &reqwest::Client, url: &str) -> Value {
+    client.get(url).send().await.unwrap().json().await.unwrap()
+}
+
 /// The ci bundle (without truth/) as a tar archive.
 pub fn ci_tar() -> Vec<u8> {
     bundle_tar(ci_bundle(), &|_| true)

@@ -161,24 +161,19 @@ async fn webhooks_survive_kill_9_signed_and_only_to_allowed_destinations() {
     let client = reqwest::Client::new();
     let (mut service, mut base) = start(&data.path().join("service"), &args);
 
+    let submit = |base: &str, callback: &str| {
+        client
+            .post(format!("{base}/v1/inspections?callback_url={callback}"))
+            .header("content-type", "application/x-tar")
+            .body(ci_tar())
+            .send()
+    };
     // A callback to anywhere but the allowed origins is refused, before anything is stored.
-    let refused = client
-        .post(format!("{base}/v1/inspections?callback_url={honeypot}/hook"))
-        .header("content-type", "application/x-tar")
-        .body(ci_tar())
-        .send()
-        .await
-        .unwrap();
+    let refused = submit(&base, &format!("{honeypot}/hook")).await.unwrap();
     let problem = problem(refused, StatusCode::UNPROCESSABLE_ENTITY, "callback_not_allowed").await;
     assert_eq!(problem["culprit"], "callback_url", "{problem}");
 
-    let with_callback = client
-        .post(format!("{base}/v1/inspections?callback_url={mes}/callback"))
-        .header("content-type", "application/x-tar")
-        .body(ci_tar())
-        .send()
-        .await
-        .unwrap();
+    let with_callback = submit(&base, &format!("{mes}/callback")).await.unwrap();
     assert_eq!(with_callback.status(), StatusCode::ACCEPTED);
     let run: Value = with_callback.json().await.unwrap();
     assert_eq!(run["options"]["callback_url"], format!("{mes}/callback"));
@@ -242,14 +237,7 @@ async fn webhooks_survive_kill_9_signed_and_only_to_allowed_destinations() {
     // The redirecting endpoint: attempted, its redirect not followed, given up after 4 attempts.
     let deadline = Instant::now() + Duration::from_secs(60);
     let moved = loop {
-        let page: Value = client
-            .get(format!("{base}/v1/webhooks/deliveries?inspection_id={}", ids[1]))
-            .send()
-            .await
-            .unwrap()
-            .json()
-            .await
-            .unwrap();
+        let page = get_json(&client, &format!("{base}/v1/webhooks/deliveries?inspection_id={}", ids[1])).await;
         let moved = page["deliveries"].as_array().unwrap().iter().find(|d| d["endpoint"] == "moved").cloned();
         if let Some(m) = moved.filter(|m| m["status"] == "failed") {
             break m;
@@ -265,14 +253,8 @@ async fn webhooks_survive_kill_9_signed_and_only_to_allowed_destinations() {
     // it: that delivery is attempted again once its lease lapses, under the same id.
     let deadline = Instant::now() + Duration::from_secs(120);
     let page = loop {
-        let page: Value = client
-            .get(format!("{base}/v1/webhooks/deliveries?inspection_id={run}&status=delivered"))
-            .send()
-            .await
-            .unwrap()
-            .json()
-            .await
-            .unwrap();
+        let page =
+            get_json(&client, &format!("{base}/v1/webhooks/deliveries?inspection_id={run}&status=delivered")).await;
         if page["deliveries"].as_array().unwrap().len() == 2 {
             break page;
         }
