@@ -76,7 +76,8 @@ pub struct Settings {
     pub max_interruptions: u32,
     /// On shutdown, running jobs get this long to finish before they are released for re-claiming.
     pub shutdown_grace_seconds: f64,
-    /// How often idle workers look for work (new uploads also wake them at once).
+    /// How often idle workers look for work (new uploads also wake them at once), and the webhook
+    /// dispatcher for finished inspections and due deliveries.
     pub poll_interval_ms: u64,
     /// Uploaded bundles of finished inspections are deleted after this many days (0: kept).
     pub upload_retention_days: f64,
