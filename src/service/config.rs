@@ -265,11 +265,11 @@ impl Settings {
     fn validate_webhooks(&self) -> Result<(), ConfigError> {
         use crate::service::webhooks::{CALLBACK, origin_of};
         let invalid = |field, message: String| Err(ConfigError::Invalid { field, message });
-        if !(self.webhook_timeout_seconds > 0.0) {
-            return invalid("webhook_timeout_seconds", "must be positive".into());
+        if !(self.webhook_timeout_seconds > 0.0 && self.webhook_timeout_seconds <= 600.0) {
+            return invalid("webhook_timeout_seconds", "must be more than 0 and at most 600".into());
         }
-        if !(self.webhook_retry_seconds > 0.0) {
-            return invalid("webhook_retry_seconds", "must be positive".into());
+        if !(self.webhook_retry_seconds > 0.0 && self.webhook_retry_seconds <= 3600.0) {
+            return invalid("webhook_retry_seconds", "must be more than 0 and at most 3600".into());
         }
         if self.webhook_max_attempts == 0 {
             return invalid("webhook_max_attempts", "must be at least 1".into());
@@ -451,6 +451,8 @@ mod tests {
         );
         assert!(refused(&|b| b.callback_secrets.clear()).starts_with("callback_secrets"));
         assert!(refused(&|b| b.webhook_max_attempts = 0).starts_with("webhook_max_attempts"));
+        assert!(refused(&|b| b.webhook_timeout_seconds = f64::INFINITY).starts_with("webhook_timeout_seconds"));
+        assert!(refused(&|b| b.webhook_retry_seconds = f64::NAN).starts_with("webhook_retry_seconds"));
     }
 
     #[test]

@@ -175,7 +175,9 @@ fn deliveries_for(settings: &Settings, row: InspectionRow) -> Vec<NewDelivery> {
         serde_json::from_str::<crate::service::queue::JobOptions>(&row.options_json).ok().and_then(|o| o.callback_url);
     let timestamp = crate::service::api::rfc3339(row.finished_at.unwrap_or(row.updated_at));
     let body = Event { type_: event.as_str(), timestamp, data: Inspection::from(row) };
-    let payload_json = serde_json::to_string(&body).expect("an event serialises");
+    // As `GET /v1/inspections/{id}` writes it: numbers rounded to their resolution.
+    let payload_json =
+        String::from_utf8(crate::export::json::to_vec(&body).expect("an event serialises")).expect("JSON is UTF-8");
     let mut targets: Vec<(String, String)> = settings
         .webhooks
         .iter()
@@ -353,6 +355,9 @@ async fn post(
         }
         Err(e) => {
             use std::error::Error;
+            // Without the URL: a callback's query may hold its receiver's token, and this text
+            // goes to the log and to the admins' delivery record (which shows the URL apart).
+            let e = e.without_url();
             let mut text = e.to_string();
             let mut source = e.source();
             while let Some(s) = source {

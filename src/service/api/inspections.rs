@@ -89,6 +89,10 @@ pub struct Inspection {
     /// The options the pipeline runs with (defaults filled in), under `pipeline`.
     #[schema(value_type = Object)]
     pub options: serde_json::Value,
+    /// The origin (scheme, host, port) of the submission's `callback_url`, if it gave one. The URL
+    /// itself is not shown: its query may hold the receiver's token, and every reader of the
+    /// inspection (and every webhook endpoint) sees this resource.
+    pub callback_origin: Option<String>,
     /// Why it failed: the same problem object HTTP errors use.
     pub error: Option<Problem>,
     pub links: Links,
@@ -97,6 +101,11 @@ pub struct Inspection {
 impl From<InspectionRow> for Inspection {
     fn from(r: InspectionRow) -> Self {
         let status = r.status();
+        let mut options: serde_json::Value = serde_json::from_str(&r.options_json).unwrap_or(serde_json::Value::Null);
+        let callback_origin = options
+            .as_object_mut()
+            .and_then(|o| o.remove("callback_url"))
+            .and_then(|url| url.as_str().and_then(|u| crate::service::webhooks::origin_of(u).ok()));
         let base = format!("/v1/inspections/{}", r.id);
         Self {
             progress: match (status, &r.progress_stage, r.progress_fraction) {
@@ -122,7 +131,8 @@ impl From<InspectionRow> for Inspection {
                 views: r.views,
                 frames: r.frames,
             },
-            options: serde_json::from_str(&r.options_json).unwrap_or(serde_json::Value::Null),
+            options,
+            callback_origin,
             error: r.error_json.as_deref().and_then(|e| serde_json::from_str(e).ok()),
             links: Links {
                 report: format!("{base}/report"),
@@ -675,6 +685,14 @@ fn watched(row: &InspectionRow) -> (String, Option<String>) {
     (row.status.clone(), row.progress_stage.clone())
 }
 
+/// Whether a row read or received may be shown after one of `read_at`: not an older snapshot (a
+/// database read can overtake the feed, and stepping back would reorder the events), except that
+/// a terminal row always is: writes wait for SQLite's lock and can land out of their clocks'
+/// order, and the stream must end with the final state.
+fn newer(row: &InspectionRow, read_at: i64) -> bool {
+    row.updated_at >= read_at || finished(row)
+}
+
 /// Whether no more news will come: the status is terminal.
 fn finished(row: &InspectionRow) -> bool {
     row.status.parse::<Status>().is_ok_and(Status::is_terminal)
@@ -711,6 +729,7 @@ pub async fn inspection_events(State(state): State<AppState>, Path(id): Path<Str
         seen: Option<(String, Option<String>)>,
         /// `updated_at` of the newest row taken.
         read_at: i64,
+        poll: tokio::time::Interval,
         count: u64,
         done: bool,
     }
@@ -723,7 +742,10 @@ pub async fn inspection_events(State(state): State<AppState>, Path(id): Path<Str
     // long-poll does (a worker in another process writes only to the database); yields an event
     // at each change. The cursor holds the row read but not yet sent.
     let read_at = first.updated_at;
-    let cursor = Cursor { state, changes, id: id.0, next: Some(first), seen: None, read_at, count: 0, done: false };
+    let mut poll = tokio::time::interval(WAIT_POLL);
+    poll.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let cursor =
+        Cursor { state, changes, id: id.0, next: Some(first), seen: None, read_at, poll, count: 0, done: false };
     let stream = futures_util::stream::unfold(cursor, move |mut c| async move {
         if c.done {
             return None;
@@ -746,24 +768,26 @@ pub async fn inspection_events(State(state): State<AppState>, Path(id): Path<Str
             }
             tokio::select! {
                 change = c.changes.recv() => match change {
-                    // A snapshot older than what was read already (a database read can overtake
-                    // the feed) would step back: skipped.
-                    Ok(row) if row.id == c.id && row.updated_at >= c.read_at => {
-                        c.read_at = row.updated_at;
-                        c.next = Some((*row).clone());
+                    Ok(row) if row.id == c.id => {
+                        if newer(&row, c.read_at) {
+                            c.read_at = c.read_at.max(row.updated_at);
+                            c.next = Some((*row).clone());
+                        }
                         continue;
                     }
                     Ok(_) => continue,
                     // Fell behind the feed: the database says where things are.
                     Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => {}
-                    Err(tokio::sync::broadcast::error::RecvError::Closed) => tokio::time::sleep(WAIT_POLL).await,
+                    Err(tokio::sync::broadcast::error::RecvError::Closed) => { c.poll.tick().await; }
                 },
-                _ = tokio::time::sleep(WAIT_POLL) => {}
+                // One interval for the whole stream (not a fresh sleep per message): a busy feed
+                // about other inspections cannot put the database read off.
+                _ = c.poll.tick() => {}
                 _ = stopping.changed() => continue,
             }
             match c.state.store.inspection(&c.id).await {
-                Ok(row) if row.updated_at >= c.read_at => {
-                    c.read_at = row.updated_at;
+                Ok(row) if newer(&row, c.read_at) => {
+                    c.read_at = c.read_at.max(row.updated_at);
                     c.next = Some(row);
                 }
                 Ok(_) => {}

@@ -73,6 +73,7 @@ impl Store {
             .bind(now)
             .execute(&self.pool)
             .await?;
+            self.publish(&id).await;
         }
         let claimed = sqlx::query_as::<_, Claimed>(
             "UPDATE inspections SET interruptions = interruptions + CASE WHEN status = 'running' THEN 1 ELSE 0 END, \
@@ -93,15 +94,19 @@ impl Store {
         .fetch_optional(&self.pool)
         .await?;
         // A running job whose worker died after a cancel request: cancel it now.
-        sqlx::query(
+        let canceled: Vec<(String,)> = sqlx::query_as(
             "UPDATE inspections SET status = 'canceled', finished_at = ?, updated_at = ?, lease_owner = NULL, \
-             lease_expires_at = NULL WHERE status = 'running' AND cancel_requested = 1 AND lease_expires_at < ?",
+             lease_expires_at = NULL WHERE status = 'running' AND cancel_requested = 1 AND lease_expires_at < ? \
+             RETURNING id",
         )
         .bind(now)
         .bind(now)
         .bind(now)
-        .execute(&self.pool)
+        .fetch_all(&self.pool)
         .await?;
+        for (id,) in canceled {
+            self.publish(&id).await;
+        }
         if let Some(job) = &claimed {
             self.publish(&job.id).await;
         }
