@@ -198,6 +198,7 @@ async fn process(ctx: &WorkerContext, job: Claimed, lease_token: &str, shutdown:
                 if let Err(e) = ctx.store.requeue(&job.id, lease_token, Duration::ZERO, None, true).await {
                     tracing::error!(inspection = %job.id, error = %e, "release failed; the lease will lapse");
                 }
+                tracing::Span::current().record("outcome", "released");
                 return;
             }
         }
@@ -205,6 +206,7 @@ async fn process(ctx: &WorkerContext, job: Claimed, lease_token: &str, shutdown:
     let outcome =
         outcome.unwrap_or_else(|e| Outcome::Fail(problem(Code::PipelinePanic, format!("worker task failed: {e}"))));
     if lease_lost.load(Ordering::Relaxed) {
+        tracing::Span::current().record("outcome", "lease_lost");
         return;
     }
     let elapsed = started.elapsed().as_secs_f64();
