@@ -45,6 +45,11 @@ impl EventType {
         }
     }
 
+    /// The event type of its name (`inspection.succeeded`, …).
+    pub fn parse(name: &str) -> Option<EventType> {
+        EventType::ALL.into_iter().find(|e| e.as_str() == name)
+    }
+
     fn of_status(status: &str) -> Option<EventType> {
         match status {
             "succeeded" => Some(EventType::Succeeded),
@@ -389,6 +394,15 @@ mod tests {
         assert_eq!(both.split(' ').count(), 2);
         assert!(both.ends_with(&one), "{both} / {one}");
         assert_ne!(signature(&[Secret::parse(&a).unwrap()], "msg_1", 6, b"{}"), both.split(' ').next().unwrap());
+    }
+
+    #[test]
+    fn event_types_read_back_from_their_names() {
+        for e in EventType::ALL {
+            assert_eq!(EventType::parse(e.as_str()), Some(e));
+            assert_eq!(serde_json::to_value(e).unwrap(), e.as_str());
+        }
+        assert_eq!(EventType::parse("inspection.queued"), None);
     }
 
     #[test]

@@ -117,7 +117,8 @@ pub async fn list_deliveries(
                 _ => DeliveryStatus::Pending,
             };
             WebhookDelivery {
-                event_type: serde_json::from_value(serde_json::Value::String(d.event_type.clone()))
+                // Written by the dispatcher from EventType::as_str, so it always parses.
+                event_type: crate::service::webhooks::EventType::parse(&d.event_type)
                     .unwrap_or(crate::service::webhooks::EventType::Failed),
                 next_attempt_at: (status == DeliveryStatus::Pending).then(|| rfc3339(d.next_attempt_at)),
                 status,

@@ -194,17 +194,30 @@ impl Store {
         }
         q.push(" ORDER BY created_at DESC, id DESC LIMIT ").push_bind(filter.limit as i64);
         let rows: Vec<DeliveryRow> = q.build_query_as().fetch_all(&self.pool).await?;
-        let mut out = Vec::with_capacity(rows.len());
-        for row in rows {
-            let attempts = sqlx::query_as::<_, AttemptRow>(
-                "SELECT delivery_id, attempt, started_at, duration_ms, status_code, error FROM webhook_attempts \
-                 WHERE delivery_id = ? ORDER BY attempt",
-            )
-            .bind(&row.id)
-            .fetch_all(&self.pool)
-            .await?;
-            out.push((row, attempts));
+        if rows.is_empty() {
+            return Ok(Vec::new());
         }
-        Ok(out)
+        // Every listed delivery's attempts in one query (a page holds up to 1000 deliveries).
+        let mut q: QueryBuilder<Sqlite> = QueryBuilder::new(
+            "SELECT delivery_id, attempt, started_at, duration_ms, status_code, error FROM webhook_attempts \
+             WHERE delivery_id IN (",
+        );
+        let mut ids = q.separated(", ");
+        for row in &rows {
+            ids.push_bind(&row.id);
+        }
+        q.push(") ORDER BY delivery_id, attempt");
+        let attempts: Vec<AttemptRow> = q.build_query_as().fetch_all(&self.pool).await?;
+        let mut by_delivery: std::collections::HashMap<String, Vec<AttemptRow>> = std::collections::HashMap::new();
+        for a in attempts {
+            by_delivery.entry(a.delivery_id.clone()).or_default().push(a);
+        }
+        Ok(rows
+            .into_iter()
+            .map(|row| {
+                let attempts = by_delivery.remove(&row.id).unwrap_or_default();
+                (row, attempts)
+            })
+            .collect())
     }
 }
