@@ -3,7 +3,7 @@
 //! against the caps.
 
 use super::*;
-use crate::domain::station::Station;
+use crate::domain::station::{BENCHMARKED, MAX_OBJECT_PIXEL_MM, Station};
 
 pub(super) fn thread_err(field: &str, message: impl Into<String>) -> BundleError {
     BundleError::Thread { field: field.into(), message: message.into() }
@@ -345,7 +345,8 @@ const MAX_FRAME_STEP_DOF: f64 = 2.0;
 
 /// Refuses a station the method cannot measure at, whatever its accuracy elsewhere: a pixel too
 /// coarse to resolve the thread's pitch, frames too far apart to sample a focus curve, or a stack
-/// too short to bring the thread's roots and crests both into focus. Stations inside these limits
+/// too short to bring the thread's roots and crests both into focus, or a pixel coarser than any
+/// station class was benchmarked at. Stations inside these limits
 /// but outside the measured envelope are inspected and flagged (`domain::station`).
 pub(super) fn check_station(part: &Part, optics: &Optics, views: &[View]) -> Result<(), BundleError> {
     let out = |field: String, message: String| BundleError::StationOutOfRange { field, message };
@@ -359,6 +360,16 @@ pub(super) fn check_station(part: &Part, optics: &Optics, views: &[View]) -> Res
                  {MIN_PIXELS_PER_PITCH} pixels (each at most {:.3} mm)",
                 station.object_pixel_mm,
                 pitch_mm / MIN_PIXELS_PER_PITCH
+            ),
+        ));
+    }
+    if station.object_pixel_mm > MAX_OBJECT_PIXEL_MM {
+        return Err(out(
+            "optics.pixel_pitch_um".into(),
+            format!(
+                "one pixel covers {:.3} mm of the part, beyond the coarsest station class measured ({:.2} mm, \
+                 GET /v1/capabilities): nothing says how far off heights would be there",
+                station.object_pixel_mm, BENCHMARKED.object_pixel_mm.1
             ),
         ));
     }

@@ -22,6 +22,10 @@ pub struct BenchArgs {
     /// Also write the results as JSON here.
     #[arg(long)]
     json: Option<PathBuf>,
+    /// Also write each case's report here, as `<case>.json` (for looking at a setting offline,
+    /// e.g. `scripts/u_variants.py`).
+    #[arg(long)]
+    reports: Option<PathBuf>,
     /// Time each case this many times (decode and inspection alternating) and report the
     /// medians: single timings on a shared machine scatter by tens of percent.
     #[arg(long, default_value_t = 1)]
@@ -62,7 +66,7 @@ impl From<SuiteArg> for Suite {
 
 impl BenchArgs {
     pub fn run(self) -> Result<()> {
-        let Self { suite, work, only, json, repeat, options: options_file, depth, learned, quiet } = self;
+        let Self { suite, work, only, json, reports, repeat, options: options_file, depth, learned, quiet } = self;
         let suite = Suite::from(suite);
         let work = work.unwrap_or_else(|| PathBuf::from(suite.default_work_dir()));
         if let Some(o) = only.iter().find(|o| !suite.cases().iter().any(|c| c.matches(o))) {
@@ -87,7 +91,13 @@ impl BenchArgs {
             log(format!("bench: {} (seed {})", case.name(), case.seed));
             bar.set_message(case.name());
             match eval::run_case(case, &work, repeat, &options) {
-                Ok(r) => results.push(r),
+                Ok(r) => {
+                    if let (Some(dir), Some(report)) = (&reports, &r.report) {
+                        std::fs::create_dir_all(dir)?;
+                        std::fs::write(dir.join(format!("{}.json", case.name())), serde_json::to_vec(report)?)?;
+                    }
+                    results.push(r)
+                }
                 Err(eval::BenchError::Pipeline(e)) if stations => {
                     log(format!("bench: {}: the pipeline refused: {e}", case.name()));
                     refused.push((case.name(), e.to_string()));

@@ -220,6 +220,9 @@ pub struct CaseResult {
     pub helix_z_error_um: f64,
     pub encoder_mean_axial_offset_um: f64,
     pub black_crests: Vec<BlackCrest>,
+    /// The inspection's report (`bench --reports` writes it), not in the results' JSON.
+    #[serde(skip)]
+    pub report: Option<Box<crate::pipeline::report::Report>>,
 }
 
 impl CaseResult {
@@ -318,6 +321,7 @@ pub fn run_case(
             let (pitch, dz) = (inspection.report.helix.pitch_mm, inspection.report.helix.z_h_mm - truth.helix_z_h_mm);
             1e3 * (dz - pitch * (dz / pitch).round())
         },
+        report: Some(Box::new(inspection.report.clone())),
         encoder_mean_axial_offset_um: 1e3
             * encoder.iter().zip(&truth_poses).map(|(e, t)| e.axial_mm - t.axial_mm).sum::<f64>()
             / encoder.len().max(1) as f64,

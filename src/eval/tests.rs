@@ -49,6 +49,7 @@ fn result(preset: &str, height_max_um: f64, inspect_over_decode: f64) -> CaseRes
         depth_rms_um: 0.0,
         depth_median_um: 0.0,
         depth_coverage: 1.0,
+        report: None,
         registration: RegistrationError {
             angle_rms_deg: 0.01,
             angle_max_deg: 0.02,

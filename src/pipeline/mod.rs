@@ -180,12 +180,10 @@ fn run_stages(
     let measured_threads = learned.classical.clone().unwrap_or_else(|| threads.clone());
     let (assessment, crest, rule_input) = crest_and_rules(recording, options, &helix, &threads, &mut run);
     let part = recording.part();
-    let station = domain::station::Station {
-        frame_noise_percent: crate::numeric::stats::median(
+    let station = domain::station::Station::of(recording.optics(), recording.views(), part.pipe_od_mm / 2.0)
+        .with_frame_noise(crate::numeric::stats::median(
             &mut depth_maps.iter().filter_map(|d| d.frame_noise).map(|n| 100.0 * n).collect::<Vec<_>>(),
-        ),
-        ..domain::station::Station::of(recording.optics(), recording.views(), part.pipe_od_mm / 2.0)
-    };
+        ));
     let mut quality = quality::assess(
         &station,
         &registered.registration,

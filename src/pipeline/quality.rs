@@ -133,8 +133,16 @@ pub fn assess(
             QualityStatus::Degraded,
             QualityCode::StationUnmeasured,
             format!(
-                "the station lies outside the envelope the accuracy figures were measured in: {}",
-                outside.join("; ")
+                "the station lies outside the envelope the accuracy figures were measured in: {}; {}",
+                outside.join("; "),
+                match station.class {
+                    Some(class) => format!(
+                        "it is in the {} station class, whose figures (GET /v1/capabilities, README) are far from \
+                         the targets",
+                        class.as_str()
+                    ),
+                    None => "it is in no station class the station benchmark measured (GET /v1/capabilities)".into(),
+                }
             ),
         );
     }
@@ -296,6 +304,7 @@ mod tests {
             view_spacing_deg: Some(8.0),
             overlap_deg: Some(5.09),
             frame_noise_percent: Some(0.84),
+            class: None,
         }
     }
 
@@ -391,7 +400,7 @@ mod tests {
     fn a_station_outside_the_measured_envelope_is_named_and_needs_review() {
         use PairStatus::*;
         let all = registration(&[(0, 1, Measured), (1, 2, Measured), (2, 3, Measured)], 4);
-        let coarse = Station { object_pixel_mm: 0.12, depth_of_field_mm: 0.48, ..standard() };
+        let coarse = Station { object_pixel_mm: 0.12, depth_of_field_mm: 0.48, ..standard() }.with_frame_noise(Some(0.84));
         let q = assess(&coarse, &all, &views(4), &covered(), &fit());
         assert_eq!(q.status, QualityStatus::Degraded);
         assert_eq!(q.reasons.len(), 1);
@@ -402,5 +411,9 @@ mod tests {
             q.reasons[0].message
         );
         assert!(!q.reasons[0].message.contains("depth of field"), "{}", q.reasons[0].message);
+        assert!(q.reasons[0].message.contains("in the coarse station class"), "{}", q.reasons[0].message);
+        let wide = Station { depth_of_field_mm: 2.5, ..coarse }.with_frame_noise(Some(0.84));
+        let q = assess(&wide, &all, &views(4), &covered(), &fit());
+        assert!(q.reasons[0].message.contains("in no station class"), "{}", q.reasons[0].message);
     }
 }

@@ -176,9 +176,10 @@ pub fn heights(
     };
     let raw: Vec<Option<f64>> = threads.iter().flat_map(|t| t.bins.iter().map(|b| b.raw_height_mm)).collect();
     let noise = local_noise(&raw, options.noise_half_bins, 10);
-    // Where too few neighbours were measured to read the noise, the part's median stands in.
+    // Where too few neighbours were measured to read the noise, the part's median stands in; where
+    // no bin has enough anywhere (a few short runs of bins), a coarser reading of the same scatter.
     let mut known: Vec<f64> = noise.iter().flatten().copied().collect();
-    let part_noise = median(&mut known);
+    let part_noise = median(&mut known).or_else(|| sparse_noise(&raw, scales.station.depth_of_field_mm));
     let mut expanded = Vec::new();
     let mut means = Vec::with_capacity(threads.len());
     let mut i = 0;
@@ -227,6 +228,27 @@ pub fn heights(
         z_mm: k * z_mm,
     };
     (budget, means)
+}
+
+/// The noise of a part too sparsely measured for [`local_noise`] (fewer than its minimum of
+/// neighbouring pairs around every bin), so that no height goes without an uncertainty: the robust
+/// scale of every neighbouring pair's difference over √2; without a single pair, the RMS spread of
+/// the heights about their median; for a lone height, half the depth of field, within which depth
+/// from focus has nothing to place a surface by but the one focus curve. None without a height.
+fn sparse_noise(raw: &[Option<f64>], depth_of_field_mm: f64) -> Option<f64> {
+    let mut diffs: Vec<f64> = raw.windows(2).filter_map(|w| Some((w[1]? - w[0]?).abs())).collect();
+    if let Some(m) = median(&mut diffs) {
+        return Some(1.4826 * m / std::f64::consts::SQRT_2);
+    }
+    let mut heights: Vec<f64> = raw.iter().flatten().copied().collect();
+    match heights.len() {
+        0 => None,
+        1 => Some(0.5 * depth_of_field_mm),
+        n => {
+            let centre = median(&mut heights)?;
+            Some((heights.iter().map(|h| (h - centre).powi(2)).sum::<f64>() / n as f64).sqrt())
+        }
+    }
 }
 
 /// RMS over the measured bins of each height's departure from its thread's median (threads with
@@ -663,6 +685,7 @@ mod tests {
             view_spacing_deg: Some(8.0),
             overlap_deg: Some(5.0),
             frame_noise_percent: Some(0.84),
+            class: None,
         }
     }
 
@@ -716,7 +739,8 @@ mod tests {
         // normal-consistent); 11 pixels of 0.04 mm span 0.44 bins (L = 1); the mean of 7 divides
         // it by √7; the method adds 0.05 × 40 µm = 2 µm.
         let noise = 1.4826 * 8.0 / 2f64.sqrt() / 7f64.sqrt();
-        let expected_um = 2.0 * (noise * noise + 2.0 * 2.0).sqrt();
+        let expected_of = |noise: f64| 2.0 * (noise * noise + 2.0 * 2.0).sqrt();
+        let expected_um = expected_of(noise);
         let u = 1e3 * threads[1].bins[100].uncertainty_mm.unwrap();
         assert!((u - expected_um).abs() < 0.05, "{u} against {expected_um}");
         assert!((budget.method_um - 2.0).abs() < 1e-9 && budget.along_helix_um == 0.0, "{budget:?}");
@@ -763,6 +787,28 @@ mod tests {
         threads[0].bins[5].height_mm = None;
         heights(&mut threads, &scales, Some(3.0), &ok(), &options);
         assert_eq!(threads[0].bins[5].uncertainty_mm, None);
+        // A part seen in short runs (at a random station, 38 bins in runs of 3–11): no bin has
+        // ten neighbouring pairs within reach, yet every height has its uncertainty, from the
+        // pairs there are; a lone height has half the depth of field.
+        let mut sparse = noisy(0.004);
+        for (i, b) in sparse.iter_mut().flat_map(|t| t.bins.iter_mut()).enumerate() {
+            if i % 40 >= 4 {
+                (b.height_mm, b.raw_height_mm) = (None, None);
+            }
+        }
+        heights(&mut sparse, &scales, Some(3.0), &ok(), &options);
+        let u = 1e3 * sparse[1].bins[1].uncertainty_mm.expect("a height in a short run has its uncertainty");
+        assert!((u - expected_of(noise)).abs() < 0.05, "{u}");
+        let mut lone = noisy(0.004);
+        for (i, b) in lone.iter_mut().flat_map(|t| t.bins.iter_mut()).enumerate() {
+            if i != 400 {
+                (b.height_mm, b.raw_height_mm) = (None, None);
+            }
+        }
+        heights(&mut lone, &scales, Some(3.0), &ok(), &options);
+        let u = 1e3 * lone[1].bins[40].uncertainty_mm.expect("a lone height has its uncertainty");
+        // Half of the 0.5 mm depth of field over √7 (the mean's bins), with the method's 2 µm.
+        assert!((u - expected_of(250.0 / 7f64.sqrt())).abs() < 0.05, "{u}");
     }
 
     #[test]

@@ -388,6 +388,18 @@ mod tests {
         }
     }
 
+    /// The envelope's classes claim figures over the ranges the station benchmark draws from.
+    #[test]
+    fn the_benchmarked_envelope_is_the_random_stations_ranges() {
+        let b = crate::domain::station::BENCHMARKED;
+        assert_eq!(b.object_pixel_mm, ranges::OBJECT_PIXEL_MM);
+        assert_eq!(b.depth_of_field_mm, ranges::DEPTH_OF_FIELD_MM);
+        assert_eq!(b.frame_step_dof, ranges::FRAME_STEP_DOF);
+        assert_eq!(b.overlap_deg, ranges::OVERLAP_DEG);
+        // Noise up to 8× the standard sensor's 0.84%: 6.7%.
+        assert!(b.frame_noise_percent.1 >= 0.84 * ranges::NOISE_FACTOR.1);
+    }
+
     #[test]
     fn a_named_station_recorded_is_the_one_described() {
         let spec = preset("standard").unwrap();

@@ -458,7 +458,7 @@ fn damaged_archive_entries_are_the_clients_error() {
 }
 
 /// A station the method cannot measure at is refused before any work, naming the parameter: a
-/// pixel too coarse for the pitch, frames too far apart for a focus curve, a stack too short for
+/// pixel too coarse for the pitch or beyond the coarsest station class, frames too far apart for a focus curve, a stack too short for
 /// the thread's depth. (The ci bundle: 41 µm pixels, frames every 0.25 mm, 18 of them; BC 4-1/2,
 /// 5.08 mm pitch, 1.575 mm deep.)
 #[test]
@@ -474,6 +474,17 @@ fn a_station_the_method_cannot_measure_at_is_refused_naming_its_parameter() {
     let (culprit, message) = bundle_error(&coarse);
     assert_eq!(culprit, "manifest.json: optics.pixel_pitch_um");
     assert!(message.contains("5.08 mm pitch needs at least 10 pixels"), "{message}");
+    // Pixels 4.5 times as large: 0.184 mm, 28 a pitch, but coarser than any station class the
+    // station benchmark measured (up to 0.15 mm).
+    let beyond = Scratch::new();
+    beyond.edit(|m| m["optics"]["pixel_pitch_um"] = json!(12.0 * 4.5));
+    let (culprit, message) = bundle_error(&beyond);
+    assert_eq!(culprit, "manifest.json: optics.pixel_pitch_um");
+    assert!(message.contains("covers 0.184 mm") && message.contains("coarsest station class"), "{message}");
+    // 3.5 times (0.143 mm): the coarse class, opened.
+    let coarse_class = Scratch::new();
+    coarse_class.edit(|m| m["optics"]["pixel_pitch_um"] = json!(12.0 * 3.5));
+    assert!(open(coarse_class.path()).is_ok());
     // Frames ten times as far apart: 2.5 mm, five depths of field.
     let sparse = Scratch::new();
     sparse.edit(|m| {
