@@ -267,6 +267,9 @@ fn status_word(status: PairStatus) -> &'static str {
         PairStatus::Ambiguous => "ambiguous (a second alignment correlates nearly as well)",
         PairStatus::TooSmall => "too small (the aligned overlap is under the minimum)",
         PairStatus::NoData => "no data (a view has no trusted point in the overlap)",
+        PairStatus::Implausible => {
+            "implausible (solved with it, a view moved further from its encoder pose than the encoders can err)"
+        }
     }
 }
 

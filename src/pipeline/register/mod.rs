@@ -91,6 +91,10 @@ pub enum PairStatus {
     TooSmall,
     /// A view has no trusted point in the overlap.
     NoData,
+    /// Measured, but the solve with it moved a view further from its encoder pose than the
+    /// search assumes the encoders can err (half the relative search range: ±1.25°, ±0.4 mm by
+    /// default): a strong correlation peak at a wrong alignment. Left out of the solve.
+    Implausible,
 }
 
 /// A candidate overlap and what became of it, with what its correlation found.
@@ -247,8 +251,13 @@ pub fn register(
     for p in pairs.iter_mut() {
         p.shift_angle_deg -= lens_radius_arc_shift_deg(&poses[p.a], &poses[p.b], radial[p.a], radial[p.b], lattice);
     }
-    let angle = axis(&pairs, &|p| p.shift_angle_deg, huber_angle_deg);
-    let axial = axis(&pairs, &|p| p.shift_axial_mm, huber_axial_mm);
+    let (radial, angle, axial) = solve_within_encoder_bounds(
+        n,
+        &mut pairs,
+        &mut candidates,
+        Kernels { radius_mm: huber_radius_mm, angle_deg: huber_angle_deg, axial_mm: huber_axial_mm },
+        (0.5 * options.max_angle_deg, 0.5 * options.max_axial_mm),
+    );
     for p in pairs.iter_mut() {
         p.residual_angle_deg = angle[p.b] - angle[p.a] - p.shift_angle_deg;
         p.residual_axial_um = 1e3 * (axial[p.b] - axial[p.a] - p.shift_axial_mm);
@@ -274,6 +283,54 @@ pub fn register(
         pairs,
         unregistered_views,
         placed_by_end_face: Vec::new(),
+    }
+}
+
+/// The robust kernel's bounds of the three axes' solves.
+#[derive(Clone, Copy)]
+pub(super) struct Kernels {
+    pub radius_mm: f64,
+    pub angle_deg: f64,
+    pub axial_mm: f64,
+}
+
+/// Solves the pose graph (lens radius, angle, axial corrections per view) with the pairs, but
+/// none whose solve moves a view further than `bounds` (angle, axial) from its encoder pose.
+///
+/// The search assumes each encoder errs by at most half its relative range: a solve that moves a
+/// view further rests on a wrong alignment (at random stations, peaks of 0.5–0.7 NCC at wrong
+/// alignments moved views by up to 3° against encoders off by 0.5° RMS). Each such view gives up
+/// its pair that asks the largest move (status `implausible`), and the pairs left are solved again.
+pub(super) fn solve_within_encoder_bounds(
+    n: usize,
+    pairs: &mut Vec<PairMeasure>,
+    candidates: &mut [PairCandidate],
+    kernels: Kernels,
+    (bound_angle_deg, bound_axial_mm): (f64, f64),
+) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+    let axis = |pairs: &[PairMeasure], f: &dyn Fn(&PairMeasure) -> f64, huber: f64| {
+        solve_axis(n, &pairs.iter().map(|p| (p.a, p.b, f(p))).collect::<Vec<_>>(), huber)
+    };
+    let asks =
+        |p: &PairMeasure| (p.shift_angle_deg / bound_angle_deg).abs().max((p.shift_axial_mm / bound_axial_mm).abs());
+    loop {
+        let angle = axis(pairs, &|p| p.shift_angle_deg, kernels.angle_deg);
+        let axial = axis(pairs, &|p| p.shift_axial_mm, kernels.axial_mm);
+        let mut dropped: Vec<(usize, usize)> = (0..n)
+            .filter(|&v| angle[v].abs() > bound_angle_deg || axial[v].abs() > bound_axial_mm)
+            .filter_map(|v| {
+                pairs.iter().filter(|p| p.a == v || p.b == v).max_by(|x, y| asks(x).total_cmp(&asks(y))).map(|p| (p.a, p.b))
+            })
+            .collect();
+        if dropped.is_empty() {
+            return (axis(pairs, &|p| p.shift_radius_mm, kernels.radius_mm), angle, axial);
+        }
+        dropped.sort_unstable();
+        dropped.dedup();
+        for c in candidates.iter_mut().filter(|c| dropped.contains(&(c.a, c.b))) {
+            c.status = PairStatus::Implausible;
+        }
+        pairs.retain(|p| !dropped.contains(&(p.a, p.b)));
     }
 }
 

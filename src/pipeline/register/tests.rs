@@ -78,6 +78,61 @@ fn graph_solve_spreads_a_ring_consistently() {
     }
 }
 
+#[test]
+fn a_pair_that_would_move_a_view_beyond_the_encoders_bound_is_left_out_and_named() {
+    // A chain of five views with true corrections within ±0.4°, and a sixth reached by one pair
+    // whose peak lies at a wrong alignment 2.4° away (its truth: 0.1°).
+    let truth = [0.3, -0.1, 0.2, -0.4, 0.0, 0.1];
+    let pair = |a: usize, b: usize, shift_angle_deg: f64| PairMeasure {
+        a,
+        b,
+        shift_angle_deg,
+        shift_axial_mm: 0.0,
+        shift_radius_mm: 0.0,
+        peak_ncc: 0.6,
+        rival_ratio: 0.3,
+        overlap_cells: 5000,
+        residual_angle_deg: 0.0,
+        residual_axial_um: 0.0,
+        residual_radius_um: 0.0,
+    };
+    let mut pairs: Vec<PairMeasure> = (0..4).map(|a| pair(a, a + 1, truth[a + 1] - truth[a])).collect();
+    pairs.push(pair(4, 5, 2.4));
+    let mut candidates: Vec<PairCandidate> = pairs
+        .iter()
+        .map(|p| PairCandidate {
+            a: p.a,
+            b: p.b,
+            status: PairStatus::Measured,
+            peak_ncc: Some(0.6),
+            rival_ratio: Some(0.3),
+            overlap_cells: Some(5000),
+        })
+        .collect();
+    let kernels = Kernels { radius_mm: 0.01, angle_deg: 0.02, axial_mm: 0.01 };
+    // With it, the component's zero mean puts view 5 at +2.0° (beyond ±1.25°) and the others
+    // 0.4° off theirs.
+    let with_it = solve_axis(6, &pairs.iter().map(|p| (p.a, p.b, p.shift_angle_deg)).collect::<Vec<_>>(), 0.02);
+    assert!(with_it[5] > 1.25, "{with_it:?}");
+    let (_, angle, _) = solve_within_encoder_bounds(6, &mut pairs, &mut candidates, kernels, (1.25, 0.4));
+    assert_eq!(candidates.iter().map(|c| c.status).filter(|s| *s == PairStatus::Implausible).count(), 1);
+    assert_eq!(candidates[4].status, PairStatus::Implausible);
+    assert_eq!(pairs.len(), 4, "the implausible pair leaves the solve");
+    // View 5 keeps its encoder pose; the chain keeps its measured differences about its mean.
+    assert_eq!(angle[5], 0.0);
+    let mean = truth[..5].iter().sum::<f64>() / 5.0;
+    for v in 0..5 {
+        assert!((angle[v] - (truth[v] - mean)).abs() < 1e-6, "{angle:?}");
+    }
+    // Pairs that keep every view within the bound are all kept.
+    let mut fine: Vec<PairMeasure> = (0..5).map(|a| pair(a, a + 1, truth[a + 1] - truth[a])).collect();
+    let mut all_measured = candidates.clone();
+    all_measured.iter_mut().for_each(|c| c.status = PairStatus::Measured);
+    solve_within_encoder_bounds(6, &mut fine, &mut all_measured, kernels, (1.25, 0.4));
+    assert_eq!(fine.len(), 5);
+    assert!(all_measured.iter().all(|c| c.status == PairStatus::Measured));
+}
+
 /// Brute-force NCC of a's cells (s, z) on the `step` grid against b's (s + off_s, z + off_z),
 /// both z-major with NaN for missing cells: what the masked grids must reproduce.
 fn brute_ncc(
