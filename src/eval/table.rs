@@ -187,11 +187,14 @@ pub fn table(results: &[CaseResult]) -> String {
     out
 }
 
-/// A station's class: fine (object pixel ≤ 0.06 mm), medium (≤ 0.10 mm) or coarse.
+/// A station's class by its object pixel alone: fine (≤ 0.06 mm), medium (≤ 0.10 mm) or coarse,
+/// the bounds of the envelope's classes (`domain::station::StationClass`; the benchmark groups a
+/// station outside their other ranges by its pixel too).
 pub fn station_class(object_pixel_mm: f64) -> &'static str {
-    if object_pixel_mm <= 0.06 {
+    use crate::domain::station::{FINE_MAX_PIXEL_MM, MEDIUM_MAX_PIXEL_MM};
+    if object_pixel_mm <= FINE_MAX_PIXEL_MM {
         "fine"
-    } else if object_pixel_mm <= 0.10 {
+    } else if object_pixel_mm <= MEDIUM_MAX_PIXEL_MM {
         "medium"
     } else {
         "coarse"

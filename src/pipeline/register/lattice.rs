@@ -211,5 +211,60 @@ pub(super) fn texture(gray: &[f32], radius: &[f32], ns: usize, nz: usize) -> Vec
             out[i] = v - sum / n as f32;
         }
     }
+    normalise_contrast(&out, ns, nz, ALONG, CONTRAST_ACROSS)
+}
+
+/// Cells along the axis, to either side, over which [`normalise_contrast`] reads the contrast
+/// (along the arc it reads the high-pass's own ±4).
+const CONTRAST_ACROSS: usize = 2;
+
+/// Each cell of the high-passed texture divided by its neighbourhood's RMS (±`along` cells along
+/// the arc, ±`across` along the axis). At random stations, strong correlation peaks (0.5–0.7 NCC)
+/// at wrong alignments between neighbouring views outweighed the texture at the true one; a
+/// modulation of the texture's contrast tied to each view is the suspected cause (the all-in-focus
+/// image's sharpness varies in bands where the cylinder's depth falls between two frames).
+/// Dividing by the local contrast keeps the texture's pattern and takes such a modulation out:
+/// tuning station 12 registered 0.31° RMS off instead of 0.75° (encoders 0.50°), station 1's five
+/// wrong pairs were refused (0.69° → its encoders' 0.30°), the stations whose pairs were right kept
+/// them (docs/notebook/accuracy.md, Stations: implausible pairs and the texture's contrast).
+pub(super) fn normalise_contrast(texture: &[f32], ns: usize, nz: usize, along: usize, across: usize) -> Vec<f32> {
+    let mut out = vec![f32::NAN; texture.len()];
+    // Per column, the sum of squares and the count over the ±`across` rows; then a window slides
+    // along the row over them.
+    let (mut column_sq, mut column_n) = (vec![0f64; ns], vec![0u32; ns]);
+    for z in 0..nz {
+        column_sq.iter_mut().for_each(|c| *c = 0.0);
+        column_n.iter_mut().for_each(|c| *c = 0);
+        for zz in z.saturating_sub(across)..(z + across + 1).min(nz) {
+            for (s, &t) in texture[zz * ns..(zz + 1) * ns].iter().enumerate() {
+                if t.is_finite() {
+                    column_sq[s] += f64::from(t * t);
+                    column_n[s] += 1;
+                }
+            }
+        }
+        let (mut sum_sq, mut n) = (0f64, 0u32);
+        for s in 0..along.min(ns) {
+            sum_sq += column_sq[s];
+            n += column_n[s];
+        }
+        for s in 0..ns {
+            if s + along < ns {
+                sum_sq += column_sq[s + along];
+                n += column_n[s + along];
+            }
+            if s > along {
+                sum_sq -= column_sq[s - along - 1];
+                n -= column_n[s - along - 1];
+            }
+            let t = texture[z * ns + s];
+            if t.is_finite() && n > 0 {
+                let rms = (sum_sq.max(0.0) / f64::from(n)).sqrt() as f32;
+                if rms > 0.0 {
+                    out[z * ns + s] = t / rms;
+                }
+            }
+        }
+    }
     out
 }

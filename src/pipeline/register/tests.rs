@@ -133,6 +133,45 @@ fn a_pair_that_would_move_a_view_beyond_the_encoders_bound_is_left_out_and_named
     assert!(all_measured.iter().all(|c| c.status == PairStatus::Measured));
 }
 
+#[test]
+fn a_band_of_stronger_contrast_is_levelled_and_the_pattern_kept() {
+    // A checkerboard texture of ±1 whose contrast triples over columns 20–29 (a band tied to the
+    // view), with a missing cell.
+    let (ns, nz) = (50, 12);
+    let mut texture: Vec<f32> = (0..ns * nz)
+        .map(|i| {
+            let (s, z) = (i % ns, i / ns);
+            let sign = if (s + z) % 2 == 0 { 1.0 } else { -1.0 };
+            sign * if (20..30).contains(&s) { 3.0 } else { 1.0 }
+        })
+        .collect();
+    texture[5 * ns + 7] = f32::NAN;
+    let out = lattice::normalise_contrast(&texture, ns, nz, 4, 2);
+    assert!(out[5 * ns + 7].is_nan());
+    for z in 0..nz {
+        for s in 0..ns {
+            let (t, o) = (texture[z * ns + s], out[z * ns + s]);
+            if t.is_nan() {
+                continue;
+            }
+            assert_eq!(t.signum(), o.signum(), "the pattern is kept at ({s}, {z})");
+            // Away from the band's edges (±4 cells), every cell reads unit contrast.
+            if !(16..34).contains(&s) || (24..26).contains(&s) {
+                assert!((o.abs() - 1.0).abs() < 0.05, "({s}, {z}): {o}");
+            }
+        }
+    }
+    // The brute force: a cell's neighbourhood RMS, read directly.
+    let (s, z) = (18, 6);
+    let window: Vec<f32> = (z - 2..=z + 2)
+        .flat_map(|zz| (s - 4..=s + 4).map(move |ss| (ss, zz)))
+        .map(|(ss, zz)| texture[zz * ns + ss])
+        .filter(|t| t.is_finite())
+        .collect();
+    let rms = (window.iter().map(|t| t * t).sum::<f32>() / window.len() as f32).sqrt();
+    assert!((out[z * ns + s] - texture[z * ns + s] / rms).abs() < 1e-5);
+}
+
 /// Brute-force NCC of a's cells (s, z) on the `step` grid against b's (s + off_s, z + off_z),
 /// both z-major with NaN for missing cells: what the masked grids must reproduce.
 fn brute_ncc(
