@@ -213,6 +213,17 @@ pub fn assess(
         } else {
             format!("; the end face placed {} of them axially on their own: {}", placed.len(), placed.join(", "))
         };
+        let implausible: Vec<String> = registration.end_face_implausible.iter().map(|&v| name(v)).collect();
+        let placed = if implausible.is_empty() {
+            placed
+        } else {
+            format!(
+                "{placed}; the end face's corner would have moved {} of them further than the encoders can err, so \
+                 it was taken as misread: {}",
+                implausible.len(),
+                implausible.join(", ")
+            )
+        };
         // With half the views or more unplaced, the surface is mostly where the encoders put it.
         let at = if 2 * names.len() >= views.len() { QualityStatus::Insufficient } else { QualityStatus::Degraded };
         flag(
@@ -365,6 +376,7 @@ mod tests {
             unregistered_views: (0..views).filter(|&v| !measured.iter().any(|c| c.a == v || c.b == v)).collect(),
             closure: None,
             placed_by_end_face: vec![],
+            end_face_implausible: vec![],
             candidates,
         }
     }
@@ -385,6 +397,14 @@ mod tests {
         let unplaced = q.reasons.iter().find(|r| r.code == QualityCode::ViewsUnregistered).unwrap();
         assert!(unplaced.message.contains("v02, v03"), "{}", unplaced.message);
         assert_eq!(q.status, QualityStatus::Insufficient);
+        // The end face placed v02; v03's corner asked for a move beyond the encoders' bound.
+        let mut anchored = weak.clone();
+        anchored.placed_by_end_face = vec![2];
+        anchored.end_face_implausible = vec![3];
+        let q = assess(&standard(), &anchored, &views(4), &covered(), &fit());
+        let unplaced = q.reasons.iter().find(|r| r.code == QualityCode::ViewsUnregistered).unwrap();
+        assert!(unplaced.message.contains("placed 1 of them axially on their own: v02"), "{}", unplaced.message);
+        assert!(unplaced.message.contains("taken as misread: v03"), "{}", unplaced.message);
     }
 
     #[test]

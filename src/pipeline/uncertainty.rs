@@ -721,6 +721,7 @@ mod tests {
             pairs_measured: 0,
             unregistered_views: vec![],
             placed_by_end_face: vec![],
+            end_face_implausible: vec![],
             closure: None,
         };
         let st = station(0.04);

@@ -144,6 +144,11 @@ pub struct Registration {
     /// end face is z = 0 by the contract) instead of keeping their encoder's axial position.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub placed_by_end_face: Vec<usize>,
+    /// Unregistered views whose own corner would have moved them axially further than the encoders
+    /// can err (the same bound as the pairs': half the axial search range): the corner is taken
+    /// as misread and the view keeps its encoder's axial position.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub end_face_implausible: Vec<usize>,
     /// The ring's closure, where the views form one ring in one axial row and every overlap
     /// around it was measured.
     #[serde(default)]
@@ -283,6 +288,7 @@ pub fn register(
         pairs,
         unregistered_views,
         placed_by_end_face: Vec::new(),
+        end_face_implausible: Vec::new(),
     }
 }
 
