@@ -55,6 +55,20 @@ async fn capabilities_state_the_envelope_the_figures_were_measured_in() {
     }
     assert_eq!(caps["coverage_factor"].as_f64(), Some(2.0));
     assert!(caps["decision_rule"].as_str().unwrap().starts_with("ISO 14253-1"), "{caps}");
+    // The classes: standard (the measured envelope) first, then fine, medium and coarse tiling
+    // the benchmarked object pixels, 0.12 mm pixels and 3° overlaps inside the coarse class.
+    let classes = caps["station_classes"].as_array().unwrap();
+    let names: Vec<&str> = classes.iter().map(|c| c["class"].as_str().unwrap()).collect();
+    assert_eq!(names, ["standard", "fine", "medium", "coarse"]);
+    assert_eq!(classes[0]["ranges"], caps["measured_envelope"]);
+    let range = |c: &Value, p: &str| (c["ranges"][p]["min"].as_f64().unwrap(), c["ranges"][p]["max"].as_f64().unwrap());
+    assert_eq!(range(&classes[1], "object_pixel").1, range(&classes[2], "object_pixel").0);
+    assert_eq!(range(&classes[2], "object_pixel").1, range(&classes[3], "object_pixel").0);
+    let (coarse_pixel, coarse_overlap) = (range(&classes[3], "object_pixel"), range(&classes[3], "overlap"));
+    assert!(coarse_pixel.0 < 0.12 && 0.12 < coarse_pixel.1 && coarse_overlap.0 <= 3.0, "{caps}");
+    assert!(classes[3]["results"].as_str().unwrap().contains("review_required"), "{caps}");
+    let refused: Vec<&str> = caps["refused"].as_array().unwrap().iter().map(|r| r["field"].as_str().unwrap()).collect();
+    assert_eq!(refused, ["optics.pixel_pitch_um", "views[i].frames"]);
     app.stop().await;
 }
 
