@@ -196,6 +196,10 @@ fn cli_inspect_writes_the_report_in_the_contract_shape() {
     assert_eq!(page.matches("src=\"data:image/png;base64,").count(), 2);
     assert!(page.contains("href=\"all-in-focus.png\"") && page.contains("href=\"height-map.png\""));
     assert!(!page.contains("src=\"http") && !page.contains("href=\"http"));
+    // The station line names its class of the declared envelope, as the report does: the ci
+    // preset's three views overlap by 1.5°, under every class's 2° (the standard's 4.6°).
+    assert_eq!(report["station"].get("class"), None, "{}", report["station"]);
+    assert!(page.contains("Station (in no class of the declared envelope):"));
 }
 
 /// `inspect --options` takes a pipeline options file (bad keys named), and `compare` reads the

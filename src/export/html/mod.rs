@@ -205,7 +205,11 @@ fn header(page: &mut String, r: &Report, inputs: &PageInputs, title: &str) {
     if let Some(st) = &r.station {
         let _ = writeln!(
             page,
-            "<p class=\"station\">Station: {} projection, object pixel {:.1} µm, depth of field {:.3} mm, frames every {:.3} mm ({:.2} DOF), {} views in {} row(s){}{}.</p>",
+            "<p class=\"station\">Station{}: {} projection, object pixel {:.1} µm, depth of field {:.3} mm, frames every {:.3} mm ({:.2} DOF), {} views in {} row(s){}{}.</p>",
+            match st.class {
+                Some(class) => format!(" (class {})", class.as_str()),
+                None => " (in no class of the declared envelope)".into(),
+            },
             wire(&st.projection),
             1e3 * st.object_pixel_mm,
             st.depth_of_field_mm,
