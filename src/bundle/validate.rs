@@ -367,8 +367,8 @@ pub(super) fn check_station(part: &Part, optics: &Optics, views: &[View]) -> Res
         return Err(out(
             "optics.pixel_pitch_um".into(),
             format!(
-                "one pixel covers {:.3} mm of the part, beyond the coarsest station class measured ({:.2} mm, \
-                 GET /v1/capabilities): nothing says how far off heights would be there",
+                "one pixel covers {:.3} mm of the part, over {MAX_OBJECT_PIXEL_MM:.2} mm: beyond the coarsest station \
+                 class measured (up to {:.2} mm, GET /v1/capabilities), nothing says how far off heights would be there",
                 station.object_pixel_mm, BENCHMARKED.object_pixel_mm.1
             ),
         ));

@@ -91,10 +91,11 @@ impl BenchArgs {
             log(format!("bench: {} (seed {})", case.name(), case.seed));
             bar.set_message(case.name());
             match eval::run_case(case, &work, repeat, &options) {
-                Ok(r) => {
-                    if let (Some(dir), Some(report)) = (&reports, &r.report) {
+                Ok(mut r) => {
+                    // Written now and let go: a suite's reports are not held until its end.
+                    if let (Some(dir), Some(report)) = (&reports, r.report.take()) {
                         std::fs::create_dir_all(dir)?;
-                        std::fs::write(dir.join(format!("{}.json", case.name())), serde_json::to_vec(report)?)?;
+                        std::fs::write(dir.join(format!("{}.json", case.name())), serde_json::to_vec(&report)?)?;
                     }
                     results.push(r)
                 }

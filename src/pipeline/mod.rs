@@ -448,7 +448,11 @@ fn register_views(
                 }
                 // At coarse stations a corner misread by a pixel or a depth of field moved views
                 // by half a millimetre (station suite, seed 101: 29 → 178 µm RMS axially).
-                (false, Some(_)) => registration.end_face_implausible.push(v),
+                // A view with a corner so misread is left as one without a corner.
+                (false, Some(_)) => {
+                    registration.end_face_implausible.push(v);
+                    pose.axial_mm -= end_face.as_ref().map_or(0.0, |e| e.z_offset_mm);
+                }
                 _ => pose.axial_mm -= end_face.as_ref().map_or(0.0, |e| e.z_offset_mm),
             }
         }

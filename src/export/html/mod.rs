@@ -206,7 +206,8 @@ fn header(page: &mut String, r: &Report, inputs: &PageInputs, title: &str) {
         let _ = writeln!(
             page,
             "<p class=\"station\">Station{}: {} projection, object pixel {:.1} µm, depth of field {:.3} mm, frames every {:.3} mm ({:.2} DOF), {} views in {} row(s){}{}.</p>",
-            match st.class {
+            // Reports stored before classes were have none: their station is classed again.
+            match st.class.or_else(|| st.clone().with_frame_noise(st.frame_noise_percent).class) {
                 Some(class) => format!(" (class {})", class.as_str()),
                 None => " (in no class of the declared envelope)".into(),
             },

@@ -225,8 +225,9 @@ const CONTRAST_ACROSS: usize = 2;
 /// image's sharpness varies in bands where the cylinder's depth falls between two frames).
 /// Dividing by the local contrast keeps the texture's pattern and takes such a modulation out:
 /// tuning station 12 registered 0.31° RMS off instead of 0.75° (encoders 0.50°), station 1's five
-/// wrong pairs were refused (0.69° → its encoders' 0.30°), the stations whose pairs were right kept
-/// them (docs/notebook/accuracy.md, Stations: wrong peaks, misread corners, a U on every height).
+/// wrong pairs were refused (0.69° → its encoders' 0.30°); of the stations whose pairs were right,
+/// three of the suite's lost one pair each, the rest kept theirs (docs/notebook/accuracy.md,
+/// Stations: wrong peaks, misread corners, a U on every height).
 pub(super) fn normalise_contrast(texture: &[f32], ns: usize, nz: usize, along: usize, across: usize) -> Vec<f32> {
     let mut out = vec![f32::NAN; texture.len()];
     // Per column, the sum of squares and the count over the ±`across` rows; then a window slides

@@ -305,8 +305,9 @@ pub(super) struct Kernels {
 ///
 /// The search assumes each encoder errs by at most half its relative range: a solve that moves a
 /// view further rests on a wrong alignment (at random stations, peaks of 0.5–0.7 NCC at wrong
-/// alignments moved views by up to 3° against encoders off by 0.5° RMS). Each such view gives up
-/// its pair that asks the largest move (status `implausible`), and the pairs left are solved again.
+/// alignments moved views by up to 3° against encoders off by 0.5° RMS). Of the pairs of views
+/// beyond the bound, the one that asks the largest move is dropped (status `implausible`) and the
+/// pairs left are solved again, until no view is beyond it.
 pub(super) fn solve_within_encoder_bounds(
     n: usize,
     pairs: &mut Vec<PairMeasure>,
@@ -322,21 +323,23 @@ pub(super) fn solve_within_encoder_bounds(
     loop {
         let angle = axis(pairs, &|p| p.shift_angle_deg, kernels.angle_deg);
         let axial = axis(pairs, &|p| p.shift_axial_mm, kernels.axial_mm);
-        let mut dropped: Vec<(usize, usize)> = (0..n)
-            .filter(|&v| angle[v].abs() > bound_angle_deg || axial[v].abs() > bound_axial_mm)
-            .filter_map(|v| {
-                pairs.iter().filter(|p| p.a == v || p.b == v).max_by(|x, y| asks(x).total_cmp(&asks(y))).map(|p| (p.a, p.b))
-            })
-            .collect();
-        if dropped.is_empty() {
+        let beyond = |v: usize| angle[v].abs() > bound_angle_deg || axial[v].abs() > bound_axial_mm;
+        // One pair a pass: a view can be beyond the bound only because a wrong pair elsewhere in
+        // its component moved the component's mean, so dropping each such view's own largest
+        // pair at once would drop good ones (a chain with a wrong pair in its middle puts every
+        // view beyond); the largest ask among the pairs of views beyond it is the wrong one.
+        let Some(dropped) = pairs
+            .iter()
+            .filter(|p| beyond(p.a) || beyond(p.b))
+            .max_by(|x, y| asks(x).total_cmp(&asks(y)))
+            .map(|p| (p.a, p.b))
+        else {
             return (axis(pairs, &|p| p.shift_radius_mm, kernels.radius_mm), angle, axial);
-        }
-        dropped.sort_unstable();
-        dropped.dedup();
-        for c in candidates.iter_mut().filter(|c| dropped.contains(&(c.a, c.b))) {
+        };
+        for c in candidates.iter_mut().filter(|c| (c.a, c.b) == dropped) {
             c.status = PairStatus::Implausible;
         }
-        pairs.retain(|p| !dropped.contains(&(p.a, p.b)));
+        pairs.retain(|p| (p.a, p.b) != dropped);
     }
 }
 

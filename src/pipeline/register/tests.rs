@@ -124,6 +124,18 @@ fn a_pair_that_would_move_a_view_beyond_the_encoders_bound_is_left_out_and_named
     for v in 0..5 {
         assert!((angle[v] - (truth[v] - mean)).abs() < 1e-6, "{angle:?}");
     }
+    // A chain whose wrong pair is in its middle: the zero mean puts every view beyond the bound
+    // (−1.5° and +1.5°), yet only the wrong pair goes.
+    let truth = [0.0; 6];
+    let mut middle: Vec<PairMeasure> = (0..5).map(|a| pair(a, a + 1, if a == 2 { 3.0 } else { truth[a] })).collect();
+    let mut statuses: Vec<PairCandidate> = candidates.clone();
+    statuses.iter_mut().for_each(|c| c.status = PairStatus::Measured);
+    let (_, angle, _) = solve_within_encoder_bounds(6, &mut middle, &mut statuses, kernels, (1.25, 0.4));
+    assert_eq!(middle.len(), 4);
+    assert!(!middle.iter().any(|p| (p.a, p.b) == (2, 3)));
+    assert_eq!(statuses.iter().filter(|c| c.status == PairStatus::Implausible).count(), 1);
+    assert!(angle.iter().all(|a| a.abs() < 1e-9), "{angle:?}");
+    let truth = [0.3, -0.1, 0.2, -0.4, 0.0, 0.1];
     // Pairs that keep every view within the bound are all kept.
     let mut fine: Vec<PairMeasure> = (0..5).map(|a| pair(a, a + 1, truth[a + 1] - truth[a])).collect();
     let mut all_measured = candidates.clone();
