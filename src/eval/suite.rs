@@ -284,7 +284,7 @@ pub fn run_case(
         .collect::<Result<Vec<_>, _>>()?;
     let encoder: Vec<_> = bundle.views.iter().map(|v| v.pose).collect();
     let table1 = if case.preset == "seed-table1" { table1_rows(&inspection.report, &truth) } else { Vec::new() };
-    Ok(CaseResult {
+    let mut result = CaseResult {
         black_crests: black_crests(&inspection.report, &truth),
         preset: case.preset.into(),
         seed: case.seed,
@@ -321,11 +321,14 @@ pub fn run_case(
             let (pitch, dz) = (inspection.report.helix.pitch_mm, inspection.report.helix.z_h_mm - truth.helix_z_h_mm);
             1e3 * (dz - pitch * (dz / pitch).round())
         },
-        report: Some(Box::new(inspection.report.clone())),
+        report: None,
         encoder_mean_axial_offset_um: 1e3
             * encoder.iter().zip(&truth_poses).map(|(e, t)| e.axial_mm - t.axial_mm).sum::<f64>()
             / encoder.len().max(1) as f64,
-    })
+    };
+    // Moved, not copied: most runs never write it.
+    result.report = Some(Box::new(timed.inspection.report));
+    Ok(result)
 }
 
 /// Renders the case into `dir` unless a finished rendering is there: it leaves its summary

@@ -437,24 +437,23 @@ fn register_views(
         let corners = register::corners(optics, &poses, &edges, format.width, format.height);
         let ring: Vec<bool> = (0..poses.len()).map(|v| !registration.unregistered_views.contains(&v)).collect();
         end_face = register::anchor(&corners, &ring, 3, 20.0);
+        let (_, axial_bound_mm) = register_options.encoder_bounds();
         for (v, pose) in poses.iter_mut().enumerate() {
-            match (ring[v], corners[v]) {
-                // A view no overlap placed keeps its encoder's axial error (up to the fixture's
-                // bound); where it sees the end face, its own corner places it instead: the end
-                // face is z = 0 by the contract.
-                (false, Some((own_z, _))) if own_z.abs() <= 0.5 * register_options.max_axial_mm => {
+            // A view no overlap placed keeps its encoder's axial error (up to the fixture's
+            // bound); where it sees the end face, its own corner places it instead: the end face
+            // is z = 0 by the contract.
+            if let (false, Some((own_z, _))) = (ring[v], corners[v]) {
+                if own_z.abs() <= axial_bound_mm {
                     pose.axial_mm -= own_z;
                     registration.placed_by_end_face.push(v);
+                    continue;
                 }
                 // At coarse stations a corner misread by a pixel or a depth of field moved views
-                // by half a millimetre (station suite, seed 101: 29 → 178 µm RMS axially).
-                // A view with a corner so misread is left as one without a corner.
-                (false, Some(_)) => {
-                    registration.end_face_implausible.push(v);
-                    pose.axial_mm -= end_face.as_ref().map_or(0.0, |e| e.z_offset_mm);
-                }
-                _ => pose.axial_mm -= end_face.as_ref().map_or(0.0, |e| e.z_offset_mm),
+                // by half a millimetre (station suite, seed 101: 29 → 178 µm RMS axially): a view
+                // with a corner so misread is left as one without a corner.
+                registration.end_face_implausible.push(v);
             }
+            pose.axial_mm -= end_face.as_ref().map_or(0.0, |e| e.z_offset_mm);
         }
     }
     run.lap(Stage::Register);

@@ -207,23 +207,25 @@ pub fn assess(
         );
     } else if views.len() > 1 && !registration.unregistered_views.is_empty() {
         let names: Vec<String> = registration.unregistered_views.iter().map(|&v| name(v)).collect();
-        let placed: Vec<String> = registration.placed_by_end_face.iter().map(|&v| name(v)).collect();
-        let placed = if placed.is_empty() {
-            String::new()
-        } else {
-            format!("; the end face placed {} of them axially on their own: {}", placed.len(), placed.join(", "))
-        };
-        let implausible: Vec<String> = registration.end_face_implausible.iter().map(|&v| name(v)).collect();
-        let placed = if implausible.is_empty() {
-            placed
-        } else {
-            format!(
-                "{placed}; the end face's corner would have moved {} of them further than the encoders can err, so \
-                 it was taken as misread: {}",
-                implausible.len(),
-                implausible.join(", ")
-            )
-        };
+        let names_of = |views_of: &[usize]| views_of.iter().map(|&v| name(v)).collect::<Vec<String>>();
+        let mut placed = String::new();
+        let by_corner = names_of(&registration.placed_by_end_face);
+        if !by_corner.is_empty() {
+            placed += &format!(
+                "; the end face placed {} of them axially on their own: {}",
+                by_corner.len(),
+                by_corner.join(", ")
+            );
+        }
+        let misread = names_of(&registration.end_face_implausible);
+        if !misread.is_empty() {
+            placed += &format!(
+                "; the end face's corner would have moved {} of them further than the encoders can err, so it was \
+                 taken as misread: {}",
+                misread.len(),
+                misread.join(", ")
+            );
+        }
         // With half the views or more unplaced, the surface is mostly where the encoders put it.
         let at = if 2 * names.len() >= views.len() { QualityStatus::Insufficient } else { QualityStatus::Degraded };
         flag(
@@ -423,7 +425,8 @@ mod tests {
     fn a_station_outside_the_measured_envelope_is_named_and_needs_review() {
         use PairStatus::*;
         let all = registration(&[(0, 1, Measured), (1, 2, Measured), (2, 3, Measured)], 4);
-        let coarse = Station { object_pixel_mm: 0.12, depth_of_field_mm: 0.48, ..standard() }.with_frame_noise(Some(0.84));
+        let coarse =
+            Station { object_pixel_mm: 0.12, depth_of_field_mm: 0.48, ..standard() }.with_frame_noise(Some(0.84));
         let q = assess(&coarse, &all, &views(4), &covered(), &fit());
         assert_eq!(q.status, QualityStatus::Degraded);
         assert_eq!(q.reasons.len(), 1);

@@ -188,6 +188,14 @@ fn default_max_rival_ratio() -> f64 {
     0.7
 }
 
+impl RegisterOptions {
+    /// How far one view's encoder may err (angle °, axial mm), as the search assumes: half its
+    /// relative range between two views. A correction beyond it rests on a misreading.
+    pub fn encoder_bounds(&self) -> (f64, f64) {
+        (0.5 * self.max_angle_deg, 0.5 * self.max_axial_mm)
+    }
+}
+
 impl Default for RegisterOptions {
     fn default() -> Self {
         Self {
@@ -240,13 +248,10 @@ pub fn register(
         .collect();
     let mut pairs: Vec<PairMeasure> = measured.into_iter().flatten().collect();
     let n = poses.len();
-    let axis = |pairs: &[PairMeasure], f: &dyn Fn(&PairMeasure) -> f64, huber: f64| {
-        solve_axis(n, &pairs.iter().map(|p| (p.a, p.b, f(p))).collect::<Vec<_>>(), huber)
-    };
     let huber_radius_mm = HUBER_RADIUS_CELLS * lattice.cell_z_mm;
     let huber_angle_deg = (HUBER_ARC_CELLS * lattice.cell_arc_mm / lattice.radius_ref_mm).to_degrees();
     let huber_axial_mm = HUBER_AXIAL_CELLS * lattice.cell_z_mm;
-    let radial = axis(&pairs, &|p| p.shift_radius_mm, huber_radius_mm);
+    let radial = solve_pairs_axis(n, &pairs, &|p| p.shift_radius_mm, huber_radius_mm);
     // A lens-radius error moves all of a view's points along its optical axis, which is radial
     // only at the view's centre: a point φ off it moves δ·sin φ along the arc. In an overlap, half
     // the views' spacing to either side of their centres, that adds (δ_a + δ_b)·sin(spacing/2)
@@ -261,7 +266,7 @@ pub fn register(
         &mut pairs,
         &mut candidates,
         Kernels { radius_mm: huber_radius_mm, angle_deg: huber_angle_deg, axial_mm: huber_axial_mm },
-        (0.5 * options.max_angle_deg, 0.5 * options.max_axial_mm),
+        options.encoder_bounds(),
     );
     for p in pairs.iter_mut() {
         p.residual_angle_deg = angle[p.b] - angle[p.a] - p.shift_angle_deg;
@@ -292,6 +297,11 @@ pub fn register(
     }
 }
 
+/// One axis of the pose graph over the measured pairs: `f` reads a pair's shift on that axis.
+fn solve_pairs_axis(n: usize, pairs: &[PairMeasure], f: &dyn Fn(&PairMeasure) -> f64, huber: f64) -> Vec<f64> {
+    solve_axis(n, &pairs.iter().map(|p| (p.a, p.b, f(p))).collect::<Vec<_>>(), huber)
+}
+
 /// The robust kernel's bounds of the three axes' solves.
 #[derive(Clone, Copy)]
 pub(super) struct Kernels {
@@ -315,14 +325,11 @@ pub(super) fn solve_within_encoder_bounds(
     kernels: Kernels,
     (bound_angle_deg, bound_axial_mm): (f64, f64),
 ) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
-    let axis = |pairs: &[PairMeasure], f: &dyn Fn(&PairMeasure) -> f64, huber: f64| {
-        solve_axis(n, &pairs.iter().map(|p| (p.a, p.b, f(p))).collect::<Vec<_>>(), huber)
-    };
     let asks =
         |p: &PairMeasure| (p.shift_angle_deg / bound_angle_deg).abs().max((p.shift_axial_mm / bound_axial_mm).abs());
     loop {
-        let angle = axis(pairs, &|p| p.shift_angle_deg, kernels.angle_deg);
-        let axial = axis(pairs, &|p| p.shift_axial_mm, kernels.axial_mm);
+        let angle = solve_pairs_axis(n, pairs, &|p| p.shift_angle_deg, kernels.angle_deg);
+        let axial = solve_pairs_axis(n, pairs, &|p| p.shift_axial_mm, kernels.axial_mm);
         let beyond = |v: usize| angle[v].abs() > bound_angle_deg || axial[v].abs() > bound_axial_mm;
         // One pair a pass: a view can be beyond the bound only because a wrong pair elsewhere in
         // its component moved the component's mean, so dropping each such view's own largest
@@ -334,7 +341,7 @@ pub(super) fn solve_within_encoder_bounds(
             .max_by(|x, y| asks(x).total_cmp(&asks(y)))
             .map(|p| (p.a, p.b))
         else {
-            return (axis(pairs, &|p| p.shift_radius_mm, kernels.radius_mm), angle, axial);
+            return (solve_pairs_axis(n, pairs, &|p| p.shift_radius_mm, kernels.radius_mm), angle, axial);
         };
         for c in candidates.iter_mut().filter(|c| (c.a, c.b) == dropped) {
             c.status = PairStatus::Implausible;
