@@ -168,8 +168,14 @@ impl Store {
         .bind(&new.request_sha256)
         .execute(&mut *tx)
         .await?;
+        // Read inside the transaction: after the commit a worker may already have claimed it, and
+        // the answer to the submission is the inspection as created (queued).
+        let row = sqlx::query_as::<_, InspectionRow>(&format!("{SELECT_INSPECTION} WHERE i.id = ?"))
+            .bind(&new.id)
+            .fetch_one(&mut *tx)
+            .await?;
         tx.commit().await?;
-        Ok(Inserted::Created(self.inspection(&new.id).await?))
+        Ok(Inserted::Created(row))
     }
 
     pub async fn list(&self, filter: &ListFilter) -> Result<Vec<InspectionRow>, StoreError> {
