@@ -206,7 +206,7 @@ pub fn station_class(object_pixel_mm: f64) -> &'static str {
 /// summary per station class.
 pub fn station_table(results: &[CaseResult], refused: &[(String, String)]) -> String {
     let mut out = String::from(
-        "| case | class | pixel mm | DOF mm | step DOF | views (rows) | arc | height RMS / max µm | bins seen | pairs | reg ° / µm | black-crest err mm | verdict (truth) | decision | U coverage | quality |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+        "| case | class | pixel mm | DOF mm | step DOF | views (rows) | arc | height RMS / max µm | bins seen | pairs | reg ° / µm | black-crest err mm | verdict (truth) | decision | U coverage (p95 \\|e\\|/U) | quality |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for r in results {
         let Some(s) = &r.station else { continue };
@@ -234,7 +234,11 @@ pub fn station_table(results: &[CaseResult], refused: &[(String, String)]) -> St
             r.truth_verdict.as_str(),
             a.decision.map_or("-", |d| d.as_str()),
             if a.decision_wrong { " WRONG" } else { "" },
-            a.uncertainty_coverage.map_or("-".into(), |c| format!("{:.1}%", 100.0 * c)),
+            match (a.uncertainty_coverage, a.uncertainty_ratio_p95) {
+                (Some(c), Some(q)) => format!("{:.1}% ({q:.2})", 100.0 * c),
+                (Some(c), None) => format!("{:.1}%", 100.0 * c),
+                _ => "-".into(),
+            },
             r.quality,
         ));
     }
@@ -242,7 +246,7 @@ pub fn station_table(results: &[CaseResult], refused: &[(String, String)]) -> St
         out.push_str(&format!("| {case} | refused: {why} |\n"));
     }
     out.push_str(
-        "\n| class | cases | height RMS median / worst µm | height max worst µm | verdicts wrong | decisions wrong | indeterminate | U coverage min / median | pairs measured |\n|---|---|---|---|---|---|---|---|---|\n",
+        "\n| class | cases | height RMS median / worst µm | height max worst µm | verdicts wrong | decisions wrong | indeterminate | U coverage min / median | U coverage within 90–99% / over / under | p95 \\|e\\|/U min / max | pairs measured |\n|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for class in ["fine", "medium", "coarse"] {
         let rows: Vec<&CaseResult> = results
@@ -260,8 +264,14 @@ pub fn station_table(results: &[CaseResult], refused: &[(String, String)]) -> St
         let cov_min = cov.iter().copied().fold(1.0, f64::min);
         let cov_median = crate::numeric::stats::median(&mut cov).unwrap_or(f64::NAN);
         let (measured, expected) = rows.iter().fold((0, 0), |(m, e), r| (m + r.pairs_measured, e + r.pairs_expected));
+        let within = cov.iter().filter(|c| (0.90..=0.99).contains(*c)).count();
+        let over = cov.iter().filter(|c| **c > 0.99).count();
+        let under = cov.iter().filter(|c| **c < 0.90).count();
+        let ratios: Vec<f64> = rows.iter().filter_map(|r| r.accuracy.uncertainty_ratio_p95).collect();
+        let ratio_min = ratios.iter().copied().fold(f64::INFINITY, f64::min);
+        let ratio_max = ratios.iter().copied().fold(0.0, f64::max);
         out.push_str(&format!(
-            "| {class} | {} | {:.1} / {:.1} | {:.1} | {} | {} | {} | {:.1}% / {:.1}% | {}/{} ({:.0}%) |\n",
+            "| {class} | {} | {:.1} / {:.1} | {:.1} | {} | {} | {} | {:.1}% / {:.1}% | {within} / {over} / {under} | {ratio_min:.2} / {ratio_max:.2} | {}/{} ({:.0}%) |\n",
             rows.len(),
             median_rms,
             worst_rms,

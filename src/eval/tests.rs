@@ -41,6 +41,7 @@ fn result(preset: &str, height_max_um: f64, inspect_over_decode: f64) -> CaseRes
             verdict_agrees: true,
             worst: Vec::new(),
             uncertainty_coverage: None,
+            uncertainty_ratio_p95: None,
             coverage_by_method_px: Vec::new(),
             decision: None,
             decision_wrong: false,

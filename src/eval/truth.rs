@@ -26,6 +26,11 @@ pub struct Accuracy {
     /// The share of compared bins whose |error| is within the reported expanded uncertainty
     /// (None without uncertainties).
     pub uncertainty_coverage: Option<f64>,
+    /// The 95th percentile over the compared bins of |error| / U: the factor the expanded
+    /// uncertainty would need to cover 95% of them (1: as it should; under 0.5, U is over twice
+    /// what that needs, padded; over 1, too small). None without uncertainties.
+    #[serde(default)]
+    pub uncertainty_ratio_p95: Option<f64>,
     /// The same share had the method's standard uncertainty been each of these multiples of the
     /// object pixel (the rest of the budget as reported): how `uncertainty.method_px` is chosen.
     pub coverage_by_method_px: Vec<(f64, f64)>,
@@ -84,6 +89,7 @@ pub fn compare(report: &Report, truth: &Truth) -> Accuracy {
         worst: errors.iter().take(5).map(|e| (e.1, e.2, e.3, e.4)).collect(),
         uncertainty_coverage: (!against_u.is_empty())
             .then(|| against_u.iter().filter(|(e, u)| e <= u).count() as f64 / against_u.len() as f64),
+        uncertainty_ratio_p95: ratio_p95(&against_u),
         coverage_by_method_px: coverage_by_method_px(report, &against_u),
         decision: Some(report.decision),
         decision_wrong: {
@@ -96,6 +102,17 @@ pub fn compare(report: &Report, truth: &Truth) -> Accuracy {
         },
         review_required: report.review_required,
     }
+}
+
+/// The 95th percentile of |error| / U (nearest rank), None without a bin.
+fn ratio_p95(against_u: &[(f64, f64)]) -> Option<f64> {
+    let mut ratios: Vec<f64> = against_u.iter().map(|(e, u)| if *u > 0.0 { e / u } else { f64::INFINITY }).collect();
+    if ratios.is_empty() {
+        return None;
+    }
+    ratios.sort_by(f64::total_cmp);
+    let rank = ((0.95 * ratios.len() as f64).ceil() as usize).clamp(1, ratios.len());
+    Some(ratios[rank - 1])
 }
 
 /// The coverage of the expanded uncertainty had the method's term been each candidate: each

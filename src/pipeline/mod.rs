@@ -239,6 +239,8 @@ fn run_stages(
             nominal_height_mm: part.form.height_mm,
             registration: &registered.registration,
             end_face: registered.end_face.as_ref(),
+            crests: &rule_input.threads,
+            height_window_half_bins: options.profile.height_window_half_bins,
         },
         crest.cone.as_ref().map(|c| c.scatter_um),
         &quality,

@@ -15,7 +15,9 @@
 //!   mixes where views overlap;
 //! - where the measurement failed its checks or its station lies outside the measured envelope
 //!   ([`measurement_failed`]), so that the method's term is unknown: the heights' dispersion along
-//!   the helix and their median's distance from nominal, both read off the measurement itself.
+//!   the helix and each thread's median's distance from nominal, both read off the measurement
+//!   itself, over the crests the crest stage found machined (a black crest's lower height is the
+//!   part's, not an error of the method).
 //!
 //! The decision asks whether the verdict survives every measured value moved by its
 //! uncertainty: the black-crest rules are applied again at both bounds. At the bound toward
@@ -70,14 +72,23 @@ pub struct UncertaintyBudget {
     pub noise_median_um: Option<f64>,
     /// Where the measurement failed its checks ([`measurement_failed`]) and the method's Type B
     /// term is unknown, two standard uncertainties every height carries besides the others, µm
-    /// (0 otherwise): the heights' RMS departure from their thread's median along the helix
-    /// (Type A), and the departure of all heights' median from the nominal height (Type B: a bias
-    /// common to the whole part, which no scatter shows; it includes the part's own departure,
-    /// which makes it cautious).
+    /// (0 otherwise), both over the crests the crest stage found machined (heights within the
+    /// profile's height window of a black crest left out): the heights' RMS departure from their
+    /// thread's median along the helix (Type A), and the departure of the heights' median from
+    /// the nominal height (Type B: a bound on a bias common to a thread, which no scatter shows,
+    /// taken as a rectangular distribution, so that its standard uncertainty is the distance over
+    /// √3; it includes the part's own departure, which makes it cautious). `from_nominal_um` is
+    /// the part's distance, which a thread with fewer than 5 such heights carries;
+    /// `from_nominal_by_thread` each other thread's own.
     #[serde(default)]
     pub along_helix_um: f64,
     #[serde(default)]
     pub from_nominal_um: f64,
+    #[serde(default)]
+    pub from_nominal_by_thread: Vec<ThreadTerm>,
+    /// Heights left out of those two terms as on or beside a black crest.
+    #[serde(default)]
+    pub black_crest_bins_left_out: usize,
     /// Bins along the helix that share a focus window: noise is correlated over this many.
     pub noise_correlation_bins: f64,
     /// The median expanded uncertainty of a bin's height, µm.
@@ -87,6 +98,13 @@ pub struct UncertaintyBudget {
     pub crest_deficit_um: f64,
     pub arc_end_deg: f64,
     pub z_mm: f64,
+}
+
+/// One thread's value of a term of the budget, µm.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct ThreadTerm {
+    pub thread: u32,
+    pub um: f64,
 }
 
 /// Where the uncertainty stage reads its scales: the station, the depth window and the part.
@@ -99,6 +117,11 @@ pub struct Scales<'a> {
     pub nominal_height_mm: f64,
     pub registration: &'a Registration,
     pub end_face: Option<&'a EndFace>,
+    /// The crest stage's findings per thread, bin for bin with the heights: which crests are black.
+    pub crests: &'a [ThreadObservation],
+    /// Half width, in bins, of the profile's trimmed mean along the helix: a black crest lowers
+    /// the reported heights this far beyond its own bins.
+    pub height_window_half_bins: usize,
 }
 
 /// Whether the measurement cannot vouch for its own uncertainty: the quality checks say it failed
@@ -142,15 +165,17 @@ pub fn heights(
     // constant along the helix to within its tolerance, so the heights' departure from their
     // thread's median measures those errors (with the true variation, which makes it cautious).
     let failed = measurement_failed(quality, scales.station);
-    let along_mm = if failed { along_helix_rms(threads) } else { 0.0 };
-    // The same heights can all be off together (the focus window or a depth-of-field comparable
-    // to the thread's height compressing every profile: at one random station, 0.35 mm of a
-    // 1.0 mm thread): the median height's distance from nominal bounds that.
-    let from_nominal_mm = if failed {
-        let mut all: Vec<f64> = threads.iter().flat_map(|t| t.bins.iter().filter_map(|b| b.height_mm)).collect();
-        median(&mut all).map_or(0.0, |m| (m - scales.nominal_height_mm).abs())
+    let machined = machined_heights(threads, scales.crests, scales.height_window_half_bins);
+    let left_out = machined.iter().flatten().filter(|m| !**m).count();
+    let along_mm = if failed { along_helix_rms(threads, &machined) } else { 0.0 };
+    // A thread's heights can all be off together (the focus window or a depth of field comparable
+    // to the thread's height compressing its profiles: at one random station, 0.35 mm of a 1.0 mm
+    // thread; the run-out threads' shallow profiles read 0.2 mm high at others): its median's
+    // distance from nominal bounds that. A thread with too few heights of its own takes the part's.
+    let (part_from_nominal_mm, thread_from_nominal_mm) = if failed {
+        from_nominal(threads, &machined, scales.nominal_height_mm)
     } else {
-        0.0
+        (0.0, vec![None; threads.len()])
     };
     // RMS over the measured pairs of one of their residuals (0 without pairs).
     let pairs = &scales.registration.pairs;
@@ -166,13 +191,16 @@ pub fn heights(
     // A bin's noise `s`, correlated over `correlation` bins, in a mean of `m` bins: neighbour
     // differences see 1/L of the variance, and the mean averages m/L independent ones (at most m).
     let noise_of = |s: f64, m: f64| s * (correlation * (correlation / m).min(1.0)).sqrt();
-    let expanded_of = |noise_mm: f64| {
+    // The distance from nominal bounds a bias of unknown sign and size within it: a rectangular
+    // distribution over ± the distance, whose standard uncertainty is the distance over √3 (GUM
+    // 4.3.7).
+    let expanded_of = |noise_mm: f64, from_nominal_mm: f64| {
         k * (noise_mm.powi(2)
             + method_mm.powi(2)
             + registration_mm.powi(2)
             + along_mm.powi(2)
-            + from_nominal_mm.powi(2))
-        .sqrt()
+            + from_nominal_mm.powi(2) / 3.0)
+            .sqrt()
     };
     let raw: Vec<Option<f64>> = threads.iter().flat_map(|t| t.bins.iter().map(|b| b.raw_height_mm)).collect();
     let noise = local_noise(&raw, options.noise_half_bins, 10);
@@ -183,7 +211,8 @@ pub fn heights(
     let mut expanded = Vec::new();
     let mut means = Vec::with_capacity(threads.len());
     let mut i = 0;
-    for t in threads.iter_mut() {
+    for (t, own_from_nominal) in threads.iter_mut().zip(&thread_from_nominal_mm) {
+        let from_nominal_mm = own_from_nominal.unwrap_or(part_from_nominal_mm);
         let mut thread_noise = Vec::new();
         for b in &mut t.bins {
             let s = noise[i].or(part_noise);
@@ -191,7 +220,7 @@ pub fn heights(
             b.uncertainty_mm = match (b.height_mm, s) {
                 (Some(_), Some(s)) => {
                     thread_noise.push(s);
-                    let u = expanded_of(noise_of(s, b.kept_bins.max(1) as f64));
+                    let u = expanded_of(noise_of(s, b.kept_bins.max(1) as f64), from_nominal_mm);
                     expanded.push(u);
                     Some(u)
                 }
@@ -199,7 +228,7 @@ pub fn heights(
             };
         }
         let n = t.bins.iter().filter(|b| b.height_mm.is_some()).count() as f64;
-        let mean_u = median(&mut thread_noise).map(|s| expanded_of(noise_of(s, n)));
+        let mean_u = median(&mut thread_noise).map(|s| expanded_of(noise_of(s, n), from_nominal_mm));
         means.push((t.index, mean_u));
     }
     let z_mm = match scales.end_face {
@@ -220,7 +249,13 @@ pub fn heights(
         registration_um: 1e3 * registration_mm,
         noise_median_um: part_noise.map(|s| 1e3 * s),
         along_helix_um: 1e3 * along_mm,
-        from_nominal_um: 1e3 * from_nominal_mm,
+        from_nominal_um: 1e3 * part_from_nominal_mm,
+        from_nominal_by_thread: threads
+            .iter()
+            .zip(&thread_from_nominal_mm)
+            .filter_map(|(t, v)| v.map(|mm| ThreadTerm { thread: t.index, um: 1e3 * mm }))
+            .collect(),
+        black_crest_bins_left_out: if failed { left_out } else { 0 },
         noise_correlation_bins: correlation,
         expanded_median_um: median(&mut expanded).map(|u| 1e3 * u),
         crest_deficit_um: k * crest_scatter_um.unwrap_or(0.0),
@@ -251,14 +286,49 @@ fn sparse_noise(raw: &[Option<f64>], depth_of_field_mm: f64) -> Option<f64> {
     }
 }
 
-/// RMS over the measured bins of each height's departure from its thread's median (threads with
-/// fewer than 5 measured bins left out), mm; 0 without such a thread. A thread's mean carries it
-/// whole: the errors it measures are shared by the bins one view saw, so they do not average out
-/// along the helix.
-fn along_helix_rms(threads: &[ThreadMeasure]) -> f64 {
+/// Per thread, per bin: whether the bin's height reads a machined crest, i.e. lies more than
+/// `reach_bins` along the helix from every crest the crest stage found black (on the mill surface,
+/// or in a photometric black arc). A thread the crest stage did not see counts as machined.
+fn machined_heights(threads: &[ThreadMeasure], crests: &[ThreadObservation], reach_bins: usize) -> Vec<Vec<bool>> {
+    threads
+        .iter()
+        .map(|t| {
+            let n = t.bins.len();
+            let Some(obs) = crests.iter().find(|o| o.index == t.index) else { return vec![true; n] };
+            let black: Vec<bool> = t
+                .bins
+                .iter()
+                .enumerate()
+                .map(|(k, b)| {
+                    obs.bins.get(k).is_some_and(|c| c.on_mill_surface)
+                        || obs.black_crest_arcs_deg.iter().any(|a| a[0] < b.angle_deg + 0.5 && a[1] > b.angle_deg - 0.5)
+                })
+                .collect();
+            // A black bin's low height reaches `reach_bins` further through the trimmed mean.
+            let mut machined = vec![true; n];
+            for (k, _) in black.iter().enumerate().filter(|(_, b)| **b) {
+                for m in &mut machined[k.saturating_sub(reach_bins)..(k + reach_bins + 1).min(n)] {
+                    *m = false;
+                }
+            }
+            machined
+        })
+        .collect()
+}
+
+/// Each thread's measured heights on machined crests (`machined`, bin for bin).
+fn machined_of<'a>(t: &'a ThreadMeasure, machined: &'a [bool]) -> impl Iterator<Item = f64> + 'a {
+    t.bins.iter().zip(machined).filter(|(_, m)| **m).filter_map(|(b, _)| b.height_mm)
+}
+
+/// RMS over the measured machined bins of each height's departure from its thread's median
+/// (threads with fewer than 5 such bins left out), mm; 0 without such a thread. A thread's mean
+/// carries it whole: the errors it measures are shared by the bins one view saw, so they do not
+/// average out along the helix.
+fn along_helix_rms(threads: &[ThreadMeasure], machined: &[Vec<bool>]) -> f64 {
     let (mut sum_sq, mut n) = (0.0, 0usize);
-    for t in threads {
-        let mut heights: Vec<f64> = t.bins.iter().filter_map(|b| b.height_mm).collect();
+    for (t, m) in threads.iter().zip(machined) {
+        let mut heights: Vec<f64> = machined_of(t, m).collect();
         if heights.len() < 5 {
             continue;
         }
@@ -267,6 +337,25 @@ fn along_helix_rms(threads: &[ThreadMeasure]) -> f64 {
         n += heights.len();
     }
     if n == 0 { 0.0 } else { (sum_sq / n as f64).sqrt() }
+}
+
+/// The machined heights' median's distance from nominal: the part's (over every thread; over
+/// every height where no crest is machined), and each thread's own where it has 5 or more, mm.
+fn from_nominal(threads: &[ThreadMeasure], machined: &[Vec<bool>], nominal_mm: f64) -> (f64, Vec<Option<f64>>) {
+    let mut all: Vec<f64> = threads.iter().zip(machined).flat_map(|(t, m)| machined_of(t, m)).collect();
+    if all.is_empty() {
+        all = threads.iter().flat_map(|t| t.bins.iter().filter_map(|b| b.height_mm)).collect();
+    }
+    let part = median(&mut all).map_or(0.0, |m| (m - nominal_mm).abs());
+    let own = threads
+        .iter()
+        .zip(machined)
+        .map(|(t, m)| {
+            let mut heights: Vec<f64> = machined_of(t, m).collect();
+            if heights.len() < 5 { None } else { median(&mut heights).map(|m| (m - nominal_mm).abs()) }
+        })
+        .collect();
+    (part, own)
 }
 
 /// The decision per ISO 14253-1 on the black-crest rules.
@@ -586,6 +675,8 @@ mod tests {
             noise_median_um: Some(3.0),
             along_helix_um: 0.0,
             from_nominal_um: 0.0,
+            from_nominal_by_thread: vec![],
+            black_crest_bins_left_out: 0,
             noise_correlation_bins: 1.0,
             expanded_median_um: Some(8.0),
             crest_deficit_um: 10.0,
@@ -711,6 +802,91 @@ mod tests {
             .collect()
     }
 
+    /// A failed measurement's dispersion terms read machined crests only, and each thread its own
+    /// distance from nominal.
+    #[test]
+    fn black_crests_stay_out_of_the_dispersion_and_each_thread_has_its_own_bias() {
+        let registration = Registration {
+            corrections: vec![],
+            pairs: vec![],
+            candidates: vec![],
+            pairs_expected: 0,
+            pairs_measured: 0,
+            unregistered_views: vec![],
+            placed_by_end_face: vec![],
+            end_face_implausible: vec![],
+            closure: None,
+        };
+        let st = station(0.04);
+        let failed = Quality {
+            status: QualityStatus::Degraded,
+            reasons: vec![QualityReason { code: QualityCode::DepthCoverageLow, message: String::new() }],
+        };
+        let options = UncertaintyOptions::default();
+        // Thread 2 has a black crest over 100–140° (photometric) and 200–219° (on the mill
+        // surface), where its heights are 150 µm low; thread 3 reads 200 µm under nominal.
+        let mut threads = noisy(0.004);
+        for b in &mut threads[1].bins {
+            if (100.0..140.0).contains(&b.angle_deg) || (200.0..220.0).contains(&b.angle_deg) {
+                b.height_mm = Some(1.425);
+            }
+        }
+        for b in &mut threads[2].bins {
+            b.height_mm = Some(1.375);
+        }
+        let crests: Vec<ThreadObservation> = threads
+            .iter()
+            .map(|t| ThreadObservation {
+                index: t.index,
+                black_crest_arcs_deg: if t.index == 2 { vec![[100.0, 140.0]] } else { vec![] },
+                bins: t
+                    .bins
+                    .iter()
+                    .map(|b| rules::CrestBin {
+                        angle_deg: b.angle_deg - 0.5,
+                        width_deg: 1.0,
+                        z_mm: 0.0,
+                        height_mm: b.height_mm,
+                        chamfer: false,
+                        on_mill_surface: t.index == 2 && (200.0..220.0).contains(&b.angle_deg),
+                        mill_arc_deg: None,
+                        seen: true,
+                    })
+                    .collect(),
+            })
+            .collect();
+        let scales = |crests| Scales {
+            station: &st,
+            focus_window_radius_px: 5,
+            pipe_radius_mm: 57.15,
+            nominal_height_mm: 1.575,
+            registration: &registration,
+            end_face: None,
+            crests,
+            height_window_half_bins: 5,
+        };
+        let (budget, means) = heights(&mut threads, &scales(&crests), Some(3.0), &failed, &options);
+        // The black crests (60 bins) and 5 bins beyond each of their ends (20) are left out: the
+        // machined heights are all nominal, and nothing departs from a thread's median.
+        assert_eq!(budget.black_crest_bins_left_out, 80, "{budget:?}");
+        assert!(budget.along_helix_um < 1e-9, "{budget:?}");
+        let by_thread: Vec<(u32, f64)> = budget.from_nominal_by_thread.iter().map(|t| (t.thread, t.um)).collect();
+        assert_eq!(by_thread.len(), 3);
+        assert!(
+            by_thread[0].1 < 1e-9 && by_thread[1].1 < 1e-9 && (by_thread[2].1 - 200.0).abs() < 1e-6,
+            "{by_thread:?}"
+        );
+        // Thread 3's heights carry its 200 µm; the others do not.
+        let u = |t: usize| 1e3 * threads[t].bins[50].uncertainty_mm.unwrap();
+        let bias_um = 2.0 * 200.0 / 3f64.sqrt();
+        assert!(u(0) < 10.0 && (u(1) - u(0)).abs() < 1e-9 && u(2) > bias_um, "{} {} {}", u(0), u(1), u(2));
+        assert!(1e3 * means[2].1.unwrap() > bias_um && 1e3 * means[0].1.unwrap() < 10.0);
+        // Without the crest stage's findings the black crests count as scatter.
+        let (budget, _) = heights(&mut threads, &scales(&[]), Some(3.0), &failed, &options);
+        // 60 of 1080 heights 150 µm off their median: 35.4 µm RMS.
+        assert!((budget.along_helix_um - 35.36).abs() < 0.01 && budget.black_crest_bins_left_out == 0, "{budget:?}");
+    }
+
     #[test]
     fn every_height_gets_the_combined_uncertainty_and_a_failed_measurement_its_dispersion() {
         let registration = Registration {
@@ -732,6 +908,8 @@ mod tests {
             nominal_height_mm: 1.575,
             registration: &registration,
             end_face: None,
+            crests: &[],
+            height_window_half_bins: 5,
         };
         let options = UncertaintyOptions::default();
         let mut threads = noisy(0.004);
@@ -779,7 +957,8 @@ mod tests {
         }
         let (budget, _) = heights(&mut low, &scales, Some(3.0), &failed, &options);
         assert!(budget.along_helix_um < 1e-9 && (budget.from_nominal_um - 30.0).abs() < 1e-6, "{budget:?}");
-        let expected_um = 2.0 * (noise * noise + 2.0 * 2.0 + 30.0 * 30.0).sqrt();
+        // As a rectangular distribution over ±30 µm: 30/√3 µm.
+        let expected_um = 2.0 * (noise * noise + 2.0 * 2.0 + 30.0 * 30.0 / 3.0).sqrt();
         assert!((1e3 * low[1].bins[100].uncertainty_mm.unwrap() - expected_um).abs() < 0.05);
         // The same heights in a measurement that passed its checks: neither term.
         let (budget, _) = heights(&mut low, &scales, Some(3.0), &ok(), &options);

@@ -421,8 +421,13 @@ fn provenance(page: &mut String, r: &Report, inputs: &PageInputs) {
                 u.expanded_median_um.map_or("–".to_string(), |v| format!("{v:.1} µm")),
                 u.method_um,
                 u.registration_um,
-                if u.along_helix_um > 0.0 || u.from_nominal_um > 0.0 {
-                    format!(", along the helix {:.1} µm, from nominal {:.1} µm", u.along_helix_um, u.from_nominal_um)
+                if u.along_helix_um > 0.0 || u.from_nominal_um > 0.0 || !u.from_nominal_by_thread.is_empty() {
+                    let widest = u.from_nominal_by_thread.iter().map(|t| t.um).fold(u.from_nominal_um, f64::max);
+                    format!(
+                        ", along the helix {:.1} µm, from nominal {:.1} µm (the part; up to {:.1} µm on a thread), {} \
+                         height(s) on or beside black crests left out of these two",
+                        u.along_helix_um, u.from_nominal_um, widest, u.black_crest_bins_left_out
+                    )
                 } else {
                     String::new()
                 }

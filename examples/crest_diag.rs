@@ -1,0 +1,32 @@
+//! Each crest bin's brightness as the crest stage reads it, for a simulated bundle: one line per
+//! bin (thread, angle, crest gray, height), to set against the truth's black arcs offline. A
+//! working tool for the notebook (docs/notebook/accuracy.md), not part of the product.
+//!
+//! cargo run --release --example crest_diag -- BUNDLE_DIR [OPTIONS_JSON] > bins.tsv
+use crestscan::bundle::{Bundle, OpenOptions};
+use crestscan::domain::thread::ConnectionTable;
+use crestscan::pipeline::PipelineOptions;
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let dir = std::path::Path::new(&args[1]);
+    let options: PipelineOptions = match args.get(2) {
+        Some(f) => PipelineOptions::default()
+            .overridden_by(serde_json::from_slice(&std::fs::read(f).unwrap()).unwrap())
+            .unwrap(),
+        None => PipelineOptions::default(),
+    };
+    let table = ConnectionTable::api5b();
+    let bundle = Bundle::open(dir, &table, OpenOptions::default()).unwrap();
+    let inspection = crestscan::pipeline::inspect(&bundle, &options, &|_, _| {}, &Default::default())
+        .unwrap()
+        .expect("not cancelled");
+    println!("thread\tangle_deg\tcrest_gray\theight_mm\tmachined_crest_gray={}", inspection.report.machined_crest_gray);
+    for t in &inspection.threads {
+        for b in &t.bins {
+            let gray = b.crest_gray.map_or("nan".to_string(), |g| format!("{g:.4}"));
+            let height = b.height_mm.map_or("nan".to_string(), |h| format!("{h:.4}"));
+            println!("{}\t{:.1}\t{gray}\t{height}", t.index, b.angle_deg);
+        }
+    }
+}
