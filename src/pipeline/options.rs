@@ -112,6 +112,7 @@ pub const RANGES: &[OptionRange] = &[
     range("crest.dark_sigmas", 0.0, 50.0),
     range("crest.dark_run_sigmas", 0.0, 50.0),
     range("crest.dark_extent_sigmas", 0.0, 50.0),
+    range("crest.min_gray_scatter", 0.0, 0.5),
     range("crest.mill_onset_um", 0.0, 1000.0),
     range("crest.mill_extent_um", 0.0, 1000.0),
     range("crest.min_geometric_arc_deg", 0.0, 360.0),

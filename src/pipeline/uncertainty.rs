@@ -802,11 +802,9 @@ mod tests {
             .collect()
     }
 
-    /// A failed measurement's dispersion terms read machined crests only, and each thread its own
-    /// distance from nominal.
-    #[test]
-    fn black_crests_stay_out_of_the_dispersion_and_each_thread_has_its_own_bias() {
-        let registration = Registration {
+    /// A registration that measured no pair.
+    fn no_pairs() -> Registration {
+        Registration {
             corrections: vec![],
             pairs: vec![],
             candidates: vec![],
@@ -816,12 +814,24 @@ mod tests {
             placed_by_end_face: vec![],
             end_face_implausible: vec![],
             closure: None,
-        };
-        let st = station(0.04);
-        let failed = Quality {
+        }
+    }
+
+    /// A quality that fails the measurement's checks ([`measurement_failed`]).
+    fn depth_coverage_low() -> Quality {
+        Quality {
             status: QualityStatus::Degraded,
             reasons: vec![QualityReason { code: QualityCode::DepthCoverageLow, message: String::new() }],
-        };
+        }
+    }
+
+    /// A failed measurement's dispersion terms read machined crests only, and each thread its own
+    /// distance from nominal.
+    #[test]
+    fn black_crests_stay_out_of_the_dispersion_and_each_thread_has_its_own_bias() {
+        let registration = no_pairs();
+        let st = station(0.04);
+        let failed = depth_coverage_low();
         let options = UncertaintyOptions::default();
         // Thread 2 has a black crest over 100–140° (photometric) and 200–219° (on the mill
         // surface), where its heights are 150 µm low; thread 3 reads 200 µm under nominal.
@@ -889,17 +899,7 @@ mod tests {
 
     #[test]
     fn every_height_gets_the_combined_uncertainty_and_a_failed_measurement_its_dispersion() {
-        let registration = Registration {
-            corrections: vec![],
-            pairs: vec![],
-            candidates: vec![],
-            pairs_expected: 0,
-            pairs_measured: 0,
-            unregistered_views: vec![],
-            placed_by_end_face: vec![],
-            end_face_implausible: vec![],
-            closure: None,
-        };
+        let registration = no_pairs();
         let st = station(0.04);
         let scales = Scales {
             station: &st,
@@ -933,10 +933,7 @@ mod tests {
         // A measurement that failed its checks: every height also carries the heights' RMS
         // departure from their thread's median (a quarter of each thread 40 µm high: 20 µm) and
         // their median's from nominal (here none).
-        let failed = Quality {
-            status: QualityStatus::Degraded,
-            reasons: vec![QualityReason { code: QualityCode::DepthCoverageLow, message: String::new() }],
-        };
+        let failed = depth_coverage_low();
         let mut wandering = noisy(0.004);
         for t in &mut wandering {
             for b in &mut t.bins[..90] {

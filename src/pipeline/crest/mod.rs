@@ -51,6 +51,12 @@ pub struct CrestOptions {
     /// many scatters: at a run's ends the scale is a thin strip on the crest line (a round crest
     /// barely cut by the mill surface) or covers part of the bin, and darkens it by less.
     pub dark_extent_sigmas: f32,
+    /// The crests' brightness scatter is taken as at least this fraction of the median, so that
+    /// the bars keep a margin where the crests read even (clipped, or noiseless): at random
+    /// stations a glossy crest at a view's edge reads 20% dimmer than at its centre
+    /// (docs/notebook/accuracy.md, "Stations: black crests out of the dispersion, each thread's
+    /// bias"). 0.05 puts a single bin's bar at 70% of the median and a run's at 80%.
+    pub min_gray_scatter: f32,
     /// A crest this far below the machined crest cone (median of five bins along the helix) starts
     /// a geometric black run; the threshold rises to four times the crests' own scatter when that
     /// is larger.
@@ -77,6 +83,7 @@ impl Default for CrestOptions {
             dark_sigmas: 6.0,
             dark_run_sigmas: 4.0,
             dark_extent_sigmas: 2.5,
+            min_gray_scatter: 0.05,
             mill_onset_um: 15.0,
             mill_extent_um: 5.0,
             min_geometric_arc_deg: 10.0,
@@ -158,9 +165,8 @@ fn darkness(threads: &[ThreadMeasure], options: &CrestOptions) -> Darkness {
     // Machined crests scatter little about the reference; a thin strip of mill scale (a round
     // crest barely touched by the mill surface) darkens the centre line by less than half, but
     // far beyond that scatter.
-    // (Floored at 3% of the reference, so that noiseless data cannot call the median itself dark.)
-    let gray_scatter =
-        (robust_scale(grays.iter().map(|&g| (g - reference) as f64)).unwrap_or(0.0) as f32).max(0.03 * reference);
+    let gray_scatter = (robust_scale(grays.iter().map(|&g| (g - reference) as f64)).unwrap_or(0.0) as f32)
+        .max(options.min_gray_scatter * reference);
     let dark_below = (options.dark_fraction * reference).max(reference - options.dark_sigmas * gray_scatter);
     // A sustained dip counts at a lower bar than a single bin: the median of five bins along the
     // helix below the reference by `dark_run_sigmas` scatters (one dark speck cannot make it).
