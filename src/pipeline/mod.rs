@@ -198,7 +198,7 @@ fn run_stages(
             format!(
                 "depth came from the {} model {} (sha256 {}): the method's uncertainty was measured for the \
                  classical depth, so each height's U includes the heights' dispersion along the helix and their \
-                 median's distance from nominal, and no decision is made (docs/models.md)",
+                 thread's distance from nominal, and no decision is made (docs/models.md)",
                 m.role.as_str(),
                 m.name,
                 m.sha256
@@ -212,7 +212,7 @@ fn run_stages(
             format!(
                 "the heights were read off pitches corrected by the {} model {} (sha256 {}): the method's uncertainty \
                  was measured for the classical heights, so each height's U includes the heights' dispersion along \
-                 the helix and their median's distance from nominal, and no decision is made (docs/models.md)",
+                 the helix and their thread's distance from nominal, and no decision is made (docs/models.md)",
                 m.role.as_str(),
                 m.name,
                 m.sha256

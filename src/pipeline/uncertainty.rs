@@ -166,7 +166,11 @@ pub fn heights(
     // thread's median measures those errors (with the true variation, which makes it cautious).
     let failed = measurement_failed(quality, scales.station);
     let machined = machined_heights(threads, scales.crests, scales.height_window_half_bins);
-    let left_out = machined.iter().flatten().filter(|m| !**m).count();
+    let left_out: usize = threads
+        .iter()
+        .zip(&machined)
+        .map(|(t, m)| t.bins.iter().zip(m).filter(|(b, m)| b.height_mm.is_some() && !**m).count())
+        .sum();
     let along_mm = if failed { along_helix_rms(threads, &machined) } else { 0.0 };
     // A thread's heights can all be off together (the focus window or a depth of field comparable
     // to the thread's height compressing its profiles: at one random station, 0.35 mm of a 1.0 mm
@@ -457,7 +461,7 @@ pub fn decide(
             "no decision: the measurement failed its quality checks or its station's optics lie outside the \
              envelope its uncertainty was measured in (the quality reasons say which); its heights and black \
              crests may be wrong by more than their local scatter shows, and each height's uncertainty \
-             includes the heights' dispersion along the helix and their median's distance from nominal"
+             includes the heights' dispersion along the helix and their thread's distance from nominal"
                 .to_string(),
         );
     }

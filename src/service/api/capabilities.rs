@@ -105,7 +105,7 @@ pub async fn get_capabilities() -> Json<Capabilities> {
                     "inspected, quality degraded (station_unmeasured), review_required; where the optics (object \
                      pixel, depth of field, frame step, frame noise) lie outside the standard class, the decision \
                      is indeterminate and each height's uncertainty includes the heights' dispersion along the \
-                     helix and their median's distance from nominal. The station benchmark's {} class figures \
+                     helix and their thread's distance from nominal. The station benchmark's {} class figures \
                      (README, Stations; docs/benchmark.md) are far from the targets",
                     class.as_str()
                 ),
