@@ -821,6 +821,20 @@ mod tests {
         }
     }
 
+    /// A buttress part's scales (5-pixel focus window, 5-bin height window, no end face).
+    fn scales_of<'a>(st: &'a Station, registration: &'a Registration, crests: &'a [ThreadObservation]) -> Scales<'a> {
+        Scales {
+            station: st,
+            focus_window_radius_px: 5,
+            pipe_radius_mm: 57.15,
+            nominal_height_mm: 1.575,
+            registration,
+            end_face: None,
+            crests,
+            height_window_half_bins: 5,
+        }
+    }
+
     /// A quality that fails the measurement's checks ([`measurement_failed`]).
     fn depth_coverage_low() -> Quality {
         Quality {
@@ -869,16 +883,7 @@ mod tests {
                     .collect(),
             })
             .collect();
-        let scales = |crests| Scales {
-            station: &st,
-            focus_window_radius_px: 5,
-            pipe_radius_mm: 57.15,
-            nominal_height_mm: 1.575,
-            registration: &registration,
-            end_face: None,
-            crests,
-            height_window_half_bins: 5,
-        };
+        let scales = |crests| scales_of(&st, &registration, crests);
         let (budget, means) = heights(&mut threads, &scales(&crests), Some(3.0), &failed, &options);
         // The black crests (60 bins) and 5 bins beyond each of their ends (20) are left out: the
         // machined heights are all nominal, and nothing departs from a thread's median.
@@ -905,16 +910,7 @@ mod tests {
     fn every_height_gets_the_combined_uncertainty_and_a_failed_measurement_its_dispersion() {
         let registration = no_pairs();
         let st = station(0.04);
-        let scales = Scales {
-            station: &st,
-            focus_window_radius_px: 5,
-            pipe_radius_mm: 57.15,
-            nominal_height_mm: 1.575,
-            registration: &registration,
-            end_face: None,
-            crests: &[],
-            height_window_half_bins: 5,
-        };
+        let scales = scales_of(&st, &registration, &[]);
         let options = UncertaintyOptions::default();
         let mut threads = noisy(0.004);
         let (budget, means) = heights(&mut threads, &scales, Some(3.0), &ok(), &options);
