@@ -51,6 +51,9 @@ enum SuiteArg {
     Stations,
     /// The same at the 12 tuning stations settings are chosen on.
     StationsTuning,
+    /// The same at 30 check stations (seeds 151–180), where a setting chosen on the tuning
+    /// stations is checked besides the benchmark.
+    StationsCheck,
 }
 
 impl From<SuiteArg> for Suite {
@@ -60,6 +63,7 @@ impl From<SuiteArg> for Suite {
             SuiteArg::Holdout => Self::Holdout,
             SuiteArg::Stations => Self::Stations,
             SuiteArg::StationsTuning => Self::StationsTuning,
+            SuiteArg::StationsCheck => Self::StationsCheck,
         }
     }
 }
@@ -78,7 +82,7 @@ impl BenchArgs {
             options_file,
         )?;
         let mut results = Vec::new();
-        let stations = matches!(suite, Suite::Stations | Suite::StationsTuning);
+        let stations = matches!(suite, Suite::Stations | Suite::StationsTuning | Suite::StationsCheck);
         // At a random station the pipeline may find no depth or no thread: that case is an
         // inspection refused, counted and shown, not the end of the benchmark.
         let mut refused: Vec<(String, String)> = Vec::new();

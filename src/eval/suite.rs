@@ -109,6 +109,9 @@ pub const STATION_TUNING_SEEDS: std::ops::Range<u64> = 1..13;
 /// Station seeds of the station benchmark: rendered after every setting was chosen, used to
 /// choose none.
 pub const STATION_BENCH_SEEDS: std::ops::Range<u64> = 101..141;
+/// Station seeds of a second check set, rendered after the settings of 2026-12-04 were chosen on
+/// the tuning stations: where a setting chosen since is checked besides the benchmark.
+pub const STATION_CHECK_SEEDS: std::ops::Range<u64> = 151..181;
 
 fn station_cases(seeds: std::ops::Range<u64>) -> Vec<Case> {
     seeds
@@ -129,6 +132,8 @@ pub enum Suite {
     Stations,
     /// The same at the tuning stations ([`STATION_TUNING_SEEDS`]).
     StationsTuning,
+    /// The same at the check stations ([`STATION_CHECK_SEEDS`]).
+    StationsCheck,
 }
 
 impl Suite {
@@ -138,6 +143,7 @@ impl Suite {
             Suite::Holdout => "holdout",
             Suite::Stations => "stations",
             Suite::StationsTuning => "stations-tuning",
+            Suite::StationsCheck => "stations-check",
         }
     }
 
@@ -147,6 +153,7 @@ impl Suite {
             Suite::Holdout => HOLDOUT_SUITE.to_vec(),
             Suite::Stations => station_cases(STATION_BENCH_SEEDS),
             Suite::StationsTuning => station_cases(STATION_TUNING_SEEDS),
+            Suite::StationsCheck => station_cases(STATION_CHECK_SEEDS),
         }
     }
 
@@ -155,7 +162,7 @@ impl Suite {
         match self {
             Suite::Accuracy => "out/bench",
             Suite::Holdout => "out/holdout",
-            Suite::Stations | Suite::StationsTuning => "out/stations",
+            Suite::Stations | Suite::StationsTuning | Suite::StationsCheck => "out/stations",
         }
     }
 }

@@ -201,12 +201,20 @@ pub fn station_class(object_pixel_mm: f64) -> &'static str {
     }
 }
 
+/// " [lo–hi% on n]": the coverage's 95% interval on the case's independent bins, or nothing.
+fn interval_text(a: &crate::eval::truth::Accuracy) -> String {
+    match (a.uncertainty_coverage_interval, a.uncertainty_effective_bins) {
+        (Some([lo, hi]), Some(n)) => format!(" [{:.0}–{:.0}% on {n:.0}]", 100.0 * lo, 100.0 * hi),
+        _ => String::new(),
+    }
+}
+
 /// The station benchmark's table: one row per case (its station, heights, coverage,
 /// registration, black-crest length, verdict and decision, the uncertainty's coverage), then a
 /// summary per station class.
 pub fn station_table(results: &[CaseResult], refused: &[(String, String)]) -> String {
     let mut out = String::from(
-        "| case | class | pixel mm | DOF mm | step DOF | views (rows) | arc | height RMS / max µm | bins seen | pairs | reg ° / µm | black-crest err mm | verdict (truth) | decision | U coverage (p95 \\|e\\|/U) | quality |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+        "| case | class | pixel mm | DOF mm | step DOF | views (rows) | arc | height RMS / max µm | bins seen | pairs | reg ° / µm | black-crest err mm | verdict (truth) | decision | U coverage (p95 \\|e\\|/U) [95% interval on n independent bins] | quality |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for r in results {
         let Some(s) = &r.station else { continue };
@@ -235,8 +243,8 @@ pub fn station_table(results: &[CaseResult], refused: &[(String, String)]) -> St
             a.decision.map_or("-", |d| d.as_str()),
             if a.decision_wrong { " WRONG" } else { "" },
             match (a.uncertainty_coverage, a.uncertainty_ratio_p95) {
-                (Some(c), Some(q)) => format!("{:.1}% ({q:.2})", 100.0 * c),
-                (Some(c), None) => format!("{:.1}%", 100.0 * c),
+                (Some(c), Some(q)) => format!("{:.1}% ({q:.2}){}", 100.0 * c, interval_text(a)),
+                (Some(c), None) => format!("{:.1}%{}", 100.0 * c, interval_text(a)),
                 _ => "-".into(),
             },
             r.quality,
@@ -246,7 +254,7 @@ pub fn station_table(results: &[CaseResult], refused: &[(String, String)]) -> St
         out.push_str(&format!("| {case} | refused: {why} |\n"));
     }
     out.push_str(
-        "\n| class | cases | height RMS median / worst µm | height max worst µm | verdicts wrong | decisions wrong | indeterminate | U coverage min / median | U coverage within 90–99% / over / under | p95 \\|e\\|/U min / max | pairs measured |\n|---|---|---|---|---|---|---|---|---|---|---|\n",
+        "\n| class | cases | height RMS median / worst µm | height max worst µm | verdicts wrong | decisions wrong | indeterminate | U coverage min / median | U coverage within 90–99% / over / under | U interval meets 90–99% / above / below (holds 95%) | U coverage over the class's bins [95% interval on n independent bins] | p95 \\|e\\|/U min / max | pairs measured |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for class in ["fine", "medium", "coarse"] {
         let rows: Vec<&CaseResult> = results
@@ -267,11 +275,33 @@ pub fn station_table(results: &[CaseResult], refused: &[(String, String)]) -> St
         let within = cov.iter().filter(|c| (0.90..=0.99).contains(*c)).count();
         let over = cov.iter().filter(|c| **c > 0.99).count();
         let under = cov.iter().filter(|c| **c < 0.90).count();
+        let intervals: Vec<[f64; 2]> = rows.iter().filter_map(|r| r.accuracy.uncertainty_coverage_interval).collect();
+        let meets = intervals.iter().filter(|i| i[1] >= 0.90 && i[0] <= 0.99).count();
+        let above = intervals.iter().filter(|i| i[0] > 0.99).count();
+        let below = intervals.iter().filter(|i| i[1] < 0.90).count();
+        let holds_95 = intervals.iter().filter(|i| i[0] <= 0.95 && i[1] >= 0.95).count();
+        let (covered, compared) = rows.iter().fold((0.0, 0usize), |(c, n), r| match r.accuracy.uncertainty_coverage {
+            Some(share) => (c + share * r.accuracy.bins_compared as f64, n + r.accuracy.bins_compared),
+            None => (c, n),
+        });
+        // On the independent bins of all the class's cases together: what the class can tell.
+        let (hits, trials) = rows.iter().fold((0usize, 0usize), |(h, n), r| {
+            match (r.accuracy.uncertainty_coverage, r.accuracy.uncertainty_effective_bins) {
+                (Some(c), Some(e)) => (h + (c * e.round()).round() as usize, n + e.round() as usize),
+                _ => (h, n),
+            }
+        });
+        let (lo, hi) = crate::numeric::calibration::share_interval(hits, trials, 0.95);
+        let pooled = if compared > 0 {
+            format!("{:.1}% [{:.0}–{:.0}% on {trials}]", 100.0 * covered / compared as f64, 100.0 * lo, 100.0 * hi)
+        } else {
+            "-".into()
+        };
         let ratios: Vec<f64> = rows.iter().filter_map(|r| r.accuracy.uncertainty_ratio_p95).collect();
         let ratio_min = ratios.iter().copied().fold(f64::INFINITY, f64::min);
         let ratio_max = ratios.iter().copied().fold(0.0, f64::max);
         out.push_str(&format!(
-            "| {class} | {} | {:.1} / {:.1} | {:.1} | {} | {} | {} | {:.1}% / {:.1}% | {within} / {over} / {under} | {ratio_min:.2} / {ratio_max:.2} | {}/{} ({:.0}%) |\n",
+            "| {class} | {} | {:.1} / {:.1} | {:.1} | {} | {} | {} | {:.1}% / {:.1}% | {within} / {over} / {under} | {meets} / {above} / {below} ({holds_95}) | {pooled} | {ratio_min:.2} / {ratio_max:.2} | {}/{} ({:.0}%) |\n",
             rows.len(),
             median_rms,
             worst_rms,

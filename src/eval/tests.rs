@@ -42,6 +42,8 @@ fn result(preset: &str, height_max_um: f64, inspect_over_decode: f64) -> CaseRes
             worst: Vec::new(),
             uncertainty_coverage: None,
             uncertainty_ratio_p95: None,
+            uncertainty_effective_bins: None,
+            uncertainty_coverage_interval: None,
             coverage_by_method_px: Vec::new(),
             decision: None,
             decision_wrong: false,
@@ -169,4 +171,12 @@ fn only_picks_a_preset_or_one_seed_of_it() {
     assert!(!case.matches("bc-polished-30"));
     assert!(!case.matches("bc-black-2"));
     assert!(!Case::at("bc-black-2", 1).matches("bc-black"));
+}
+
+#[test]
+fn station_suites_share_no_seed() {
+    let seeds = |suite: Suite| suite.cases().iter().map(|c| c.seed).collect::<std::collections::BTreeSet<u64>>();
+    let (tuning, bench, check) = (seeds(Suite::StationsTuning), seeds(Suite::Stations), seeds(Suite::StationsCheck));
+    assert!(tuning.is_disjoint(&bench) && tuning.is_disjoint(&check) && bench.is_disjoint(&check));
+    assert_eq!((tuning.len(), bench.len(), check.len()), (12, 40, 30));
 }

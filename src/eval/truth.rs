@@ -31,6 +31,16 @@ pub struct Accuracy {
     /// what that needs, padded; over 1, too small). None without uncertainties.
     #[serde(default)]
     pub uncertainty_ratio_p95: Option<f64>,
+    /// How many independent errors the compared bins hold: neighbouring bins share a focus
+    /// window, a view and a thread's bias, so that a case of 500 bins may hold a few dozen
+    /// ([`crate::numeric::calibration::effective_count`] on each thread's error / U along the
+    /// helix). None without uncertainties.
+    #[serde(default)]
+    pub uncertainty_effective_bins: Option<f64>,
+    /// The 95% Clopper–Pearson interval of the coverage measured on that many independent bins:
+    /// the true coverages this case cannot tell apart. None without uncertainties.
+    #[serde(default)]
+    pub uncertainty_coverage_interval: Option<[f64; 2]>,
     /// The same share had the method's standard uncertainty been each of these multiples of the
     /// object pixel (the rest of the budget as reported): how `uncertainty.method_px` is chosen.
     pub coverage_by_method_px: Vec<(f64, f64)>,
@@ -50,12 +60,15 @@ pub fn compare(report: &Report, truth: &Truth) -> Accuracy {
     let mut errors: Vec<(f64, u32, f64, f64, f64)> = Vec::new();
     // (|error|, expanded uncertainty) per compared bin that has one, mm.
     let mut against_u: Vec<(f64, f64)> = Vec::new();
+    // Per thread, bin for bin: error / U, for how many independent errors the case holds.
+    let mut normalised: Vec<Vec<Option<f64>>> = Vec::new();
     let mut missing = 0;
     for t in &truth.threads {
         let Some(r) = report.threads.iter().find(|r| r.index == t.index) else {
             missing += t.height_mm.values.iter().flatten().count();
             continue;
         };
+        let mut thread_normalised = vec![None; t.height_mm.values.len()];
         for (k, truth_value) in t.height_mm.values.iter().enumerate() {
             let Some(tv) = truth_value else { continue };
             match r.height_mm.values.get(k).copied().flatten() {
@@ -63,17 +76,27 @@ pub fn compare(report: &Report, truth: &Truth) -> Accuracy {
                     errors.push((1e3 * (rv - tv), t.index, t.height_mm.angles_deg[k], rv, *tv));
                     if let Some(u) = r.height_mm.uncertainty_mm.get(k).copied().flatten() {
                         against_u.push(((rv - tv).abs(), u));
+                        thread_normalised[k] = (u > 0.0).then(|| (rv - tv) / u);
                     }
                 }
                 None => missing += 1,
             }
         }
+        normalised.push(thread_normalised);
     }
     let n = errors.len().max(1) as f64;
     let rms = (errors.iter().map(|e| e.0 * e.0).sum::<f64>() / n).sqrt();
     let bias = errors.iter().map(|e| e.0).sum::<f64>() / n;
     let max = errors.iter().map(|e| e.0.abs()).fold(0.0, f64::max);
     errors.sort_by(|a, b| b.0.abs().total_cmp(&a.0.abs()));
+    let coverage = (!against_u.is_empty())
+        .then(|| against_u.iter().filter(|(e, u)| e <= u).count() as f64 / against_u.len() as f64);
+    let effective = crate::numeric::calibration::effective_count(&normalised, 0.05);
+    let interval = coverage.zip(effective).map(|(c, n)| {
+        let trials = n.round() as usize;
+        let (lo, hi) = crate::numeric::calibration::share_interval((c * trials as f64).round() as usize, trials, 0.95);
+        [lo, hi]
+    });
     let seen = report.assessment.seen_crest_arcs.as_deref();
     let length_error =
         black_crests(report, truth).iter().map(|b| (b.reported_mm - b.truth_mm).abs()).fold(0.0, f64::max);
@@ -87,9 +110,10 @@ pub fn compare(report: &Report, truth: &Truth) -> Accuracy {
         seen_crest_deg: seen.map(|threads| threads.iter().map(|t| crate::domain::arcs::arcs_deg(&t.arcs_deg)).sum()),
         verdict_agrees: report.verdict == truth.verdict,
         worst: errors.iter().take(5).map(|e| (e.1, e.2, e.3, e.4)).collect(),
-        uncertainty_coverage: (!against_u.is_empty())
-            .then(|| against_u.iter().filter(|(e, u)| e <= u).count() as f64 / against_u.len() as f64),
+        uncertainty_coverage: coverage,
         uncertainty_ratio_p95: ratio_p95(&against_u),
+        uncertainty_effective_bins: effective,
+        uncertainty_coverage_interval: interval,
         coverage_by_method_px: coverage_by_method_px(report, &against_u),
         decision: Some(report.decision),
         decision_wrong: {
