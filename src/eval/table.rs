@@ -254,7 +254,7 @@ pub fn station_table(results: &[CaseResult], refused: &[(String, String)]) -> St
         out.push_str(&format!("| {case} | refused: {why} |\n"));
     }
     out.push_str(
-        "\n| class | cases | height RMS median / worst µm | height max worst µm | verdicts wrong | decisions wrong | indeterminate | U coverage min / median | U coverage within 90–99% / over / under | U interval meets 90–99% / above / below (holds 95%) | U coverage over the class's bins [95% interval on n independent bins] | p95 \\|e\\|/U min / max | pairs measured |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+        "\n| class | cases | height RMS median / worst µm | height max worst µm | verdicts wrong | decisions wrong | indeterminate | U coverage min / median | U coverage within 90–99% / over / under | U interval meets 90–99% / above / below (holds 95%) | U coverage over the class's bins (over its independent bins [95% interval] on n) | p95 \\|e\\|/U min / max | pairs measured |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for class in ["fine", "medium", "coarse"] {
         let rows: Vec<&CaseResult> = results
@@ -292,8 +292,14 @@ pub fn station_table(results: &[CaseResult], refused: &[(String, String)]) -> St
             }
         });
         let (lo, hi) = crate::numeric::calibration::share_interval(hits, trials, 0.95);
-        let pooled = if compared > 0 {
-            format!("{:.1}% [{:.0}–{:.0}% on {trials}]", 100.0 * covered / compared as f64, 100.0 * lo, 100.0 * hi)
+        let pooled = if compared > 0 && trials > 0 {
+            format!(
+                "{:.1}% ({:.1}% [{:.0}–{:.0}%] on {trials})",
+                100.0 * covered / compared as f64,
+                100.0 * hits as f64 / trials as f64,
+                100.0 * lo,
+                100.0 * hi
+            )
         } else {
             "-".into()
         };
