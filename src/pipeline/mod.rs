@@ -426,6 +426,7 @@ fn register_views(
         &lattice,
         (format.height as f64 * pixel_mm / 2.0 / radius_ref).to_degrees(),
         format.width as f64 * pixel_mm / 2.0,
+        part.form.pitch_mm,
         &register_options,
     );
     let encoder_z_ranges_mm: Vec<(f64, f64)> = grids.iter().map(|g| g.z_range_mm()).collect();

@@ -209,6 +209,19 @@ pub fn assess(
         let names: Vec<String> = registration.unregistered_views.iter().map(|&v| name(v)).collect();
         let names_of = |views_of: &[usize]| views_of.iter().map(|&v| name(v)).collect::<Vec<String>>();
         let mut placed = String::new();
+        let radially: Vec<String> = registration
+            .unregistered_views
+            .iter()
+            .filter(|v| registration.placed_radially.contains(v))
+            .map(|&v| name(v))
+            .collect();
+        if !radially.is_empty() {
+            placed += &format!(
+                "; the radius of their overlaps at the encoder poses placed {} of them radially (lens radius only): {}",
+                radially.len(),
+                radially.join(", ")
+            );
+        }
         let by_corner = names_of(&registration.placed_by_end_face);
         if !by_corner.is_empty() {
             placed += &format!(
@@ -366,6 +379,7 @@ mod tests {
                 peak_ncc: Some(0.04),
                 rival_ratio: Some(0.03),
                 overlap_cells: Some(9000),
+                radius_shift_um: None,
             })
             .collect();
         let measured: Vec<&PairCandidate> =
@@ -377,6 +391,7 @@ mod tests {
             pairs_measured: measured.len(),
             unregistered_views: (0..views).filter(|&v| !measured.iter().any(|c| c.a == v || c.b == v)).collect(),
             closure: None,
+            placed_radially: vec![],
             placed_by_end_face: vec![],
             end_face_implausible: vec![],
             candidates,
@@ -403,10 +418,19 @@ mod tests {
         let mut anchored = weak.clone();
         anchored.placed_by_end_face = vec![2];
         anchored.end_face_implausible = vec![3];
+        // The overlaps' radius placed both radially (and v01, which a measured pair holds).
+        anchored.placed_radially = vec![1, 2, 3];
         let q = assess(&standard(), &anchored, &views(4), &covered(), &fit());
         let unplaced = q.reasons.iter().find(|r| r.code == QualityCode::ViewsUnregistered).unwrap();
         assert!(unplaced.message.contains("placed 1 of them axially on their own: v02"), "{}", unplaced.message);
         assert!(unplaced.message.contains("taken as misread: v03"), "{}", unplaced.message);
+        assert!(
+            unplaced.message.contains("placed 2 of them radially (lens radius only): v02, v03"),
+            "{}",
+            unplaced.message
+        );
+        // Placed radially, they are still unregistered in angle and along the axis.
+        assert_eq!(q.status, QualityStatus::Insufficient);
     }
 
     #[test]

@@ -815,6 +815,7 @@ mod tests {
             pairs_expected: 0,
             pairs_measured: 0,
             unregistered_views: vec![],
+            placed_radially: vec![],
             placed_by_end_face: vec![],
             end_face_implausible: vec![],
             closure: None,

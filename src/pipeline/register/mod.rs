@@ -111,6 +111,12 @@ pub struct PairCandidate {
     pub rival_ratio: Option<f64>,
     /// Cells the two views share at that shift, when the search ran.
     pub overlap_cells: Option<usize>,
+    /// Where the texture did not register the pair: the median over the cells the two views
+    /// share at their encoder poses of a's radius minus b's, µm, when they share a pitch's length
+    /// along z. The radial solve places views that no measured overlap holds by it (an overlap
+    /// whose texture does not register still shows the same surface).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub radius_shift_um: Option<f64>,
 }
 
 /// The loop closure of a ring in one axial row: the measured shifts summed around the ring, which
@@ -137,9 +143,14 @@ pub struct Registration {
     #[serde(default)]
     pub pairs_measured: usize,
     /// Views none of whose overlaps was measured: they keep their encoder poses (but see
-    /// `placed_by_end_face`).
+    /// `placed_radially` and `placed_by_end_face`).
     #[serde(default)]
     pub unregistered_views: Vec<usize>,
+    /// Views that the radial solve placed, besides the measured overlaps, by the radius of
+    /// overlaps whose texture did not register ([`PairCandidate::radius_shift_um`]): their lens
+    /// radius is corrected, their angle and axial position are the encoders'.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub placed_radially: Vec<usize>,
     /// Unregistered views that saw the end face and were placed axially by their own corner (the
     /// end face is z = 0 by the contract) instead of keeping their encoder's axial position.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
@@ -209,20 +220,21 @@ impl Default for RegisterOptions {
 }
 
 /// Registers all views. `views[v]` is view v back-projected with its encoder pose `poses[v]` and
-/// binned on `lattice` ([`view_grid`]).
+/// binned on `lattice` ([`view_grid`]); `pitch_mm` is the thread's.
 pub fn register(
     views: &[ViewGrid],
     poses: &[ViewPose],
     lattice: &Lattice,
     half_angle_deg: f64,
     half_axial_mm: f64,
+    pitch_mm: f64,
     options: &RegisterOptions,
 ) -> Registration {
     use rayon::prelude::*;
     let overlaps = overlapping_pairs(poses, half_angle_deg, half_axial_mm);
     let measured: Vec<Result<PairMeasure, Refusal>> = overlaps
         .par_iter()
-        .map_init(Default::default, |fine, &(a, b)| measure_pair(a, b, views, lattice, options, fine))
+        .map_init(Default::default, |fine, &(a, b)| measure_pair(a, b, views, lattice, pitch_mm, options, fine))
         .collect();
     let mut candidates: Vec<PairCandidate> = overlaps
         .iter()
@@ -235,6 +247,7 @@ pub fn register(
                 peak_ncc: Some(p.peak_ncc),
                 rival_ratio: Some(p.rival_ratio),
                 overlap_cells: Some(p.overlap_cells),
+                radius_shift_um: None,
             },
             Err(r) => PairCandidate {
                 a,
@@ -243,6 +256,7 @@ pub fn register(
                 peak_ncc: r.peak_ncc,
                 rival_ratio: r.rival_ratio,
                 overlap_cells: r.overlap_cells,
+                radius_shift_um: r.radius_shift_mm.map(|mm| 1e3 * mm),
             },
         })
         .collect();
@@ -268,6 +282,7 @@ pub fn register(
         Kernels { radius_mm: huber_radius_mm, angle_deg: huber_angle_deg, axial_mm: huber_axial_mm },
         options.encoder_bounds(),
     );
+    let (radial, placed_radially) = place_radially(n, &pairs, &candidates, radial, huber_radius_mm);
     for p in pairs.iter_mut() {
         p.residual_angle_deg = angle[p.b] - angle[p.a] - p.shift_angle_deg;
         p.residual_axial_um = 1e3 * (axial[p.b] - axial[p.a] - p.shift_axial_mm);
@@ -292,9 +307,37 @@ pub fn register(
         candidates,
         pairs,
         unregistered_views,
+        placed_radially,
         placed_by_end_face: Vec::new(),
         end_face_implausible: Vec::new(),
     }
+}
+
+/// The lens-radius corrections again, with the refused overlaps' radial offsets at the encoder
+/// poses ([`PairCandidate::radius_shift_um`]) tying together what the measured pairs leave apart
+/// (only those between different components of the measured pairs' graph: within one, the
+/// measured pairs know the radius better). Where none does, `radial` as it was. Returns the
+/// corrections and the views those offsets placed.
+fn place_radially(
+    n: usize,
+    pairs: &[PairMeasure],
+    candidates: &[PairCandidate],
+    radial: Vec<f64>,
+    huber_mm: f64,
+) -> (Vec<f64>, Vec<usize>) {
+    let component = crate::numeric::union_find::components(n, pairs.iter().map(|p| (p.a, p.b)));
+    let links: Vec<(usize, usize, f64)> = candidates
+        .iter()
+        .filter(|c| matches!(c.status, PairStatus::TooSmall | PairStatus::TooWeak | PairStatus::Ambiguous))
+        .filter(|c| component[c.a] != component[c.b])
+        .filter_map(|c| Some((c.a, c.b, 1e-3 * c.radius_shift_um?)))
+        .collect();
+    if links.is_empty() {
+        return (radial, Vec::new());
+    }
+    let placed: std::collections::BTreeSet<usize> = links.iter().flat_map(|&(a, b, _)| [a, b]).collect();
+    let all: Vec<(usize, usize, f64)> = pairs.iter().map(|p| (p.a, p.b, p.shift_radius_mm)).chain(links).collect();
+    (solve_axis(n, &all, huber_mm), placed.into_iter().collect())
 }
 
 /// One axis of the pose graph over the measured pairs: `f` reads a pair's shift on that axis.

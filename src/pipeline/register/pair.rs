@@ -2,13 +2,52 @@
 
 use super::*;
 
-/// Why a candidate overlap was not measured, with what its correlation found.
+/// Why a candidate overlap was not measured, with what its correlation found, and the two views'
+/// radial offset at their encoder poses where it can be read ([`radius_at_encoders`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub(super) struct Refusal {
     pub(super) status: PairStatus,
     pub(super) peak_ncc: Option<f64>,
     pub(super) rival_ratio: Option<f64>,
     pub(super) overlap_cells: Option<usize>,
+    pub(super) radius_shift_mm: Option<f64>,
+}
+
+/// Cells two views must share at their encoder poses for their radial offset to be read there.
+const MIN_RADIUS_CELLS: usize = 100;
+
+/// The median over the cells views a and b share at their encoder poses of a's mean radius minus
+/// b's, mm: the lens-radius correction b needs relative to a, where the texture did not register
+/// the pair. The encoders' error moves b's thread profile against a's along the helix, which
+/// makes the cells' differences swing both ways on the flanks; over a shared strip at least
+/// `min_span_mm` (a pitch) long in z the swings cancel in the median, leaving the radial offset
+/// and the taper over the encoders' axial error (0.3 mm × 1/32: 9 µm). None where they share
+/// fewer cells or a shorter strip.
+fn radius_at_encoders(
+    pa: &lattice::Patch,
+    pb: &lattice::Patch,
+    turn: i64,
+    cell_z_mm: f64,
+    min_span_mm: f64,
+) -> Option<f64> {
+    let mut dr = Vec::new();
+    let (mut z_lo, mut z_hi) = (usize::MAX, 0);
+    for z in 0..pa.nz {
+        for s in 0..pa.ns {
+            let ra = pa.radius[z * pa.ns + s];
+            let rb = pb.at(&pb.radius, pa.s0 + s as i64 - turn, pa.z0 + z as i64);
+            if ra.is_finite() && rb.is_finite() {
+                dr.push((ra - rb) as f64);
+                z_lo = z_lo.min(z);
+                z_hi = z_hi.max(z);
+            }
+        }
+    }
+    if dr.len() < MIN_RADIUS_CELLS || ((z_hi - z_lo + 1) as f64) * cell_z_mm < min_span_mm {
+        return None;
+    }
+    let mid = dr.len() / 2;
+    Some(*dr.select_nth_unstable_by(mid, f64::total_cmp).1)
 }
 
 /// The strongest correlation of the coarse search away from its peak (more than two coarse cells
@@ -24,19 +63,27 @@ fn rival_ratio(surface: &[(f64, i64, i64)], best: (f64, i64, i64)) -> f64 {
 }
 
 /// Measures one pair of overlapping views. `fine` holds the two views' full-resolution
-/// correlation grids (buffers reused from pair to pair).
+/// correlation grids (buffers reused from pair to pair); `pitch_mm` is the thread's, over which a
+/// refused pair's radial offset is read ([`radius_at_encoders`]).
 pub(super) fn measure_pair(
     a: usize,
     b: usize,
     views: &[ViewGrid],
     lattice: &Lattice,
+    pitch_mm: f64,
     options: &RegisterOptions,
     fine: &mut (TextureGrid, TextureGrid),
 ) -> Result<PairMeasure, Refusal> {
     let (va, vb) = (&views[a], &views[b]);
     let (pa, pb) = (&va.patch, &vb.patch);
     if pa.gray.is_empty() || pb.gray.is_empty() {
-        return Err(Refusal { status: PairStatus::NoData, peak_ncc: None, rival_ratio: None, overlap_cells: None });
+        return Err(Refusal {
+            status: PairStatus::NoData,
+            peak_ncc: None,
+            rival_ratio: None,
+            overlap_cells: None,
+            radius_shift_mm: None,
+        });
     }
     // b's arc indices in a's turn.
     let turn = lattice.turn_cells(va.angle_rad, vb.angle_rad);
@@ -84,21 +131,18 @@ pub(super) fn measure_pair(
     }
     let (peak, ds, dz) = fine;
     let (_, cells) = ncc(ds, dz);
+    let refused = |status| Refusal {
+        status,
+        peak_ncc: Some(peak),
+        rival_ratio: Some(rival_ratio),
+        overlap_cells: Some(cells),
+        radius_shift_mm: radius_at_encoders(pa, pb, turn, lattice.cell_z_mm, pitch_mm),
+    };
     if cells < options.min_overlap_cells {
-        return Err(Refusal {
-            status: PairStatus::TooSmall,
-            peak_ncc: Some(peak),
-            rival_ratio: Some(rival_ratio),
-            overlap_cells: Some(cells),
-        });
+        return Err(refused(PairStatus::TooSmall));
     }
     if peak < options.min_ncc || rival_ratio > options.max_rival_ratio {
-        return Err(Refusal {
-            status: if peak < options.min_ncc { PairStatus::TooWeak } else { PairStatus::Ambiguous },
-            peak_ncc: Some(peak),
-            rival_ratio: Some(rival_ratio),
-            overlap_cells: Some(cells),
-        });
+        return Err(refused(if peak < options.min_ncc { PairStatus::TooWeak } else { PairStatus::Ambiguous }));
     }
     // Along z the texture is the grain as imaged, whose correlation peak is close to a Gaussian;
     // along the arc it was high-passed (its mean over ±4 cells removed, `texture`), which narrows
@@ -118,12 +162,7 @@ pub(super) fn measure_pair(
         }
     }
     if dr.is_empty() {
-        return Err(Refusal {
-            status: PairStatus::NoData,
-            peak_ncc: Some(peak),
-            rival_ratio: Some(rival_ratio),
-            overlap_cells: Some(cells),
-        });
+        return Err(Refusal { radius_shift_mm: None, ..refused(PairStatus::NoData) });
     }
     let median = dr.len() / 2;
     let shift_radius_mm = *dr.select_nth_unstable_by(median, f64::total_cmp).1;

@@ -107,6 +107,7 @@ fn a_pair_that_would_move_a_view_beyond_the_encoders_bound_is_left_out_and_named
             peak_ncc: Some(0.6),
             rival_ratio: Some(0.3),
             overlap_cells: Some(5000),
+            radius_shift_um: None,
         })
         .collect();
     let kernels = Kernels { radius_mm: 0.01, angle_deg: 0.02, axial_mm: 0.01 };
@@ -285,7 +286,7 @@ fn a_view_without_trusted_points_is_left_where_the_encoder_put_it() {
         .iter()
         .map(|p| view_grid(std::iter::empty(), p.angle_deg.to_radians(), &lattice, false, &mut GridScratch::default()))
         .collect();
-    let registration = register(&grids, &poses, &lattice, 7.0, 17.0, &RegisterOptions::default());
+    let registration = register(&grids, &poses, &lattice, 7.0, 17.0, 5.08, &RegisterOptions::default());
     assert!(registration.pairs.is_empty());
     assert!(registration.corrections.iter().all(|c| *c == PoseCorrection::default()));
 }
@@ -314,4 +315,53 @@ fn views_overlapping_narrowly_are_still_candidates() {
     let rows: Vec<ViewPose> =
         [0.0, 28.0].iter().map(|&z| ViewPose { angle_deg: 0.0, axial_mm: z, lens_radius_mm: 200.0 }).collect();
     assert_eq!(overlapping_pairs(&rows, 12.75, 15.0), vec![(0, 1)]);
+}
+
+#[test]
+fn views_whose_texture_does_not_register_are_placed_radially_by_their_overlap() {
+    // Two views 8° apart (footprints 14° wide) of a buttress-like thread without grain: flats
+    // 0.75 mm above and below the mean on a 1/32 taper. View b's lens stands 0.2 mm farther out
+    // than its pose says, which puts its points 0.2 mm nearer the axis, and its encoder errs by
+    // 0.25 mm axially: the texture cannot register them, the overlap's radius can.
+    let lattice = Lattice::new(57.15, 0.041);
+    let pitch_mm = 5.08;
+    let surface = |z: f64| {
+        let phase = (z / pitch_mm).rem_euclid(1.0);
+        55.5 + z / 32.0 + if phase < 0.5 { 0.75 } else { -0.75 }
+    };
+    let points = |view_deg: f64, radial_error_mm: f64, axial_error_mm: f64| {
+        let (arc_cells, z_cells) = (340, 700);
+        (0..arc_cells).flat_map(move |i| {
+            (0..z_cells).map(move |k| {
+                let theta = (view_deg - 7.0 + 14.0 * i as f64 / arc_cells as f64).to_radians();
+                let z = 1.0 + 0.041 * k as f64;
+                let r = surface(z) - radial_error_mm;
+                SurfacePoint {
+                    position: nalgebra::Point3::new(r * theta.cos(), r * theta.sin(), z + axial_error_mm),
+                    rgb: [0.5; 3],
+                    weight: 2.0,
+                    pixel: [0, 0],
+                }
+            })
+        })
+    };
+    let poses: Vec<ViewPose> =
+        [0.0, 8.0].map(|angle_deg| ViewPose { angle_deg, axial_mm: 15.0, lens_radius_mm: 200.0 }).into();
+    let grids: Vec<ViewGrid> = [points(0.0, 0.0, 0.0).collect::<Vec<_>>(), points(8.0, 0.2, 0.25).collect()]
+        .into_iter()
+        .zip(&poses)
+        .map(|(p, pose)| view_grid(p, pose.angle_deg.to_radians(), &lattice, false, &mut GridScratch::default()))
+        .collect();
+    let registration = register(&grids, &poses, &lattice, 7.0, 15.0, pitch_mm, &RegisterOptions::default());
+    assert!(registration.pairs.is_empty(), "{:?}", registration.candidates);
+    assert_eq!(registration.unregistered_views, [0, 1]);
+    let candidate = &registration.candidates[0];
+    let shift_um = candidate.radius_shift_um.expect("the overlap's radius is read");
+    // a's radius minus b's: 200 µm, within the taper over the axial error (8 µm).
+    assert!((shift_um - 200.0).abs() < 12.0, "{shift_um}");
+    assert_eq!(registration.placed_radially, [0, 1]);
+    let c = &registration.corrections;
+    assert!((c[1].lens_radius_mm - c[0].lens_radius_mm - 1e-3 * shift_um).abs() < 1e-9, "{c:?}");
+    // Angle and axial position stay the encoders'.
+    assert!(c.iter().all(|c| c.angle_deg == 0.0 && c.axial_mm == 0.0), "{c:?}");
 }
