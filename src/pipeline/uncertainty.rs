@@ -326,19 +326,35 @@ fn machined_of<'a>(t: &'a ThreadMeasure, machined: &'a [bool]) -> impl Iterator<
 }
 
 /// RMS over the measured machined bins of each height's departure from its thread's median
-/// (threads with fewer than 5 such bins left out), mm; 0 without such a thread. A thread's mean
-/// carries it whole: the errors it measures are shared by the bins one view saw, so they do not
-/// average out along the helix.
+/// (threads with fewer than 5 such bins left out), mm. Where no thread has 5, the departure of
+/// every machined height from the part's median (of every height, where fewer than 5 are
+/// machined): a part measured in scraps is not one whose heights agree. 0 with fewer than two
+/// heights. A thread's mean carries it whole: the errors it measures are shared by the bins one
+/// view saw, so they do not average out along the helix.
 fn along_helix_rms(threads: &[ThreadMeasure], machined: &[Vec<bool>]) -> f64 {
+    let rms_about_median = |mut heights: Vec<f64>| -> Option<(f64, usize)> {
+        let centre = median(&mut heights)?;
+        Some((heights.iter().map(|h| (h - centre).powi(2)).sum::<f64>(), heights.len()))
+    };
     let (mut sum_sq, mut n) = (0.0, 0usize);
     for (t, m) in threads.iter().zip(machined) {
-        let mut heights: Vec<f64> = machined_of(t, m).collect();
+        let heights: Vec<f64> = machined_of(t, m).collect();
         if heights.len() < 5 {
             continue;
         }
-        let Some(centre) = median(&mut heights) else { continue };
-        sum_sq += heights.iter().map(|h| (h - centre).powi(2)).sum::<f64>();
-        n += heights.len();
+        if let Some((s, k)) = rms_about_median(heights) {
+            sum_sq += s;
+            n += k;
+        }
+    }
+    if n == 0 {
+        let mut part: Vec<f64> = threads.iter().zip(machined).flat_map(|(t, m)| machined_of(t, m)).collect();
+        if part.len() < 5 {
+            part = threads.iter().flat_map(|t| t.bins.iter().filter_map(|b| b.height_mm)).collect();
+        }
+        if part.len() >= 2 {
+            (sum_sq, n) = rms_about_median(part).unwrap_or((0.0, 0));
+        }
     }
     if n == 0 { 0.0 } else { (sum_sq / n as f64).sqrt() }
 }
@@ -842,6 +858,37 @@ mod tests {
             status: QualityStatus::Degraded,
             reasons: vec![QualityReason { code: QualityCode::DepthCoverageLow, message: String::new() }],
         }
+    }
+
+    /// A part measured in scraps (no thread with 5 heights) still carries its heights' dispersion:
+    /// about the part's median, where no thread's median can be read.
+    #[test]
+    fn a_part_measured_in_scraps_carries_the_dispersion_of_all_its_heights() {
+        let registration = no_pairs();
+        let st = station(0.04);
+        let failed = depth_coverage_low();
+        // Three heights a thread, 1.575 mm but for one 0.6 mm low on each thread.
+        let mut threads = noisy(0.004);
+        for t in &mut threads {
+            for (k, b) in t.bins.iter_mut().enumerate() {
+                b.height_mm = match k {
+                    10 | 11 => Some(1.575),
+                    12 => Some(0.975),
+                    _ => None,
+                };
+            }
+        }
+        let (budget, _) = heights(
+            &mut threads,
+            &scales_of(&st, &registration, &[]),
+            Some(3.0),
+            &failed,
+            &UncertaintyOptions::default(),
+        );
+        // 3 of 9 heights 0.6 mm below the part's median (1.575): √(3 · 0.6² / 9) = 346.4 µm.
+        assert!((budget.along_helix_um - 346.41).abs() < 0.01, "{budget:?}");
+        let u_um = 1e3 * threads[0].bins[12].uncertainty_mm.unwrap();
+        assert!(u_um > 600.0, "{u_um}");
     }
 
     /// A failed measurement's dispersion terms read machined crests only, and each thread its own
