@@ -1,6 +1,7 @@
 //! One overlap: which views overlap, and the shift between them that the correlation measures.
 
 use super::*;
+use crate::numeric::stats::median;
 
 /// Why a candidate overlap was not measured, with what its correlation found, and the two views'
 /// radial offset at their encoder poses where it can be read ([`radius_at_encoders`]).
@@ -30,12 +31,22 @@ fn radius_at_encoders(
     cell_z_mm: f64,
     min_span_mm: f64,
 ) -> Option<f64> {
+    let (mut dr, rows) = radius_differences(pa, pb, turn, 0, 0);
+    if dr.len() < MIN_RADIUS_CELLS || rows as f64 * cell_z_mm < min_span_mm {
+        return None;
+    }
+    median(&mut dr)
+}
+
+/// a's mean radius minus b's over the cells the two share with b's content moved by (`ds`, `dz`)
+/// cells onto a's, mm, and how many rows along z those cells span (first to last).
+fn radius_differences(pa: &lattice::Patch, pb: &lattice::Patch, turn: i64, ds: i64, dz: i64) -> (Vec<f64>, usize) {
     let mut dr = Vec::new();
     let (mut z_lo, mut z_hi) = (usize::MAX, 0);
     for z in 0..pa.nz {
         for s in 0..pa.ns {
             let ra = pa.radius[z * pa.ns + s];
-            let rb = pb.at(&pb.radius, pa.s0 + s as i64 - turn, pa.z0 + z as i64);
+            let rb = pb.at(&pb.radius, pa.s0 + s as i64 - ds - turn, pa.z0 + z as i64 - dz);
             if ra.is_finite() && rb.is_finite() {
                 dr.push((ra - rb) as f64);
                 z_lo = z_lo.min(z);
@@ -43,11 +54,8 @@ fn radius_at_encoders(
             }
         }
     }
-    if dr.len() < MIN_RADIUS_CELLS || ((z_hi - z_lo + 1) as f64) * cell_z_mm < min_span_mm {
-        return None;
-    }
-    let mid = dr.len() / 2;
-    Some(*dr.select_nth_unstable_by(mid, f64::total_cmp).1)
+    let rows = if dr.is_empty() { 0 } else { z_hi - z_lo + 1 };
+    (dr, rows)
 }
 
 /// The strongest correlation of the coarse search away from its peak (more than two coarse cells
@@ -151,21 +159,10 @@ pub(super) fn measure_pair(
     let frac_s = sub_cell(ncc(ds - 1, dz).0, peak, ncc(ds + 1, dz).0);
     let frac_z = sub_cell_gaussian(ncc(ds, dz - 1).0, peak, ncc(ds, dz + 1).0);
     // Radial offset over the aligned overlap.
-    let mut dr = Vec::new();
-    for z in 0..pa.nz {
-        for s in 0..pa.ns {
-            let ra = pa.radius[z * pa.ns + s];
-            let rb = pb.at(&pb.radius, pa.s0 + s as i64 - ds - turn, pa.z0 + z as i64 - dz);
-            if ra.is_finite() && rb.is_finite() {
-                dr.push((ra - rb) as f64);
-            }
-        }
-    }
-    if dr.is_empty() {
+    let (mut dr, _) = radius_differences(pa, pb, turn, ds, dz);
+    let Some(shift_radius_mm) = median(&mut dr) else {
         return Err(Refusal { radius_shift_mm: None, ..refused(PairStatus::NoData) });
-    }
-    let median = dr.len() / 2;
-    let shift_radius_mm = *dr.select_nth_unstable_by(median, f64::total_cmp).1;
+    };
     Ok(PairMeasure {
         a,
         b,
