@@ -180,3 +180,45 @@ fn station_suites_share_no_seed() {
     assert!(tuning.is_disjoint(&bench) && tuning.is_disjoint(&check) && bench.is_disjoint(&check));
     assert_eq!((tuning.len(), bench.len(), check.len()), (12, 40, 30));
 }
+
+#[test]
+fn the_station_table_reads_each_coverage_on_its_independent_bins() {
+    let at_station = |coverage: f64, effective: f64| {
+        let mut r = result("standard", 7.0, 4.0);
+        r.station = Some(crate::domain::station::Station {
+            projection: crate::domain::optics::Projection::Perspective,
+            object_pixel_mm: 0.08,
+            depth_of_field_mm: 0.3,
+            frame_step_mm: 0.2,
+            frame_step_dof: 0.67,
+            frames_per_view: 20,
+            views: 12,
+            axial_rows: 1,
+            view_spacing_deg: Some(30.0),
+            overlap_deg: Some(4.0),
+            frame_noise_percent: None,
+            class: None,
+        });
+        r.accuracy.uncertainty_coverage = Some(coverage);
+        r.accuracy.uncertainty_ratio_p95 = Some(0.8);
+        r.accuracy.uncertainty_effective_bins = Some(effective);
+        let (lo, hi) = crate::numeric::calibration::share_interval(
+            (coverage * effective).round() as usize,
+            effective as usize,
+            0.95,
+        );
+        r.accuracy.uncertainty_coverage_interval = Some([lo, hi]);
+        r
+    };
+    // All of 10 independent errors covered reads 100% yet meets the band; 20 of 40 is below it;
+    // 990 of 1000 meets it without holding 95%.
+    let rows = [at_station(1.0, 10.0), at_station(0.5, 40.0), at_station(0.99, 1000.0)];
+    let table = super::table::station_table(&rows, &[]);
+    let medium = table.lines().find(|l| l.starts_with("| medium |")).unwrap();
+    assert!(medium.contains("| 1 / 1 / 1 |"), "{medium}");
+    assert!(medium.contains("| 2 / 0 / 1 (1) |"), "{medium}");
+    // Over the class's 1050 independent bins: 10 + 20 + 990 covered.
+    assert!(medium.contains("(97.1% [") && medium.contains("on 1050)"), "{medium}");
+    let first = table.lines().nth(2).unwrap();
+    assert!(first.contains("100.0% (0.80) [69–100% on 10]"), "{first}");
+}
