@@ -1,23 +1,13 @@
 //! Each crest bin's brightness as the crest stage reads it, for a simulated bundle: one line per
-//! bin (thread, angle, crest gray, height, crest z and radius), to set against the truth's black arcs offline. A
-//! working tool for the notebook (docs/notebook/accuracy.md), not part of the product.
+//! bin (thread, angle, crest gray, height, crest z and radius), to set against the truth's black
+//! arcs offline. A working tool for the notebook (docs/notebook/accuracy.md), not part of the
+//! product.
 //!
 //! cargo run --release --example crest_diag -- BUNDLE_DIR [OPTIONS_JSON] > bins.tsv
-use crestscan::bundle::{Bundle, OpenOptions};
-use crestscan::domain::thread::ConnectionTable;
-use crestscan::pipeline::PipelineOptions;
+mod common;
 
 fn main() {
-    let args: Vec<String> = std::env::args().collect();
-    let dir = std::path::Path::new(&args[1]);
-    let options: PipelineOptions = match args.get(2) {
-        Some(f) => PipelineOptions::default()
-            .overridden_by(serde_json::from_slice(&std::fs::read(f).unwrap()).unwrap())
-            .unwrap(),
-        None => PipelineOptions::default(),
-    };
-    let table = ConnectionTable::api5b();
-    let bundle = Bundle::open(dir, &table, OpenOptions::default()).unwrap();
+    let (_, bundle, options) = common::bundle_and_options();
     let inspection = crestscan::pipeline::inspect(&bundle, &options, &|_, _| {}, &Default::default())
         .unwrap()
         .expect("not cancelled");

@@ -3,26 +3,16 @@
 //! working tool for the notebook (docs/notebook/accuracy.md), not part of the product.
 //!
 //! cargo run --release --example depth_diag -- BUNDLE_DIR [OPTIONS_JSON]
-use crestscan::bundle::{Bundle, OpenOptions};
+mod common;
+
 use crestscan::domain::frame::FrameError;
-use crestscan::domain::thread::ConnectionTable;
-use crestscan::pipeline::PipelineOptions;
 use crestscan::pipeline::depth::{DepthMap, depth_from_focus, equalize_sub_frame_phase, even_frame_grid};
 
 const VIEWS: usize = 12;
 const BINS: usize = 8;
 
 fn main() {
-    let args: Vec<String> = std::env::args().collect();
-    let dir = std::path::Path::new(&args[1]);
-    let options: PipelineOptions = match args.get(2) {
-        Some(f) => PipelineOptions::default()
-            .overridden_by(serde_json::from_slice(&std::fs::read(f).unwrap()).unwrap())
-            .unwrap(),
-        None => PipelineOptions::default(),
-    };
-    let table = ConnectionTable::api5b();
-    let bundle = Bundle::open(dir, &table, OpenOptions::default()).unwrap();
+    let (dir, bundle, options) = common::bundle_and_options();
     let optics = bundle.optics.clone();
     let depth_options = options.depth.for_form(&bundle.part.form);
     let views: Vec<_> = bundle.views.iter().take(VIEWS).collect();
