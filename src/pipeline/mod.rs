@@ -189,7 +189,7 @@ fn run_stages(
         &registered.registration,
         recording.views(),
         &assessment,
-        &quality::SurfaceFit::of(&helix, part, depth_coverage),
+        &quality::SurfaceFit::of(&helix, part, depth_coverage, station.view_spacing_deg.unwrap_or(360.0)),
     );
     if let Some(m) = &depth_model {
         quality.flag(
@@ -236,7 +236,8 @@ fn run_stages(
             station: &station,
             focus_window_radius_px: options.depth.for_form(&part.form).window_radius_px,
             pipe_radius_mm: part.pipe_od_mm / 2.0,
-            nominal_height_mm: part.form.height_mm,
+            form: &part.form,
+            helix: &helix,
             registration: &registered.registration,
             end_face: registered.end_face.as_ref(),
             crests: &rule_input.threads,

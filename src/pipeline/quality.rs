@@ -56,6 +56,9 @@ pub enum QualityCode {
     /// Depth came from the U-Nets (`depth.method: cnn`): the method's uncertainty was measured for
     /// the classical depth, not for the nets'.
     DepthLearned,
+    /// Too few sectors of the circumference read the helix phase, or their readings scatter over
+    /// the pitch: the heights' windows may sit anywhere between crest and root.
+    HelixPhaseUnknown,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
@@ -106,11 +109,23 @@ pub struct SurfaceFit {
     pub helix_fit_rms_um: f64,
     pub thread_height_mm: f64,
     pub depth_coverage: f64,
+    /// Sectors of the circumference that read the helix phase, and whether the phase is unknown
+    /// within the pitch ([`Helix::phase_uncertainty`]).
+    pub phase_sectors: usize,
+    pub phase_unknown: bool,
 }
 
 impl SurfaceFit {
-    pub fn of(helix: &Helix, part: &Part, depth_coverage: f64) -> Self {
-        Self { helix_fit_rms_um: helix.fit_rms_um, thread_height_mm: part.form.height_mm, depth_coverage }
+    /// `sector_deg`: the views' spacing, over which one view's pose error is shared.
+    pub fn of(helix: &Helix, part: &Part, depth_coverage: f64, sector_deg: f64) -> Self {
+        let phase = helix.phase_uncertainty(&part.form, sector_deg);
+        Self {
+            helix_fit_rms_um: helix.fit_rms_um,
+            thread_height_mm: part.form.height_mm,
+            depth_coverage,
+            phase_sectors: phase.sectors,
+            phase_unknown: phase.unknown,
+        }
     }
 }
 
@@ -157,6 +172,20 @@ pub fn assess(
                 surface.helix_fit_rms_um,
                 100.0 * HELIX_RESIDUAL_OF_HEIGHT,
                 height_um
+            ),
+        );
+    }
+    if surface.phase_unknown {
+        flag(
+            QualityStatus::Insufficient,
+            QualityCode::HelixPhaseUnknown,
+            format!(
+                "the helix phase was read on {} sector{} of the circumference (one view's spacing each) and the helix \
+                 fits the surface too loosely to bound it, or the sectors' readings scatter over the pitch: the \
+                 heights' windows may sit anywhere between crest and root, and each height's U takes in the whole \
+                 pitch",
+                surface.phase_sectors,
+                if surface.phase_sectors == 1 { "" } else { "s" }
             ),
         );
     }
@@ -339,7 +368,13 @@ mod tests {
 
     /// A surface the helix fits as on the standard preset (175 µm on a 1.575 mm thread).
     fn fit() -> SurfaceFit {
-        SurfaceFit { helix_fit_rms_um: 175.0, thread_height_mm: 1.575, depth_coverage: 0.9 }
+        SurfaceFit {
+            helix_fit_rms_um: 175.0,
+            thread_height_mm: 1.575,
+            depth_coverage: 0.9,
+            phase_sectors: 12,
+            phase_unknown: false,
+        }
     }
 
     #[test]
@@ -355,6 +390,12 @@ mod tests {
         let q = assess(&standard(), &all, &views(4), &covered(), &sparse);
         assert_eq!(q.reasons[0].code, QualityCode::DepthCoverageLow);
         assert!(q.reasons[0].message.contains("30%"), "{}", q.reasons[0].message);
+        // A phase read on one sector, with a residual that does not bound it: insufficient.
+        let lost = SurfaceFit { phase_sectors: 1, phase_unknown: true, ..fit() };
+        let q = assess(&standard(), &all, &views(4), &covered(), &lost);
+        assert_eq!((q.status, q.reasons[0].code), (QualityStatus::Insufficient, QualityCode::HelixPhaseUnknown));
+        assert!(q.reasons[0].message.contains("on 1 sector of"), "{}", q.reasons[0].message);
+        assert!(q.needs_review());
     }
 
     fn covered() -> Assessment {

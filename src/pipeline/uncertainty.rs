@@ -35,8 +35,9 @@ use crate::domain::station::Station;
 use crate::numeric::runs::run_spans;
 use crate::numeric::sequence::local_noise;
 use crate::numeric::stats::median;
+use crate::domain::thread::ThreadForm;
 use crate::pipeline::crest::{self, CrestOptions};
-use crate::pipeline::profile::ThreadMeasure;
+use crate::pipeline::profile::{self, Helix, ThreadMeasure};
 use crate::pipeline::quality::{Quality, QualityCode, QualityStatus};
 use crate::pipeline::register::{EndFace, PairMeasure, Registration};
 use serde::{Deserialize, Serialize};
@@ -69,6 +70,20 @@ pub struct UncertaintyBudget {
     /// bin; the median over the bins of the noise's (Type A).
     pub method_um: f64,
     pub registration_um: f64,
+    /// The helix phase: the standard uncertainty of a bin's windows' place along z (µm), the
+    /// sectors of the circumference that read it, whether it is unknown within the pitch (fewer
+    /// than three sectors and a fit residual too large to bound it, or sectors scattering by
+    /// p/√12 or more), and the standard uncertainty that puts on a height (µm): the RMS change of
+    /// the nominal form's fitted height over that distribution
+    /// ([`profile::phase_height_rms_mm`], [`profile::PhaseUncertainty`]).
+    #[serde(default)]
+    pub helix_phase_um: f64,
+    #[serde(default)]
+    pub helix_phase_sectors: usize,
+    #[serde(default)]
+    pub helix_phase_unknown: bool,
+    #[serde(default)]
+    pub helix_phase_height_um: f64,
     pub noise_median_um: Option<f64>,
     /// Where the measurement failed its checks ([`measurement_failed`]) and the method's Type B
     /// term is unknown, two standard uncertainties every height carries besides the others, µm
@@ -113,8 +128,9 @@ pub struct Scales<'a> {
     /// Half size of the depth stage's focus window, pixels.
     pub focus_window_radius_px: usize,
     pub pipe_radius_mm: f64,
-    /// The thread form's nominal height, mm.
-    pub nominal_height_mm: f64,
+    pub form: &'a ThreadForm,
+    /// The helix the heights' windows were placed by: its phase readings' scatter.
+    pub helix: &'a Helix,
     pub registration: &'a Registration,
     pub end_face: Option<&'a EndFace>,
     /// The crest stage's findings per thread, bin for bin with the heights: which crests are black.
@@ -137,6 +153,7 @@ pub fn measurement_failed(quality: &Quality, station: &Station) -> bool {
             matches!(
                 r.code,
                 QualityCode::HelixResidualLarge
+                    | QualityCode::HelixPhaseUnknown
                     | QualityCode::DepthCoverageLow
                     | QualityCode::ProfileCorrected
                     | QualityCode::DepthLearned
@@ -177,7 +194,7 @@ pub fn heights(
     // thread; the run-out threads' shallow profiles read 0.2 mm high at others): its median's
     // distance from nominal bounds that. A thread with too few heights of its own takes the part's.
     let (part_from_nominal_mm, thread_from_nominal_mm) = if failed {
-        from_nominal(threads, &machined, scales.nominal_height_mm)
+        from_nominal(threads, &machined, scales.form.height_mm)
     } else {
         (0.0, vec![None; threads.len()])
     };
@@ -192,6 +209,11 @@ pub fn heights(
     };
     // A fused cell averages the views that saw it: half the pairs' radial disagreement.
     let registration_mm = 0.5 * pairs_rms(&|p| 1e-3 * p.residual_radius_um);
+    // Windows placed by the one helix sit off the crests of a view whose own phase departs from
+    // it, and all of them off by z_h's own error: the height that costs on the nominal form. Shared
+    // by the bins of a view, so a thread's mean carries it whole.
+    let phase = scales.helix.phase_uncertainty(scales.form, scales.station.view_spacing_deg.unwrap_or(360.0));
+    let phase_height_mm = profile::phase_height_rms_mm(scales.form, phase.error);
     // A bin's noise `s`, correlated over `correlation` bins, in a mean of `m` bins: neighbour
     // differences see 1/L of the variance, and the mean averages m/L independent ones (at most m).
     let noise_of = |s: f64, m: f64| s * (correlation * (correlation / m).min(1.0)).sqrt();
@@ -202,6 +224,7 @@ pub fn heights(
         k * (noise_mm.powi(2)
             + method_mm.powi(2)
             + registration_mm.powi(2)
+            + phase_height_mm.powi(2)
             + along_mm.powi(2)
             + from_nominal_mm.powi(2) / 3.0)
             .sqrt()
@@ -251,6 +274,10 @@ pub fn heights(
         coverage_factor: k,
         method_um: 1e3 * method_mm,
         registration_um: 1e3 * registration_mm,
+        helix_phase_um: 1e3 * phase.u_mm,
+        helix_phase_sectors: phase.sectors,
+        helix_phase_unknown: phase.unknown,
+        helix_phase_height_um: 1e3 * phase_height_mm,
         noise_median_um: part_noise.map(|s| 1e3 * s),
         along_helix_um: 1e3 * along_mm,
         from_nominal_um: 1e3 * part_from_nominal_mm,
@@ -692,6 +719,10 @@ mod tests {
             coverage_factor: 2.0,
             method_um: 2.0,
             registration_um: 0.0,
+            helix_phase_um: 0.0,
+            helix_phase_sectors: 36,
+            helix_phase_unknown: false,
+            helix_phase_height_um: 0.0,
             noise_median_um: Some(3.0),
             along_helix_um: 0.0,
             from_nominal_um: 0.0,
@@ -838,13 +869,29 @@ mod tests {
         }
     }
 
+    /// API 5B's buttress form, and a helix whose phase every bin read alike.
+    static BUTTRESS: std::sync::LazyLock<(ThreadForm, Helix)> = std::sync::LazyLock::new(|| {
+        let form = ThreadForm::api_buttress(5.08, 1.575, 0.0508, 0.0625).expect("a buttress form of the tests' nominal height");
+        let helix = Helix {
+            z_h_mm: 1.0,
+            pitch_mm: form.pitch_mm,
+            taper_on_diameter: 0.0625,
+            fit_rms_um: 100.0,
+            bins_used: 360,
+            amplitude_ratio: Some(1.0),
+            phase_readings: (0..360).map(|b| (b, 1.0)).collect(),
+        };
+        (form, helix)
+    });
+
     /// A buttress part's scales (5-pixel focus window, 5-bin height window, no end face).
     fn scales_of<'a>(st: &'a Station, registration: &'a Registration, crests: &'a [ThreadObservation]) -> Scales<'a> {
         Scales {
             station: st,
             focus_window_radius_px: 5,
             pipe_radius_mm: 57.15,
-            nominal_height_mm: 1.575,
+            form: &BUTTRESS.0,
+            helix: &BUTTRESS.1,
             registration,
             end_face: None,
             crests,

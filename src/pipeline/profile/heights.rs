@@ -329,3 +329,55 @@ pub fn smooth_along_helix(threads: &mut [ThreadMeasure], options: &ProfileOption
         bin.kept_bins = h.map_or(0, |(_, kept)| kept);
     }
 }
+
+/// A bin's height on the nominal form, measured as [`measure_threads_every`] measures it but by
+/// least squares, with its windows `offset_mm` along z from the crest and roots they are meant
+/// for. [`fit_at_centre`]'s robust steps would trim noiseless samples by the section's small
+/// misfit (a circle's quartic) and move the level by a micrometre at any shift; on measured data
+/// the noise keeps every sample of the window's own surface, as least squares does, and where a
+/// window reaches a flank least squares counts it whole, which errs on the cautious side.
+fn height_off_centre(form: &ThreadForm, offset_mm: f64) -> Option<f64> {
+    let kernel = form.kernel();
+    let (crest_half, root_half) = windows(form);
+    let (before, after) = form.root_centres_mm();
+    let (crest_section, root_section) = match nominal_curvatures(form) {
+        None => (Section::Flat, Section::Flat),
+        Some((crest_c, root_c)) => (Section::Parabola { c_per_mm: crest_c }, Section::Parabola { c_per_mm: root_c }),
+    };
+    // Samples 5 µm apart, far finer than any station's, so that the windows' content decides.
+    let fit = |centre: f64, half: f64, section: Section| -> Option<f64> {
+        let n = (2.0 * half / 0.005).ceil() as usize;
+        let levelled: Vec<(f64, f64)> = (0..=n)
+            .map(|i| -half + 2.0 * half * i as f64 / n as f64)
+            .map(|x| (x, kernel.height_at(centre + x + offset_mm) - section.offset_mm(x)))
+            .collect();
+        fit_line_checked(&levelled).map(|(a, _)| a)
+    };
+    let crest = fit(0.0, crest_half, crest_section)?;
+    let rb = fit(before, root_half, root_section)?;
+    let ra = fit(after, root_half, root_section)?;
+    Some(crest - (rb + (ra - rb) * (0.0 - before) / (after - before)))
+}
+
+/// The RMS change of a bin's height when its windows sit off their crest and roots by a phase
+/// error distributed as `error`, on the nominal form, as the profile stage fits it. On a flat crest
+/// it is nil until the windows reach a flank; on a round thread's arcs it grows with δ² from the
+/// start; at half a pitch the crest window sits on a root, and the height reads negative.
+pub fn phase_height_rms_mm(form: &ThreadForm, error: PhaseError) -> f64 {
+    let Some(at_centre) = height_off_centre(form, 0.0) else { return form.height_mm };
+    // A window that finds no fit reads nothing at all: its change is taken as the whole height.
+    let change = |offset: f64| height_off_centre(form, offset).map_or(form.height_mm, |h| h - at_centre);
+    let (sum_sq, weight) = match error {
+        PhaseError::Uniform { half_width_mm } if half_width_mm > 0.0 => (0..120)
+            .map(|i| (change(half_width_mm * (2.0 * (i as f64 + 0.5) / 120.0 - 1.0)).powi(2), 1.0))
+            .fold((0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1)),
+        PhaseError::Normal { sigma_mm } if sigma_mm > 0.0 => (0..81)
+            .map(|i| {
+                let z = -4.0 + 0.1 * i as f64;
+                (change(z * sigma_mm).powi(2) * (-0.5 * z * z).exp(), (-0.5 * z * z).exp())
+            })
+            .fold((0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1)),
+        _ => return 0.0,
+    };
+    (sum_sq / weight).sqrt()
+}

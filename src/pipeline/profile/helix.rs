@@ -65,6 +65,9 @@ pub fn estimate_helix(map: &UnrolledMap, form: &ThreadForm) -> Option<Helix> {
     let len = (g.nz * 4).next_power_of_two();
     let fft = FftPlanner::new().plan_fft_forward(len);
     let (mut sum_vec, mut slopes, mut used) = (Complex::new(0.0, 0.0), Vec::new(), 0usize);
+    let mut readings = Vec::new();
+    let mut amplitudes = Vec::new();
+    let nominal_amplitude = form_fundamental(form).norm();
     let mut per_bin = Vec::new();
     let mut buffer = vec![Complex::new(0.0, 0.0); len];
     for bin in 0..360 {
@@ -90,6 +93,8 @@ pub fn estimate_helix(map: &UnrolledMap, form: &ThreadForm) -> Option<Helix> {
         let z_crest = (phase_form - x.arg()) * p / TAU;
         let z_h = (z_crest - p * theta_deg / 360.0).rem_euclid(p);
         sum_vec += Complex::from_polar(1.0, TAU * z_h / p);
+        readings.push((bin as u16, z_h));
+        amplitudes.push(x.norm() / g.nz as f64 / nominal_amplitude);
         slopes.push(slope);
         per_bin.push((bin, a, slope, profile));
         used += 1;
@@ -120,6 +125,8 @@ pub fn estimate_helix(map: &UnrolledMap, form: &ThreadForm) -> Option<Helix> {
         taper_on_diameter: 2.0 * slope,
         fit_rms_um: 1e3 * (sq / n as f64).sqrt(),
         bins_used: used,
+        amplitude_ratio: median(&mut amplitudes),
+        phase_readings: readings,
     })
 }
 
@@ -161,8 +168,9 @@ pub fn refine_helix(map: &UnrolledMap, form: &ThreadForm, helix: &Helix, threads
     let profiles: Vec<(usize, Vec<f64>)> =
         (0..360).into_par_iter().filter_map(|bin| Some((bin, bin_generatrix(map, bin)?))).collect();
     let mut z_h_mm = helix.z_h_mm;
+    let mut readings = Vec::new();
     for _ in 0..2 {
-        let phasors: Vec<Option<Complex<f64>>> = profiles
+        let phasors: Vec<Option<(u16, Complex<f64>)>> = profiles
             .par_iter()
             .map(|(bin, profile)| {
                 let theta_deg = *bin as f64 + 0.5;
@@ -175,17 +183,18 @@ pub fn refine_helix(map: &UnrolledMap, form: &ThreadForm, helix: &Helix, threads
                 let fundamental = fundamental_beside_a_line(rows.iter().map(|&iz| (g.z_at(iz), profile[iz])), p)?;
                 let z_crest = (phase_form - fundamental.arg()) * p / TAU;
                 let z_h = (z_crest - p * theta_deg / 360.0).rem_euclid(p);
-                Some(Complex::from_polar(1.0, TAU * z_h / p))
+                Some((*bin as u16, Complex::from_polar(1.0, TAU * z_h / p)))
             })
             .collect();
         // Summed in bin order, so the result does not depend on the scheduling.
-        let sum: Complex<f64> = phasors.into_iter().flatten().sum();
+        let sum: Complex<f64> = phasors.iter().flatten().map(|(_, c)| c).sum();
         if sum.norm() == 0.0 {
             return helix.clone();
         }
         z_h_mm = (sum.arg() * p / TAU).rem_euclid(p);
+        readings = phasors.into_iter().flatten().map(|(bin, c)| (bin, (c.arg() * p / TAU).rem_euclid(p))).collect();
     }
-    Helix { z_h_mm, ..helix.clone() }
+    Helix { z_h_mm, phase_readings: readings, ..helix.clone() }
 }
 
 /// Harmonics fitted beside the fundamental in [`fundamental_beside_a_line`].
@@ -218,4 +227,121 @@ pub(super) fn fundamental_beside_a_line(samples: impl Iterator<Item = (f64, f64)
     let solution = ata.cholesky()?.solve(&atb);
     // r ⊃ c·cos + s·sin = Re((c − i·s)·exp(i·2πz/p)): the coefficient the DFT's phase reads.
     Some(Complex::new(solution[2], -solution[3]))
+}
+
+/// How far the windows the one helix places may sit from the crests they are meant for, from the
+/// generatrices' own phase readings ([`Helix::phase_readings`]), or where too few sectors read it,
+/// from the helix's fit residual.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PhaseUncertainty {
+    /// Sectors of the circumference (one view's spacing each) that read the phase: a view's pose
+    /// error moves all its generatrices together, so each sector is one independent reading.
+    pub sectors: usize,
+    /// RMS of the generatrices' readings about z_h, mm: where one view's crests sit off the helix.
+    pub spread_mm: f64,
+    /// How a bin's windows' place along z is distributed about the crest they are meant for.
+    pub error: PhaseError,
+    /// Its standard deviation, mm.
+    pub u_mm: f64,
+    /// The phase is not known within the pitch: uniform over it.
+    pub unknown: bool,
+}
+
+/// The distribution of a bin's windows' error along z.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum PhaseError {
+    /// Three or more sectors read the phase: normal, with the readings' spread and z_h's own
+    /// uncertainty from the sectors' scatter (Student's t on their degrees of freedom, so that the
+    /// coverage factor 2 gives 95%).
+    Normal { sigma_mm: f64 },
+    /// Fewer sectors, whose readings cannot show their own error: within ± the shift at which the
+    /// nominal form moved against itself differs by the helix's fit residual (the residual holds
+    /// the shift's difference and the noise, so the shift can be no larger), uniformly (GUM
+    /// 4.3.7); over the whole pitch where no shift reaches the residual.
+    Uniform { half_width_mm: f64 },
+}
+
+/// Student's t at 97.5% for `dof` degrees of freedom (conservative between the tabulated ones).
+fn student_t_975(dof: usize) -> f64 {
+    const TABLE: [(usize, f64); 14] = [
+        (1, 12.706),
+        (2, 4.303),
+        (3, 3.182),
+        (4, 2.776),
+        (5, 2.571),
+        (6, 2.447),
+        (7, 2.365),
+        (8, 2.306),
+        (9, 2.262),
+        (10, 2.228),
+        (12, 2.179),
+        (15, 2.131),
+        (20, 2.086),
+        (30, 2.042),
+    ];
+    if dof > 30 {
+        return 1.96;
+    }
+    TABLE.iter().rev().find(|(d, _)| *d <= dof).map_or(12.706, |(_, t)| *t)
+}
+
+/// The smallest shift along z at which the nominal form differs from itself by `rms_mm` RMS over
+/// a pitch; None where no shift up to half a pitch does.
+fn shift_of_residual(form: &ThreadForm, rms_mm: f64) -> Option<f64> {
+    let kernel = form.kernel();
+    let p = form.pitch_mm;
+    let samples: Vec<f64> = (0..400).map(|i| p * (i as f64 + 0.5) / 400.0).collect();
+    (1..=200).map(|k| p * k as f64 / 400.0).find(|&shift| {
+        let sq: f64 = samples.iter().map(|&x| (kernel.height_at(x) - kernel.height_at(x - shift)).powi(2)).sum();
+        (sq / samples.len() as f64).sqrt() > rms_mm
+    })
+}
+
+impl Helix {
+    /// The phase's uncertainty for `form` at a station whose views are `sector_deg` apart.
+    pub fn phase_uncertainty(&self, form: &ThreadForm, sector_deg: f64) -> PhaseUncertainty {
+        let p = self.pitch_mm;
+        // Each reading's departure from z_h, wrapped into [−p/2, p/2).
+        let departure = |z: f64| (z - self.z_h_mm + p / 2.0).rem_euclid(p) - p / 2.0;
+        let n = self.phase_readings.len();
+        let spread_mm = if n == 0 {
+            0.0
+        } else {
+            (self.phase_readings.iter().map(|(_, z)| departure(*z).powi(2)).sum::<f64>() / n as f64).sqrt()
+        };
+        let width = sector_deg.clamp(1.0, 360.0);
+        let mut sectors: std::collections::BTreeMap<usize, Complex<f64>> = Default::default();
+        for (bin, z) in &self.phase_readings {
+            *sectors.entry(((*bin as f64 + 0.5) / width) as usize).or_default() +=
+                Complex::from_polar(1.0, TAU * departure(*z) / p);
+        }
+        let means: Vec<f64> = sectors.values().map(|c| c.arg() * p / TAU).collect();
+        let k = means.len();
+        let uniform = |half_width_mm: f64| {
+            let half_width_mm = half_width_mm.min(p / 2.0);
+            PhaseUncertainty {
+                sectors: k,
+                spread_mm,
+                error: PhaseError::Uniform { half_width_mm },
+                u_mm: half_width_mm / 3f64.sqrt(),
+                unknown: half_width_mm >= p / 2.0,
+            }
+        };
+        if k < 3 {
+            // The surface's profile is the form's scaled by the amplitude ratio (depth from focus
+            // flattens it where the depth of field is a fair part of the height), and so is its
+            // difference from itself at a shift.
+            let scale = self.amplitude_ratio.unwrap_or(1.0).clamp(0.05, 1.0);
+            return uniform(shift_of_residual(form, 1e-3 * self.fit_rms_um / scale).unwrap_or(p / 2.0));
+        }
+        // About zero: z_h is the generatrices' mean, not the sectors', and the difference counts.
+        let between = (means.iter().map(|m| m * m).sum::<f64>() / (k - 1) as f64).sqrt();
+        let z_h_u = 0.5 * student_t_975(k - 1) * between / (k as f64).sqrt();
+        let sigma_mm = spread_mm.hypot(z_h_u);
+        // A normal distribution as wide as the pitch's uniform one says no more than it.
+        if sigma_mm >= p / 12f64.sqrt() {
+            return uniform(p / 2.0);
+        }
+        PhaseUncertainty { sectors: k, spread_mm, error: PhaseError::Normal { sigma_mm }, u_mm: sigma_mm, unknown: false }
+    }
 }

@@ -13,8 +13,8 @@ mod heights;
 mod helix;
 pub mod pitch;
 
-pub use heights::{crest_window_half_mm, measure_threads, smooth_along_helix, survey_threads};
-pub use helix::{estimate_helix, refine_helix};
+pub use heights::{crest_window_half_mm, measure_threads, phase_height_rms_mm, smooth_along_helix, survey_threads};
+pub use helix::{PhaseError, PhaseUncertainty, estimate_helix, refine_helix};
 
 use crate::domain::thread::{ProfileShape, ThreadForm};
 use crate::numeric::lsq::fit_line;
@@ -37,6 +37,15 @@ pub struct Helix {
     /// RMS of the analytic profile (nominal form at the measured phase, taper line) against data.
     pub fit_rms_um: f64,
     pub bins_used: usize,
+    /// The measured profile's fundamental over the nominal form's (median over the bins used):
+    /// under 1 where depth from focus flattens the profile. None in reports stored before it was.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub amplitude_ratio: Option<f64>,
+    /// Each 1° bin's own reading of z_h (bin, mm), from the generatrices the phase was combined
+    /// over: where they disagree, windows placed by the one helix sit off some crests
+    /// ([`Helix::phase_uncertainty`]). Not reported.
+    #[serde(skip)]
+    pub phase_readings: Vec<(u16, f64)>,
 }
 
 /// One thread at one 1° bin.

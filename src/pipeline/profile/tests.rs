@@ -240,3 +240,104 @@ fn auto_corrects_only_where_the_pixels_are_coarser_than_its_bound() {
     // classical.
     assert!(!Correction::Auto.wanted(0.045, bound));
 }
+
+fn helix_read_at(readings: Vec<(u16, f64)>) -> Helix {
+    Helix {
+        z_h_mm: 0.01,
+        pitch_mm: 5.08,
+        taper_on_diameter: 0.0625,
+        fit_rms_um: 100.0,
+        bins_used: readings.len(),
+        amplitude_ratio: Some(1.0),
+        phase_readings: readings,
+    }
+}
+
+fn buttress() -> ThreadForm {
+    ThreadForm::api_buttress(5.08, 1.5748, 0.0508, 0.0625).unwrap()
+}
+
+/// Every sector of the circumference reading the same phase leaves nothing to doubt; views whose
+/// crests sit off the helix by ±a move the windows by a, and z_h by their scatter; readings that
+/// scatter over the pitch say nothing.
+#[test]
+fn the_phase_is_known_as_far_as_independent_sectors_agree() {
+    let (form, p) = (buttress(), 5.08);
+    // Readings wrap: p reads 0.01 mm before z_h = 0.01, not a pitch after it.
+    let agreed = helix_read_at((0..360).map(|b| (b, if b % 2 == 0 { 0.02 } else { p })).collect());
+    let u = agreed.phase_uncertainty(&form, 10.0);
+    assert_eq!((u.sectors, u.unknown), (36, false));
+    assert!(u.spread_mm > 0.0099 && u.spread_mm < 0.0101, "{u:?}");
+    assert!(u.u_mm < 0.011, "{u:?}");
+    // Twelve views 30° apart, alternately 0.1 mm before and after the helix.
+    let a = 0.1;
+    let staggered = helix_read_at((0..360).map(|b| (b, 0.01 + if (b / 30) % 2 == 0 { a } else { -a })).collect())
+        .phase_uncertainty(&form, 30.0);
+    assert_eq!((staggered.sectors, staggered.unknown), (12, false));
+    assert!((staggered.spread_mm - a).abs() < 1e-9, "{staggered:?}");
+    // z_h's own uncertainty: t(11)·a·√(12/11)/√12 / 2, conservatively with t(10) = 2.228.
+    let z_h_u = 0.5 * 2.228 * a * (12.0f64 / 11.0).sqrt() / 12f64.sqrt();
+    assert!((staggered.u_mm - a.hypot(z_h_u)).abs() < 1e-9, "{staggered:?}");
+    assert_eq!(staggered.error, PhaseError::Normal { sigma_mm: staggered.u_mm });
+    // Views scattered over the whole pitch: unknown, though many.
+    let scattered = helix_read_at((0..360).map(|b| (b, 0.01 + p * ((b / 30) as f64 / 12.0))).collect())
+        .phase_uncertainty(&form, 30.0);
+    assert!(scattered.unknown, "{scattered:?}");
+}
+
+/// Two neighbouring bins of one view cannot show their view's error: the phase is bounded by the
+/// helix's fit residual instead, the tighter the closer the form fits, and not at all where the
+/// residual is as large as the form's difference from itself half a pitch away.
+#[test]
+fn one_views_phase_is_bounded_by_the_fit_residual() {
+    let (form, p) = (buttress(), 5.08);
+    let one_view = |fit_rms_um| Helix { fit_rms_um, ..helix_read_at(vec![(40, 0.01), (41, 0.01)]) };
+    let half_width = |u: &PhaseUncertainty| match u.error {
+        PhaseError::Uniform { half_width_mm } => half_width_mm,
+        PhaseError::Normal { .. } => panic!("one sector read the phase: {u:?}"),
+    };
+    let tight = one_view(100.0).phase_uncertainty(&form, 18.0);
+    let loose = one_view(600.0).phase_uncertainty(&form, 18.0);
+    assert_eq!((tight.sectors, tight.unknown, loose.unknown), (1, false, false));
+    assert!(0.0 < half_width(&tight) && half_width(&tight) < half_width(&loose), "{tight:?} {loose:?}");
+    assert!((tight.u_mm - half_width(&tight) / 3f64.sqrt()).abs() < 1e-12);
+    // A residual of the whole thread height: no shift accounts for it.
+    let none = one_view(1575.0).phase_uncertainty(&form, 18.0);
+    assert!(none.unknown && half_width(&none) == p / 2.0, "{none:?}");
+    assert_eq!(helix_read_at(vec![]).phase_uncertainty(&form, 18.0).sectors, 0);
+}
+
+/// On a flat crest and root the windows can move by the flats' spare width and read the same
+/// height; on a round thread's arcs (circles of radius ρ, fitted as parabolas over windows of half
+/// width w) a shift δ lowers the crest's fit by about δ²·(1/2ρ + w²/4ρ³) and raises the roots' alike,
+/// so over δ ~ N(0, u²) the RMS change is √3·κ·u² with κ the sum of the two; a phase unknown
+/// within the pitch puts windows on flanks and roots, and costs most of a height.
+#[test]
+fn a_windows_phase_error_costs_what_the_form_says() {
+    let buttress = buttress();
+    let ProfileShape::Trapezoid { load_flank_deg, stab_flank_deg, crest_width_mm } = buttress.profile else {
+        unreachable!()
+    };
+    let root_mm = buttress.pitch_mm
+        - crest_width_mm
+        - buttress.height_mm * (load_flank_deg.to_radians().tan() + stab_flank_deg.to_radians().tan());
+    // Windows are 60% of a flat: 20% of it spare either side, and δ reaches 4σ.
+    let spare_mm = 0.2 * crest_width_mm.min(root_mm);
+    let normal = |sigma_mm| PhaseError::Normal { sigma_mm };
+    assert!(phase_height_rms_mm(&buttress, normal(0.9 * spare_mm / 4.0)) < 1e-9);
+    assert!(phase_height_rms_mm(&buttress, PhaseError::Uniform { half_width_mm: 0.9 * spare_mm }) < 1e-9);
+    assert!(phase_height_rms_mm(&buttress, normal(2.0 * spare_mm)) > 1e-3);
+    let whole_pitch = PhaseError::Uniform { half_width_mm: buttress.pitch_mm / 2.0 };
+    assert!(phase_height_rms_mm(&buttress, whole_pitch) > 0.5 * buttress.height_mm);
+    let round = ThreadForm::api_round(3.175, 1.80975, 0.0508, 0.0625, Some(0.4318)).unwrap();
+    let (rho_crest, rho_root) = round.arc_radii_mm().unwrap();
+    let (w_crest, w_root) = crate::pipeline::profile::heights::windows(&round);
+    let kappa_of = |rho: f64, w: f64| 0.5 / rho + w * w / (4.0 * rho.powi(3));
+    let kappa = kappa_of(rho_crest, w_crest) + kappa_of(rho_root, w_root);
+    let u = 0.005;
+    let expected = 3f64.sqrt() * kappa * u * u;
+    let got = phase_height_rms_mm(&round, normal(u));
+    // The circle's next term (x⁶, about 3% at these windows) is left out of κ.
+    assert!((got - expected).abs() < 0.05 * expected, "{got} against {expected}");
+}
+
