@@ -91,9 +91,15 @@ pub(super) fn shared_section(windows: &[&[(f64, f64)]], nominal_c_per_mm: f64) -
 /// (the line and the MAD are pulled by what is to be rejected), so the level is first taken as
 /// the mean of the half of the samples nearest their median, then of the half nearest that level
 /// until the level holds (least trimmed squares by concentration steps, on the level alone: a
-/// half can sit at one end of the window, where a tilt would be an extrapolation); then every
-/// sample within 3 robust scales of the level is kept and the line fitted to them.
-pub(super) fn fit_at_centre(samples: &[(f64, f64)], section: Section, half: f64) -> Option<f64> {
+/// half can sit at one end of the window, where a tilt would be an extrapolation). The window's
+/// own surface is then what lies within `separation_mm` of that level (half the thread height:
+/// the other surface is a whole height away), and the height is a least-squares line through it
+/// with one pass of rejection at 3 MAD about the line. Kept about the level alone instead, within
+/// 3 of its robust scales, a window that is a little tilted (a round crest read off its centre,
+/// the taper) lost samples at one end, and the line through the rest carried the section's misfit
+/// to the centre: held-out round threads had single bins 50 µm off (within 22 µm before), and an
+/// 11° false black arc (docs/notebook/accuracy.md).
+pub(super) fn fit_at_centre(samples: &[(f64, f64)], section: Section, half: f64, separation_mm: f64) -> Option<f64> {
     let (lo, hi) = samples.iter().fold((f64::MAX, f64::MIN), |(l, h), s| (l.min(s.0), h.max(s.0)));
     if lo > -0.5 * half || hi < 0.5 * half || samples.len() < 6 {
         return None;
@@ -119,10 +125,12 @@ pub(super) fn fit_at_centre(samples: &[(f64, f64)], section: Section, half: f64)
             break;
         }
     }
+    let own: Vec<(f64, f64)> = levelled.iter().copied().filter(|s| (s.1 - level).abs() <= separation_mm).collect();
+    let (a, b) = fit_line_checked(&own)?;
     abs.clear();
-    abs.extend(levelled.iter().map(|s| (s.1 - level).abs()));
-    let scale = (1.4826 * median(&mut abs).expect("at least six samples")).max(1e-6);
-    let kept: Vec<(f64, f64)> = levelled.iter().copied().filter(|s| (s.1 - level).abs() <= 3.0 * scale).collect();
+    abs.extend(own.iter().map(|&(x, r)| (r - a - b * x).abs()));
+    let mad = median(&mut abs).expect("at least six samples").max(1e-6);
+    let kept: Vec<(f64, f64)> = own.iter().copied().filter(|&(x, r)| (r - a - b * x).abs() <= 3.0 * 1.4826 * mad).collect();
     let (lo, hi) = kept.iter().fold((f64::MAX, f64::MIN), |(l, h), s| (l.min(s.0), h.max(s.0)));
     if lo > -0.5 * half || hi < 0.5 * half {
         return None; // what is kept lies to one side: the centre would be extrapolated
@@ -285,9 +293,10 @@ pub(super) fn measure_threads_every(
     let measured: Vec<BinMeasure> = pending
         .par_iter()
         .map(|w| {
-            let crest_r = fit_at_centre(&w.crest, crest_section, crest_half);
-            let rb = fit_at_centre(&w.root_before, root_section, root_half);
-            let ra = fit_at_centre(&w.root_after, root_section, root_half);
+            let separation = 0.5 * form.height_mm;
+            let crest_r = fit_at_centre(&w.crest, crest_section, crest_half, separation);
+            let rb = fit_at_centre(&w.root_before, root_section, root_half, separation);
+            let ra = fit_at_centre(&w.root_after, root_section, root_half, separation);
             // A root whose window reaches past the end face is not on the part (or is the chamfer):
             // there is no adjacent root to measure from. Nor is one whose window reaches into the
             // map's first cell on the part: that cell holds the end face's edge, whose silhouette

@@ -171,12 +171,12 @@ fn fixed_section_fit_recovers_the_centre_of_an_arc() {
     // An arc seen from x = −0.25 … 0.25 mm, tilted by the taper.
     let pts: Vec<(f64, f64)> =
         (0..=50).map(|i| -0.25 + 0.01 * i as f64).map(|x| (x, 10.0 + 0.03 * x - x * x / (2.0 * radius))).collect();
-    let centre = fit_at_centre(&pts, section, 0.25).unwrap();
+    let centre = fit_at_centre(&pts, section, 0.25, 0.9).unwrap();
     assert!((centre - 10.0).abs() < 1e-9, "{centre}");
     let measured = fit_curvature(&pts).unwrap();
     assert!((measured + 0.5 / radius).abs() < 1e-6, "{measured}");
     // Samples on one side only: an extrapolation, refused.
-    assert!(fit_at_centre(&pts[30..], section, 0.25).is_none());
+    assert!(fit_at_centre(&pts[30..], section, 0.25, 0.9).is_none());
 }
 
 /// A root window near a flank: two thirds of its samples on the root (with noise), a third that
@@ -205,7 +205,7 @@ fn contaminated_root_window(contaminated_share: f64) -> Vec<(f64, f64)> {
 fn a_window_fit_is_not_pulled_by_a_third_of_its_samples_from_the_other_surface() {
     for share in [0.0, 0.2, 0.35, 0.45] {
         let pts = contaminated_root_window(share);
-        let level = fit_at_centre(&pts, Section::Flat, 0.7).unwrap();
+        let level = fit_at_centre(&pts, Section::Flat, 0.7, 0.5 * 1.5748).unwrap();
         assert!((level - 50.0).abs() < 0.01, "{share}: {level}");
     }
     // The one-pass rejection this replaced: a least-squares line and 3 MAD about it keep the
@@ -225,7 +225,7 @@ fn a_window_whose_own_surface_lies_to_one_side_gives_no_value() {
     // The crest's depth over the window's last 60% is the majority: what is left of the root
     // sits at one end, and its centre would be an extrapolation.
     let pts = contaminated_root_window(0.6);
-    let level = fit_at_centre(&pts, Section::Flat, 0.7);
+    let level = fit_at_centre(&pts, Section::Flat, 0.7, 0.5 * 1.5748);
     assert!(level.is_none_or(|l| (l - 50.0 - 1.5748).abs() < 0.01), "{level:?}");
 }
 
