@@ -525,6 +525,12 @@ fn mesh_and_profile(
     run.progress(Stage::Mesh, 0.0);
     run.progress(Stage::Profile, 0.0);
     let form = &recording.part().form;
+    // Half a view's spacing, in 1° bins, either side of a bin for its local helix phase.
+    let local_phase_bins = options.profile.local_phase.then(|| {
+        let part = recording.part();
+        let station = domain::station::Station::of(recording.optics(), recording.views(), part.pipe_od_mm / 2.0);
+        (0.5 * station.view_spacing_deg.unwrap_or(360.0)).round() as usize
+    });
     fn timed<T>(f: impl FnOnce() -> T) -> (T, f64) {
         let started = Instant::now();
         let out = f();
@@ -536,7 +542,11 @@ fn mesh_and_profile(
             timed(|| {
                 let helix = profile::estimate_helix(map, form).map(|first| {
                     let threads = profile::survey_threads(map, form, &first, &options.profile);
-                    profile::refine_helix(map, form, &first, &threads)
+                    let refined = profile::refine_helix(map, form, &first, &threads);
+                    match local_phase_bins {
+                        Some(bins) => refined.with_local_phase(bins),
+                        None => refined,
+                    }
                 });
                 let threads = helix.as_ref().map(|h| profile::measure_threads(map, form, h, &options.profile));
                 (helix, threads)

@@ -880,6 +880,7 @@ mod tests {
             bins_used: 360,
             amplitude_ratio: Some(1.0),
             phase_readings: (0..360).map(|b| (b, 1.0)).collect(),
+            local_offsets_mm: Vec::new(),
         };
         (form, helix)
     });

@@ -257,7 +257,10 @@ pub(super) fn measure_threads_every(
                 .enumerate()
                 .map(|(t, thread)| {
                     let u_crest = (thread.index - 1) as f64;
+                    // The crest is where the helix puts it; the data show it where the bin's own
+                    // generatrices read it, and the windows go there.
                     let crest_z = helix.z_h_mm + p * (u_crest + centre_deg / 360.0);
+                    let u_crest = u_crest + helix.local_offset_mm(bin) / p;
                     let crest = window(columns.clone(), u_crest, crest_half);
                     let xy = |w: &[(f64, f64, f32)]| w.iter().map(|&(x, r, _)| (x, r)).collect::<Vec<_>>();
                     // Black is defined on the crest centre line: its brightness, not the whole flat's

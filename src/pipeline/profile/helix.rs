@@ -127,6 +127,7 @@ pub fn estimate_helix(map: &UnrolledMap, form: &ThreadForm) -> Option<Helix> {
         bins_used: used,
         amplitude_ratio: median(&mut amplitudes),
         phase_readings: readings,
+        local_offsets_mm: Vec::new(),
     })
 }
 
@@ -298,22 +299,62 @@ fn shift_of_residual(form: &ThreadForm, rms_mm: f64) -> Option<f64> {
 }
 
 impl Helix {
+    /// This helix with each 1° bin's crests read where the generatrices within `half_window_bins`
+    /// of it put them: the median of their readings' departures from z_h. A view placed
+    /// off along z (its encoder's axial error, or its angle's: a degree is a 360th of the pitch)
+    /// shows its crests off the helix over its own bins; windows placed by the one helix would sit
+    /// off them by as much, which on a round thread's arcs lowers the height with the square of the
+    /// offset. Half a view's spacing either side, so that a window's mean stays within one view or
+    /// the overlap two views share. Bins with readings at fewer than half the bins within reach
+    /// keep z_h.
+    pub fn with_local_phase(mut self, half_window_bins: usize) -> Helix {
+        let p = self.pitch_mm;
+        let mut by_bin: Vec<Option<f64>> = vec![None; 360];
+        for (bin, z) in &self.phase_readings {
+            if let Some(slot) = by_bin.get_mut(*bin as usize) {
+                *slot = Some((z - self.z_h_mm + p / 2.0).rem_euclid(p) - p / 2.0);
+            }
+        }
+        let w = half_window_bins.min(179) as isize;
+        self.local_offsets_mm = (0..360isize)
+            .map(|bin| {
+                let mut read: Vec<f64> =
+                    (-w..=w).filter_map(|k| by_bin[(bin + k).rem_euclid(360) as usize]).collect();
+                // Fewer readings than half the reach: the edge of what the views covered, whose
+                // few generatrices are the least reliable; the helix stands there. The median, so
+                // that one misread generatrix (a view's edge) does not move its neighbours.
+                if (read.len() as isize) < w + 1 { 0.0 } else { median(&mut read).unwrap_or(0.0) }
+            })
+            .collect();
+        self
+    }
+
+    /// Where bin `bin`'s crests lie along z relative to z_h, mm ([`Helix::with_local_phase`]).
+    pub fn local_offset_mm(&self, bin: usize) -> f64 {
+        self.local_offsets_mm.get(bin).copied().unwrap_or(0.0)
+    }
+
     /// The phase's uncertainty for `form` at a station whose views are `sector_deg` apart.
     pub fn phase_uncertainty(&self, form: &ThreadForm, sector_deg: f64) -> PhaseUncertainty {
         let p = self.pitch_mm;
         // Each reading's departure from z_h, wrapped into [−p/2, p/2).
         let departure = |z: f64| (z - self.z_h_mm + p / 2.0).rem_euclid(p) - p / 2.0;
         let n = self.phase_readings.len();
+        // Where the windows follow the local readings, what is left is each reading's departure
+        // from its neighbours' mean, and that mean's own error, taken as large.
+        let local = !self.local_offsets_mm.is_empty();
         let spread_mm = if n == 0 {
             0.0
         } else {
-            (self.phase_readings.iter().map(|(_, z)| departure(*z).powi(2)).sum::<f64>() / n as f64).sqrt()
+            let left = |(bin, z): &(u16, f64)| departure(*z - self.local_offset_mm(*bin as usize));
+            let rms = (self.phase_readings.iter().map(|r| left(r).powi(2)).sum::<f64>() / n as f64).sqrt();
+            if local { std::f64::consts::SQRT_2 * rms } else { rms }
         };
         let width = sector_deg.clamp(1.0, 360.0);
         let mut sectors: std::collections::BTreeMap<usize, Complex<f64>> = Default::default();
         for (bin, z) in &self.phase_readings {
             *sectors.entry(((*bin as f64 + 0.5) / width) as usize).or_default() +=
-                Complex::from_polar(1.0, TAU * departure(*z) / p);
+                Complex::from_polar(1.0, TAU * departure(*z - self.local_offset_mm(*bin as usize)) / p);
         }
         let means: Vec<f64> = sectors.values().map(|c| c.arg() * p / TAU).collect();
         let k = means.len();

@@ -46,6 +46,10 @@ pub struct Helix {
     /// ([`Helix::phase_uncertainty`]). Not reported.
     #[serde(skip)]
     pub phase_readings: Vec<(u16, f64)>,
+    /// Per 1° bin, where the generatrices about it read the crests along z relative to z_h, mm
+    /// ([`Helix::with_local_phase`]); empty: every bin at z_h. Not reported.
+    #[serde(skip)]
+    pub local_offsets_mm: Vec<f64>,
 }
 
 /// One thread at one 1° bin.
@@ -93,6 +97,10 @@ pub struct ProfileOptions {
     /// The correction model by name: a shipped one or one installed in the models folder
     /// (docs/models.md); none: the shipped model.
     pub correction_model: Option<String>,
+    /// Place each bin's windows where the generatrices within half a view's spacing of it read the
+    /// crests ([`Helix::with_local_phase`]), rather than at the one helix: a view placed off along
+    /// z shows its crests off the helix.
+    pub local_phase: bool,
 }
 
 /// Whether the profile-correction MLP runs.
@@ -123,6 +131,7 @@ impl Default for ProfileOptions {
             correction: Correction::default(),
             correction_min_pixel_mm: 0.06,
             correction_model: None,
+            local_phase: true,
         }
     }
 }

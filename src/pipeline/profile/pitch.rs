@@ -113,9 +113,9 @@ pub fn pitch_profiles(
     jobs.par_iter()
         .filter_map(|&(t, k)| {
             let bin = &threads[t].bins[k];
-            let u_crest = (threads[t].index - 1) as f64;
-            let (lo, hi) = (u_crest + before / p, u_crest + after / p);
             let bin_index = (bin.angle_deg - 0.5).round().clamp(0.0, 359.0) as usize;
+            let u_crest = (threads[t].index - 1) as f64 + helix.local_offset_mm(bin_index) / p;
+            let (lo, hi) = (u_crest + before / p, u_crest + after / p);
             // A sample at u = hi falls past the last slot, which resample leaves out.
             let samples: Vec<(f64, f64)> = heights::samples_in_u(map, helix, g.bin_columns(bin_index), lo, hi)
                 .into_iter()

@@ -250,6 +250,7 @@ fn helix_read_at(readings: Vec<(u16, f64)>) -> Helix {
         bins_used: readings.len(),
         amplitude_ratio: Some(1.0),
         phase_readings: readings,
+        local_offsets_mm: Vec::new(),
     }
 }
 
@@ -341,3 +342,42 @@ fn a_windows_phase_error_costs_what_the_form_says() {
     assert!((got - expected).abs() < 0.05 * expected, "{got} against {expected}");
 }
 
+
+/// A quarter of the ring seen by a view placed 0.2 mm off along z shows its crests there; on a
+/// round thread, windows left at the one helix sit off those crests and read the heights low
+/// (the arcs fall away with the square of the offset), while windows placed by the bins' own
+/// phase readings read them as elsewhere.
+#[test]
+fn windows_follow_the_crests_of_a_view_placed_off_along_z() {
+    let form = ThreadForm::api_round(3.175, 1.80975, 0.0508, 0.0625, Some(0.4318)).unwrap();
+    let (z_h, shift_mm) = (0.7, 0.2);
+    let (mut map, form) = ideal_map_of(form, z_h, 0.0);
+    let g = map.grid.clone();
+    for iz in 0..g.nz {
+        for it in 0..g.ntheta {
+            let (z, theta) = (g.z_at(iz), g.theta_deg_at(it));
+            if (90.0..180.0).contains(&theta) {
+                let i = map.index(iz, it);
+                let r = 55.0 + z * form.radius_slope() + form.height_at(z - shift_mm - z_h - form.pitch_mm * theta / 360.0);
+                map.radius_mm[i] = r as f32;
+            }
+        }
+    }
+    let options = ProfileOptions::default();
+    let first = estimate_helix(&map, &form).unwrap();
+    let helix = refine_helix(&map, &form, &first, &survey_threads(&map, &form, &first, &options));
+    // Worst error over the shifted quarter, away from its edges, on the full threads.
+    let worst_um = |h: &Helix| {
+        let threads = measure_threads(&map, &form, h, &options);
+        threads[2..6]
+            .iter()
+            .flat_map(|t| t.bins[100..170].iter().filter_map(|b| b.height_mm))
+            .map(|v| 1e3 * (v - form.height_mm).abs())
+            .fold(0.0, f64::max)
+    };
+    let global = worst_um(&helix);
+    let local = worst_um(&helix.clone().with_local_phase(5));
+    assert!(global > 20.0, "windows at the one helix: {global} µm");
+    assert!(local < 0.2 * global, "windows at the local phase: {local} µm against {global}");
+    assert!((helix.clone().with_local_phase(5).local_offset_mm(135) - 0.75 * shift_mm).abs() < 0.02);
+}
