@@ -238,7 +238,9 @@ pub struct PhaseUncertainty {
     /// Sectors of the circumference (one view's spacing each) that read the phase: a view's pose
     /// error moves all its generatrices together, so each sector is one independent reading.
     pub sectors: usize,
-    /// RMS of the generatrices' readings about z_h, mm: where one view's crests sit off the helix.
+    /// RMS of the generatrices' readings about where the windows sit, mm: about z_h (where one
+    /// view's crests sit off the helix), or about their bins' local phase where the windows follow
+    /// it ([`Helix::with_local_phase`]), then times √2 for that local median's own error.
     pub spread_mm: f64,
     /// How a bin's windows' place along z is distributed about the crest they are meant for.
     pub error: PhaseError,
@@ -251,8 +253,8 @@ pub struct PhaseUncertainty {
 /// The distribution of a bin's windows' error along z.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum PhaseError {
-    /// Three or more sectors read the phase: normal, with the readings' spread and z_h's own
-    /// uncertainty from the sectors' scatter (Student's t on their degrees of freedom, so that the
+    /// Three or more sectors read the phase: normal, with the readings' spread and the windows'
+    /// common error from the sectors' scatter (Student's t on their degrees of freedom, so that the
     /// coverage factor 2 gives 95%).
     Normal { sigma_mm: f64 },
     /// Fewer sectors, whose readings cannot show their own error: within ± the shift at which the
