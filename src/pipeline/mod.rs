@@ -174,22 +174,26 @@ fn run_stages(
     let registered = register_views(recording, options, &depth_maps, &mut run)?;
     let (map, map_implausible_share) =
         fuse_views(recording, options, &depth_maps, &registered.poses, &registered.encoder_z_ranges_mm, &mut run)?;
-    let (mesh, helix, mut threads, learned) =
-        mesh_and_profile(recording, options, models, &map, map_implausible_share, &mut run)?;
-    // The classical fits, for the training pairs (`eval::pairs`), whether or not the MLP ran.
-    let measured_threads = learned.classical.clone().unwrap_or_else(|| threads.clone());
-    let (assessment, crest, rule_input) = crest_and_rules(recording, options, &helix, &threads, &mut run);
     let part = recording.part();
     let station = domain::station::Station::of(recording.optics(), recording.views(), part.pipe_od_mm / 2.0)
         .with_frame_noise(crate::numeric::stats::median(
             &mut depth_maps.iter().filter_map(|d| d.frame_noise).map(|n| 100.0 * n).collect::<Vec<_>>(),
         ));
+    // One view's pose error moves all its generatrices: the views' spacing is the helix phase's
+    // sector, over which the windows' local phase is read and its readings count as one.
+    let sector_deg = station.view_spacing_deg.unwrap_or(360.0);
+    let (mesh, helix, mut threads, learned) =
+        mesh_and_profile(recording, options, models, &map, map_implausible_share, sector_deg, &mut run)?;
+    // The classical fits, for the training pairs (`eval::pairs`), whether or not the MLP ran.
+    let measured_threads = learned.classical.clone().unwrap_or_else(|| threads.clone());
+    let (assessment, crest, rule_input) = crest_and_rules(recording, options, &helix, &threads, &mut run);
+    let phase = helix.phase_uncertainty(&part.form, sector_deg);
     let mut quality = quality::assess(
         &station,
         &registered.registration,
         recording.views(),
         &assessment,
-        &quality::SurfaceFit::of(&helix, part, depth_coverage, station.view_spacing_deg.unwrap_or(360.0)),
+        &quality::SurfaceFit::of(&helix, part, depth_coverage, &phase),
     );
     if let Some(m) = &depth_model {
         quality.flag(
@@ -237,7 +241,7 @@ fn run_stages(
             focus_window_radius_px: options.depth.for_form(&part.form).window_radius_px,
             pipe_radius_mm: part.pipe_od_mm / 2.0,
             form: &part.form,
-            helix: &helix,
+            phase: &phase,
             registration: &registered.registration,
             end_face: registered.end_face.as_ref(),
             crests: &rule_input.threads,
@@ -520,17 +524,14 @@ fn mesh_and_profile(
     models: &crate::learned::Models,
     map: &UnrolledMap,
     map_implausible_share: f64,
+    sector_deg: f64,
     run: &mut Run,
 ) -> Step<(mesh::Mesh, Helix, Vec<ThreadMeasure>, Learned)> {
     run.progress(Stage::Mesh, 0.0);
     run.progress(Stage::Profile, 0.0);
     let form = &recording.part().form;
     // Half a view's spacing, in 1° bins, either side of a bin for its local helix phase.
-    let local_phase_bins = options.profile.local_phase.then(|| {
-        let part = recording.part();
-        let station = domain::station::Station::of(recording.optics(), recording.views(), part.pipe_od_mm / 2.0);
-        (0.5 * station.view_spacing_deg.unwrap_or(360.0)).round() as usize
-    });
+    let local_phase_bins = options.profile.local_phase.then(|| (0.5 * sector_deg).round() as usize);
     fn timed<T>(f: impl FnOnce() -> T) -> (T, f64) {
         let started = Instant::now();
         let out = f();

@@ -11,7 +11,7 @@ use crate::domain::frame::View;
 use crate::domain::part::Part;
 use crate::domain::rules::{Assessment, ReasonCode};
 use crate::domain::station::{self, Station};
-use crate::pipeline::profile::Helix;
+use crate::pipeline::profile::{Helix, PhaseUncertainty};
 use crate::pipeline::register::{PairStatus, Registration};
 use serde::{Deserialize, Serialize};
 
@@ -116,9 +116,8 @@ pub struct SurfaceFit {
 }
 
 impl SurfaceFit {
-    /// `sector_deg`: the views' spacing, over which one view's pose error is shared.
-    pub fn of(helix: &Helix, part: &Part, depth_coverage: f64, sector_deg: f64) -> Self {
-        let phase = helix.phase_uncertainty(&part.form, sector_deg);
+    /// `phase`: the helix phase's uncertainty ([`Helix::phase_uncertainty`]).
+    pub fn of(helix: &Helix, part: &Part, depth_coverage: f64, phase: &PhaseUncertainty) -> Self {
         Self {
             helix_fit_rms_um: helix.fit_rms_um,
             thread_height_mm: part.form.height_mm,

@@ -32,12 +32,12 @@
 use crate::domain::arcs::union_arcs;
 use crate::domain::rules::{self, ArcRule, RuleInput, ThreadObservation, Verdict};
 use crate::domain::station::Station;
+use crate::domain::thread::ThreadForm;
 use crate::numeric::runs::run_spans;
 use crate::numeric::sequence::local_noise;
 use crate::numeric::stats::median;
-use crate::domain::thread::ThreadForm;
 use crate::pipeline::crest::{self, CrestOptions};
-use crate::pipeline::profile::{self, Helix, ThreadMeasure};
+use crate::pipeline::profile::{self, PhaseUncertainty, ThreadMeasure};
 use crate::pipeline::quality::{Quality, QualityCode, QualityStatus};
 use crate::pipeline::register::{EndFace, PairMeasure, Registration};
 use serde::{Deserialize, Serialize};
@@ -129,8 +129,9 @@ pub struct Scales<'a> {
     pub focus_window_radius_px: usize,
     pub pipe_radius_mm: f64,
     pub form: &'a ThreadForm,
-    /// The helix the heights' windows were placed by: its phase readings' scatter.
-    pub helix: &'a Helix,
+    /// How far the heights' windows may sit from their crests
+    /// ([`profile::Helix::phase_uncertainty`]).
+    pub phase: &'a PhaseUncertainty,
     pub registration: &'a Registration,
     pub end_face: Option<&'a EndFace>,
     /// The crest stage's findings per thread, bin for bin with the heights: which crests are black.
@@ -193,11 +194,8 @@ pub fn heights(
     // to the thread's height compressing its profiles: at one random station, 0.35 mm of a 1.0 mm
     // thread; the run-out threads' shallow profiles read 0.2 mm high at others): its median's
     // distance from nominal bounds that. A thread with too few heights of its own takes the part's.
-    let (part_from_nominal_mm, thread_from_nominal_mm) = if failed {
-        from_nominal(threads, &machined, scales.form.height_mm)
-    } else {
-        (0.0, vec![None; threads.len()])
-    };
+    let (part_from_nominal_mm, thread_from_nominal_mm) =
+        if failed { from_nominal(threads, &machined, scales.form.height_mm) } else { (0.0, vec![None; threads.len()]) };
     // RMS over the measured pairs of one of their residuals (0 without pairs).
     let pairs = &scales.registration.pairs;
     let pairs_rms = |residual_mm: &dyn Fn(&PairMeasure) -> f64| {
@@ -212,7 +210,7 @@ pub fn heights(
     // Windows placed by the one helix sit off the crests of a view whose own phase departs from
     // it, and all of them off by z_h's own error: the height that costs on the nominal form. Shared
     // by the bins of a view, so a thread's mean carries it whole.
-    let phase = scales.helix.phase_uncertainty(scales.form, scales.station.view_spacing_deg.unwrap_or(360.0));
+    let phase = scales.phase;
     let phase_height_mm = profile::phase_height_rms_mm(scales.form, phase.error);
     // A bin's noise `s`, correlated over `correlation` bins, in a mean of `m` bins: neighbour
     // differences see 1/L of the variance, and the mean averages m/L independent ones (at most m).
@@ -678,7 +676,7 @@ pub fn judge_height(mean_mm: Option<f64>, u_mm: Option<f64>, nominal_mm: f64, to
 mod tests {
     use super::*;
     use crate::domain::thread::Family;
-    use crate::pipeline::profile::BinMeasure;
+    use crate::pipeline::profile::{BinMeasure, Helix};
     use crate::pipeline::quality::QualityReason;
 
     const PITCH: f64 = 5.08;
@@ -869,9 +867,10 @@ mod tests {
         }
     }
 
-    /// API 5B's buttress form, and a helix whose phase every bin read alike.
-    static BUTTRESS: std::sync::LazyLock<(ThreadForm, Helix)> = std::sync::LazyLock::new(|| {
-        let form = ThreadForm::api_buttress(5.08, 1.575, 0.0508, 0.0625).expect("a buttress form of the tests' nominal height");
+    /// API 5B's buttress form, and the phase of a helix that every bin read alike (views 10° apart).
+    static BUTTRESS: std::sync::LazyLock<(ThreadForm, PhaseUncertainty)> = std::sync::LazyLock::new(|| {
+        let form = ThreadForm::api_buttress(5.08, 1.575, 0.0508, 0.0625)
+            .expect("a buttress form of the tests' nominal height");
         let helix = Helix {
             z_h_mm: 1.0,
             pitch_mm: form.pitch_mm,
@@ -882,7 +881,8 @@ mod tests {
             phase_readings: (0..360).map(|b| (b, 1.0)).collect(),
             local_offsets_mm: Vec::new(),
         };
-        (form, helix)
+        let phase = helix.phase_uncertainty(&form, 10.0);
+        (form, phase)
     });
 
     /// A buttress part's scales (5-pixel focus window, 5-bin height window, no end face).
@@ -892,7 +892,7 @@ mod tests {
             focus_window_radius_px: 5,
             pipe_radius_mm: 57.15,
             form: &BUTTRESS.0,
-            helix: &BUTTRESS.1,
+            phase: &BUTTRESS.1,
             registration,
             end_face: None,
             crests,

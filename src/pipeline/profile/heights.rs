@@ -130,7 +130,8 @@ pub(super) fn fit_at_centre(samples: &[(f64, f64)], section: Section, half: f64,
     abs.clear();
     abs.extend(own.iter().map(|&(x, r)| (r - a - b * x).abs()));
     let mad = median(&mut abs).expect("at least six samples").max(1e-6);
-    let kept: Vec<(f64, f64)> = own.iter().copied().filter(|&(x, r)| (r - a - b * x).abs() <= 3.0 * 1.4826 * mad).collect();
+    let kept: Vec<(f64, f64)> =
+        own.iter().copied().filter(|&(x, r)| (r - a - b * x).abs() <= 3.0 * 1.4826 * mad).collect();
     let (lo, hi) = kept.iter().fold((f64::MAX, f64::MIN), |(l, h), s| (l.min(s.0), h.max(s.0)));
     if lo > -0.5 * half || hi < 0.5 * half {
         return None; // what is kept lies to one side: the centre would be extrapolated
@@ -293,10 +294,11 @@ pub(super) fn measure_threads_every(
             (shared_section(&crests, crest_c), shared_section(&roots, root_c))
         }
     };
+    // A window's own surface lies within half the thread height of its level; the other, a height away.
+    let separation = 0.5 * form.height_mm;
     let measured: Vec<BinMeasure> = pending
         .par_iter()
         .map(|w| {
-            let separation = 0.5 * form.height_mm;
             let crest_r = fit_at_centre(&w.crest, crest_section, crest_half, separation);
             let rb = fit_at_centre(&w.root_before, root_section, root_half, separation);
             let ra = fit_at_centre(&w.root_after, root_section, root_half, separation);
@@ -306,9 +308,7 @@ pub(super) fn measure_threads_every(
             // pulls the fused radius off the root (round thread 1's first bins read 25–50 µm high).
             let root_on_part = w.crest_z_mm + before - root_half > g.dz_mm;
             let height = match (crest_r, rb, ra) {
-                (Some(c), Some(b), Some(a)) if root_on_part => {
-                    Some(c - (b + (a - b) * (0.0 - before) / (after - before)))
-                }
+                (Some(c), Some(b), Some(a)) if root_on_part => Some(over_roots(c, b, a, before, after)),
                 _ => None,
             };
             BinMeasure {
@@ -368,7 +368,13 @@ fn height_off_centre(form: &ThreadForm, offset_mm: f64) -> Option<f64> {
     let crest = fit(0.0, crest_half, crest_section)?;
     let rb = fit(before, root_half, root_section)?;
     let ra = fit(after, root_half, root_section)?;
-    Some(crest - (rb + (ra - rb) * (0.0 - before) / (after - before)))
+    Some(over_roots(crest, rb, ra, before, after))
+}
+
+/// The crest's radius over the root line between the roots before and after it (their radii and
+/// their centres' offsets along z from the crest's): the contract's height.
+fn over_roots(crest_mm: f64, before_mm: f64, after_mm: f64, before_z_mm: f64, after_z_mm: f64) -> f64 {
+    crest_mm - (before_mm + (after_mm - before_mm) * (0.0 - before_z_mm) / (after_z_mm - before_z_mm))
 }
 
 /// The RMS change of a bin's height when its windows sit off their crest and roots by a phase
@@ -379,17 +385,18 @@ pub fn phase_height_rms_mm(form: &ThreadForm, error: PhaseError) -> f64 {
     let Some(at_centre) = height_off_centre(form, 0.0) else { return form.height_mm };
     // A window that finds no fit reads nothing at all: its change is taken as the whole height.
     let change = |offset: f64| height_off_centre(form, offset).map_or(form.height_mm, |h| h - at_centre);
-    let (sum_sq, weight) = match error {
-        PhaseError::Uniform { half_width_mm } if half_width_mm > 0.0 => (0..120)
-            .map(|i| (change(half_width_mm * (2.0 * (i as f64 + 0.5) / 120.0 - 1.0)).powi(2), 1.0))
-            .fold((0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1)),
-        PhaseError::Normal { sigma_mm } if sigma_mm > 0.0 => (0..81)
-            .map(|i| {
-                let z = -4.0 + 0.1 * i as f64;
-                (change(z * sigma_mm).powi(2) * (-0.5 * z * z).exp(), (-0.5 * z * z).exp())
-            })
-            .fold((0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1)),
+    // Quadrature nodes (offset, weight): the midpoints of 120 equal steps over a uniform
+    // distribution, or a normal's density at 0.1 σ steps out to 4 σ.
+    let nodes: Vec<(f64, f64)> = match error {
+        PhaseError::Uniform { half_width_mm } if half_width_mm > 0.0 => {
+            (0..120).map(|i| (half_width_mm * (2.0 * (i as f64 + 0.5) / 120.0 - 1.0), 1.0)).collect()
+        }
+        PhaseError::Normal { sigma_mm } if sigma_mm > 0.0 => {
+            (0..81).map(|i| -4.0 + 0.1 * i as f64).map(|z| (z * sigma_mm, (-0.5 * z * z).exp())).collect()
+        }
         _ => return 0.0,
     };
+    let (sum_sq, weight) =
+        nodes.iter().fold((0.0, 0.0), |(s, w), &(offset, weight)| (s + weight * change(offset).powi(2), w + weight));
     (sum_sq / weight).sqrt()
 }

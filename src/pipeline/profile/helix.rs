@@ -310,18 +310,16 @@ impl Helix {
     /// the overlap two views share. Bins with readings at fewer than half the bins within reach
     /// keep z_h.
     pub fn with_local_phase(mut self, half_window_bins: usize) -> Helix {
-        let p = self.pitch_mm;
         let mut by_bin: Vec<Option<f64>> = vec![None; 360];
         for (bin, z) in &self.phase_readings {
             if let Some(slot) = by_bin.get_mut(*bin as usize) {
-                *slot = Some((z - self.z_h_mm + p / 2.0).rem_euclid(p) - p / 2.0);
+                *slot = Some(self.departure_mm(*z));
             }
         }
         let w = half_window_bins.min(179) as isize;
         self.local_offsets_mm = (0..360isize)
             .map(|bin| {
-                let mut read: Vec<f64> =
-                    (-w..=w).filter_map(|k| by_bin[(bin + k).rem_euclid(360) as usize]).collect();
+                let mut read: Vec<f64> = (-w..=w).filter_map(|k| by_bin[(bin + k).rem_euclid(360) as usize]).collect();
                 // Fewer readings than half the reach: the edge of what the views covered, whose
                 // few generatrices are the least reliable; the helix stands there. The median, so
                 // that one misread generatrix (a view's edge) does not move its neighbours.
@@ -336,27 +334,35 @@ impl Helix {
         self.local_offsets_mm.get(bin).copied().unwrap_or(0.0)
     }
 
+    /// A phase reading's departure from z_h, wrapped into [−p/2, p/2), mm.
+    fn departure_mm(&self, z_mm: f64) -> f64 {
+        let p = self.pitch_mm;
+        (z_mm - self.z_h_mm + p / 2.0).rem_euclid(p) - p / 2.0
+    }
+
     /// The phase's uncertainty for `form` at a station whose views are `sector_deg` apart.
     pub fn phase_uncertainty(&self, form: &ThreadForm, sector_deg: f64) -> PhaseUncertainty {
         let p = self.pitch_mm;
-        // Each reading's departure from z_h, wrapped into [−p/2, p/2).
-        let departure = |z: f64| (z - self.z_h_mm + p / 2.0).rem_euclid(p) - p / 2.0;
-        let n = self.phase_readings.len();
+        // Each reading's departure from where its bin's windows sit: z_h, or the bin's local phase.
+        let left: Vec<(u16, f64)> = self
+            .phase_readings
+            .iter()
+            .map(|&(bin, z)| (bin, self.departure_mm(z - self.local_offset_mm(bin as usize))))
+            .collect();
         // Where the windows follow the local readings, what is left is each reading's departure
-        // from its neighbours' mean, and that mean's own error, taken as large.
+        // from its neighbours' median, and that median's own error, taken as large.
         let local = !self.local_offsets_mm.is_empty();
-        let spread_mm = if n == 0 {
+        let spread_mm = if left.is_empty() {
             0.0
         } else {
-            let left = |(bin, z): &(u16, f64)| departure(*z - self.local_offset_mm(*bin as usize));
-            let rms = (self.phase_readings.iter().map(|r| left(r).powi(2)).sum::<f64>() / n as f64).sqrt();
+            let rms = (left.iter().map(|(_, d)| d * d).sum::<f64>() / left.len() as f64).sqrt();
             if local { std::f64::consts::SQRT_2 * rms } else { rms }
         };
         let width = sector_deg.clamp(1.0, 360.0);
         let mut sectors: std::collections::BTreeMap<usize, Complex<f64>> = Default::default();
-        for (bin, z) in &self.phase_readings {
+        for (bin, d) in &left {
             *sectors.entry(((*bin as f64 + 0.5) / width) as usize).or_default() +=
-                Complex::from_polar(1.0, TAU * departure(*z - self.local_offset_mm(*bin as usize)) / p);
+                Complex::from_polar(1.0, TAU * d / p);
         }
         let means: Vec<f64> = sectors.values().map(|c| c.arg() * p / TAU).collect();
         let k = means.len();
@@ -385,6 +391,12 @@ impl Helix {
         if sigma_mm >= p / 12f64.sqrt() {
             return uniform(p / 2.0);
         }
-        PhaseUncertainty { sectors: k, spread_mm, error: PhaseError::Normal { sigma_mm }, u_mm: sigma_mm, unknown: false }
+        PhaseUncertainty {
+            sectors: k,
+            spread_mm,
+            error: PhaseError::Normal { sigma_mm },
+            u_mm: sigma_mm,
+            unknown: false,
+        }
     }
 }

@@ -342,7 +342,6 @@ fn a_windows_phase_error_costs_what_the_form_says() {
     assert!((got - expected).abs() < 0.05 * expected, "{got} against {expected}");
 }
 
-
 /// A quarter of the ring seen by a view placed 0.2 mm off along z shows its crests there; on a
 /// round thread, windows left at the one helix sit off those crests and read the heights low
 /// (the arcs fall away with the square of the offset), while windows placed by the bins' own
@@ -358,7 +357,8 @@ fn windows_follow_the_crests_of_a_view_placed_off_along_z() {
             let (z, theta) = (g.z_at(iz), g.theta_deg_at(it));
             if (90.0..180.0).contains(&theta) {
                 let i = map.index(iz, it);
-                let r = 55.0 + z * form.radius_slope() + form.height_at(z - shift_mm - z_h - form.pitch_mm * theta / 360.0);
+                let r =
+                    55.0 + z * form.radius_slope() + form.height_at(z - shift_mm - z_h - form.pitch_mm * theta / 360.0);
                 map.radius_mm[i] = r as f32;
             }
         }
