@@ -23,11 +23,14 @@ pub struct Manifest {
 
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct PartManifest {
-    /// The part's serial number, as the plant names it.
+    /// The part's serial number, as the plant names it: 1 to 128 characters, no control characters.
     #[serde(default)]
+    #[schema(min_length = 1, max_length = 128)]
     pub serial: Option<String>,
-    /// A designation of the API 5B connection table (`GET /v1/connections`): `BC 4-1/2`, `LC 5-1/2`.
+    /// A designation of the API 5B connection table (`GET /v1/connections`): `BC 4-1/2`, `LC 5-1/2`;
+    /// 1 to 64 characters.
     #[serde(default)]
+    #[schema(min_length = 1, max_length = 64)]
     pub connection: Option<String>,
     /// A custom thread form, or overrides of the connection's values; one of `connection` and
     /// `thread` is needed.
@@ -70,7 +73,8 @@ pub struct CustomThread {
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct ViewManifest {
-    /// Unique within the bundle.
+    /// Unique within the bundle; 1 to 64 characters.
+    #[schema(min_length = 1, max_length = 64)]
     pub id: String,
     pub pose: ViewPose,
     /// The focal stack, offsets growing from near to far; at least 3 frames.

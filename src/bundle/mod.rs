@@ -109,8 +109,10 @@ impl ErrorCode for BundleError {
             | BundleError::InconsistentFrames { path, .. }
             | BundleError::UnsafePath { path, .. } => Some(path.clone()),
             BundleError::Limit { culprit, .. } => culprit.clone(),
+            // The archive as a whole: the bundle sent.
+            BundleError::Archive { .. } => Some("bundle".into()),
             // The server's own file; not the client's business.
-            BundleError::Archive { .. } | BundleError::Io { .. } => None,
+            BundleError::Io { .. } => None,
         }
     }
 }
@@ -159,6 +161,7 @@ impl Bundle {
         let manifest = parse_manifest(&manifest_bytes)?;
         drop(manifest_bytes);
         check_counts(&manifest, options.limits)?;
+        check_texts(&manifest)?;
         let part = resolve_part(&manifest.part, table)?;
         manifest.optics.validate().map_err(|(field, message)| BundleError::Optics { field: field.into(), message })?;
         let views = validate_views(&manifest, &source, options.frame_check)?;
@@ -235,6 +238,35 @@ fn check_counts(manifest: &Manifest, limits: Limits) -> Result<(), BundleError> 
     Ok(())
 }
 
+/// A message of at most 300 characters (a parser's, which may quote a long value whole).
+fn shortened(message: &str) -> String {
+    const MAX: usize = 300;
+    match message.char_indices().nth(MAX) {
+        Some((at, _)) => format!("{}…", &message[..at]),
+        None => message.to_string(),
+    }
+}
+
+/// Every free text of the manifest within its cap (domain::text), checked before any of it is
+/// used, stored or quoted.
+fn check_texts(manifest: &Manifest) -> Result<(), BundleError> {
+    use crate::domain::text::{self, CONNECTION_CHARS, FRAME_PATH_CHARS, SERIAL_CHARS, VIEW_ID_CHARS};
+    let fail = |field: String, e: text::TextError| BundleError::Manifest { field, message: e.to_string() };
+    if let Some(serial) = &manifest.part.serial {
+        text::check(serial, SERIAL_CHARS).map_err(|e| fail("part.serial".into(), e))?;
+    }
+    if let Some(connection) = &manifest.part.connection {
+        text::check(connection, CONNECTION_CHARS).map_err(|e| fail("part.connection".into(), e))?;
+    }
+    for (i, view) in manifest.views.iter().enumerate() {
+        text::check(&view.id, VIEW_ID_CHARS).map_err(|e| fail(format!("views[{i}].id"), e))?;
+        for (j, frame) in view.frames.iter().enumerate() {
+            text::check(&frame.file, FRAME_PATH_CHARS).map_err(|e| fail(format!("views[{i}].frames[{j}].file"), e))?;
+        }
+    }
+    Ok(())
+}
+
 pub fn parse_manifest(bytes: &[u8]) -> Result<Manifest, BundleError> {
     // The version decides the shape, so it is checked before the typed parse.
     let value: serde_json::Value = serde_json::from_slice(bytes).map_err(|e| BundleError::Manifest {
@@ -243,15 +275,20 @@ pub fn parse_manifest(bytes: &[u8]) -> Result<Manifest, BundleError> {
     })?;
     match value.get("format") {
         Some(serde_json::Value::String(s)) if s == FORMAT_V1 => {}
-        Some(serde_json::Value::String(s)) => return Err(BundleError::FormatVersion { found: s.clone() }),
-        Some(other) => return Err(BundleError::FormatVersion { found: other.to_string() }),
+        Some(serde_json::Value::String(s)) => {
+            return Err(BundleError::FormatVersion { found: crate::domain::text::preview(s) });
+        }
+        Some(other) => {
+            return Err(BundleError::FormatVersion { found: crate::domain::text::preview(&other.to_string()) });
+        }
         None => {
             return Err(BundleError::Manifest { field: "format".into(), message: "is missing".into() });
         }
     }
     serde_path_to_error::deserialize::<_, Manifest>(value).map_err(|e| {
         let path = e.path().to_string();
-        let message = e.into_inner().to_string();
+        // serde quotes the value it could not take (an unknown variant): a long one is cut.
+        let message = shortened(&e.into_inner().to_string());
         if let Some(field) = path.strip_prefix("optics.") {
             BundleError::Optics { field: field.into(), message }
         } else {

@@ -157,13 +157,23 @@ pub(super) fn validate_views(
             return Err(BundleError::Manifest { field: at(".id"), message: format!("{:?} is used twice", view.id) });
         }
         let pose = &view.pose;
-        for (name, value) in
-            [("angle_deg", pose.angle_deg), ("axial_mm", pose.axial_mm), ("lens_radius_mm", pose.lens_radius_mm)]
-        {
+        // Bounds far outside any station, so that a typo (or 1e300) is named here instead of
+        // overflowing a stage: two turns either way, and a kilometre.
+        for (name, value, bound) in [
+            ("angle_deg", pose.angle_deg, 720.0),
+            ("axial_mm", pose.axial_mm, 1e6),
+            ("lens_radius_mm", pose.lens_radius_mm, 1e6),
+        ] {
             if !value.is_finite() {
                 return Err(BundleError::Manifest {
                     field: at(&format!(".pose.{name}")),
                     message: format!("must be finite, got {value}"),
+                });
+            }
+            if value.abs() > bound {
+                return Err(BundleError::Manifest {
+                    field: at(&format!(".pose.{name}")),
+                    message: format!("{value} is outside ±{bound}"),
                 });
             }
         }

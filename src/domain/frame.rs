@@ -147,7 +147,8 @@ impl Frame {
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct FrameEntry {
-    /// The frame's path in the bundle (PNG or TIFF, 8 or 16 bits, grey or RGB).
+    /// The frame's path in the bundle (PNG or TIFF, 8 or 16 bits, grey or RGB); at most 255 characters.
+    #[schema(min_length = 1, max_length = 255)]
     pub file: String,
     /// How far the camera moved away from the pipe for this frame, mm.
     pub offset_mm: f64,

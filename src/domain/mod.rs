@@ -7,4 +7,5 @@ pub mod optics;
 pub mod part;
 pub mod rules;
 pub mod station;
+pub mod text;
 pub mod thread;

@@ -49,8 +49,24 @@ impl Ray {
 impl Optics {
     /// Checks every field; the error names the field relative to `optics`.
     pub fn validate(&self) -> Result<(), (&'static str, String)> {
+        // Each value finite, positive, and within bounds far outside any camera (so that a typo or
+        // 1e308 is named here rather than overflowing a stage): f/0.5 is a lens in air's limit.
         let finite_positive = |name: &'static str, v: f64| {
-            if v.is_finite() && v > 0.0 { Ok(()) } else { Err((name, format!("must be a finite number > 0, got {v}"))) }
+            let max = match name {
+                "f_number" => 256.0,
+                "focal_length_mm" => 10_000.0,
+                "focus_distance_mm" => 100_000.0,
+                "pixel_pitch_um" => 1_000.0,
+                _ => 10_000.0,
+            };
+            let min = if name == "f_number" { 0.5 } else { 0.0 };
+            if !(v.is_finite() && v > 0.0) {
+                Err((name, format!("must be a finite number > 0, got {v}")))
+            } else if v < min || v > max {
+                Err((name, format!("{v} is outside [{min}, {max}]")))
+            } else {
+                Ok(())
+            }
         };
         match (self.projection, self.focal_length_mm) {
             (Projection::Perspective, None) => {
@@ -74,9 +90,9 @@ impl Optics {
             ));
         }
         if let Some([cx, cy]) = self.principal_point_px
-            && !(cx.is_finite() && cy.is_finite())
+            && !(cx.is_finite() && cy.is_finite() && cx.abs() <= 1e6 && cy.abs() <= 1e6)
         {
-            return Err(("principal_point_px", format!("must be finite, got [{cx}, {cy}]")));
+            return Err(("principal_point_px", format!("must be finite and within ±1e6 px, got [{cx}, {cy}]")));
         }
         match (self.projection, self.magnification) {
             (Projection::Telecentric, None) => {

@@ -21,11 +21,13 @@ pub struct CmmPoint {
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct CmmMeasurements {
+    /// The CMM that measured: 1 to 200 characters, no control characters.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(min_length = 1, max_length = 200)]
     pub instrument: Option<String>,
     /// RFC 3339.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    #[schema(format = DateTime)]
+    #[schema(format = DateTime, max_length = 64)]
     pub measured_at: Option<String>,
     /// 1 to 100 000 points.
     #[schema(min_items = 1, max_items = 100_000)]
@@ -45,6 +47,9 @@ fn err(field: impl Into<String>, message: impl Into<String>) -> CmmError {
 }
 
 pub const MAX_POINTS: usize = 100_000;
+
+/// Angles are kept to 0.0001°, the resolution every answer rounds them to.
+const ANGLE_STEPS_PER_DEG: f64 = 10_000.0;
 
 /// The unit a CSV export gives its heights in.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -87,7 +92,7 @@ impl CmmMeasurements {
             err(if path == "." { "body".into() } else { path }, e.inner().to_string())
         })?;
         parsed.validate()?;
-        Ok(parsed)
+        Ok(parsed.normalised())
     }
 
     /// CSV as CMM software exports it. The header names the columns `thread`, `angle_deg` and the
@@ -194,7 +199,19 @@ impl CmmMeasurements {
         }
         let parsed = Self { instrument, measured_at, points };
         parsed.validate()?;
-        Ok(parsed)
+        Ok(parsed.normalised())
+    }
+
+    /// Angles at the resolution they are published with (0.0001°, export::json), wrapped into
+    /// [0, 360): 359.99999 is stored as 0, not as a 360 that the range forbids and no bin matches.
+    fn normalised(mut self) -> Self {
+        for p in &mut self.points {
+            if let Some(a) = p.angle_deg.as_mut() {
+                let at_resolution = (*a * ANGLE_STEPS_PER_DEG).round() / ANGLE_STEPS_PER_DEG;
+                *a = if at_resolution >= 360.0 { 0.0 } else { at_resolution };
+            }
+        }
+        self
     }
 
     fn validate(&self) -> Result<(), CmmError> {
@@ -204,7 +221,12 @@ impl CmmMeasurements {
         if self.points.len() > MAX_POINTS {
             return Err(err("points", format!("{} points; at most {MAX_POINTS}", self.points.len())));
         }
+        use crate::domain::text::{self, INSTRUMENT_CHARS, TIMESTAMP_CHARS};
+        if let Some(name) = &self.instrument {
+            text::check(name, INSTRUMENT_CHARS).map_err(|e| err("instrument", e.to_string()))?;
+        }
         if let Some(t) = &self.measured_at {
+            text::check(t, TIMESTAMP_CHARS).map_err(|e| err("measured_at", e.to_string()))?;
             time::OffsetDateTime::parse(t, &time::format_description::well_known::Rfc3339)
                 .map_err(|e| err("measured_at", format!("{t:?} is not an RFC 3339 time: {e}")))?;
         }
@@ -336,6 +358,29 @@ pub fn compare(report: &Report, cmm: &CmmMeasurements, tolerance_mm: f64) -> Com
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn angles_a_hair_under_360_wrap_to_0_not_360() {
+        let m = CmmMeasurements::from_json(
+            br#"{"points":[{"thread":3,"angle_deg":359.99999,"height_mm":1.5},{"thread":3,"angle_deg":359.9999,"height_mm":1.5},{"thread":3,"angle_deg":12.345678,"height_mm":1.5}]}"#,
+        )
+        .unwrap();
+        let angles: Vec<f64> = m.points.iter().map(|p| p.angle_deg.unwrap()).collect();
+        assert_eq!(angles, [0.0, 359.9999, 12.3457]);
+        let csv = CmmMeasurements::from_csv(b"thread,angle_deg,height_mm\n3,359.99999,1.5\n").unwrap();
+        assert_eq!(csv.points[0].angle_deg, Some(0.0));
+    }
+
+    #[test]
+    fn free_texts_have_caps_named_by_their_field() {
+        let long = "x".repeat(201);
+        let body = format!(r#"{{"instrument":"{long}","points":[{{"thread":3,"height_mm":1.5}}]}}"#);
+        let e = CmmMeasurements::from_json(body.as_bytes()).unwrap_err();
+        assert_eq!(e.field, "instrument");
+        assert!(e.message.contains("at most 200"), "{e}");
+        let csv = format!("# instrument: {long}\nthread,angle_deg,height_mm\n3,1,1.5\n");
+        assert_eq!(CmmMeasurements::from_csv(csv.as_bytes()).unwrap_err().field, "instrument");
+    }
 
     #[test]
     fn csv_and_json_agree_and_errors_name_the_place() {

@@ -13,7 +13,7 @@ mod registry;
 mod runtime;
 
 pub use pool::SessionPool;
-pub use registry::{Model, ModelRole, ModelSource, ModelUse, Models, models, set_installed_dir};
+pub use registry::{Model, ModelRole, ModelSource, ModelUse, Models, check_name, models, set_installed_dir};
 pub use runtime::{RuntimeInfo, runtime};
 
 use crate::problem::{Code, ErrorCode};

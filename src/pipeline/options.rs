@@ -55,6 +55,19 @@ impl Default for PipelineOptions {
 }
 
 impl PipelineOptions {
+    /// The models' names, when given, are names (domain::text caps them at 64 characters), whatever
+    /// the method: a name is stored with the options even where the run does not use it.
+    pub fn check_model_names(&self) -> Result<(), crate::learned::LearnedError> {
+        use crate::learned::{ModelRole, check_name};
+        if let Some(name) = &self.depth.model {
+            check_name(ModelRole::Depth, name)?;
+        }
+        if let Some(name) = &self.profile.correction_model {
+            check_name(ModelRole::ProfileCorrection, name)?;
+        }
+        Ok(())
+    }
+
     /// The learned models these options ask for, loaded (and ONNX Runtime with them): what the
     /// service checks at submission, so that a missing model is refused then rather than failing
     /// the job. Nothing is asked of a classical run.

@@ -47,6 +47,10 @@ impl Application {
         if cleared > 0 {
             tracing::info!(cleared, "removed temporaries of interrupted uploads");
         }
+        let orphans = store.remove_orphan_uploads().await?;
+        if orphans > 0 {
+            tracing::info!(orphans, "removed upload files no inspection names (a submission that failed to commit)");
+        }
         let listener = TcpListener::bind(settings.bind)
             .await
             .map_err(|source| StartupError::Bind { addr: settings.bind, source })?;
@@ -66,6 +70,7 @@ impl Application {
             uploads: Arc::new(crate::service::api::ingest::UploadGate::new(
                 settings.max_concurrent_uploads,
                 settings.max_uploads_per_client,
+                settings.min_upload_kib_per_s * 1024.0,
             )),
             browser: Arc::new(crate::service::api::browser::BrowserPolicy::new(
                 &settings.allowed_hosts,
@@ -189,13 +194,16 @@ async fn serve(
 }
 
 /// Hourly: deletes the uploads, and the meshes and images, of inspections finished longer ago than
-/// their retention periods (`upload_retention_days`, `artifact_retention_days`; 0 keeps them).
+/// their retention periods (`upload_retention_days`, `artifact_retention_days`; 0 keeps them), and
+/// upload files that no inspection names (a submission whose commit failed).
 async fn retention_sweep(state: AppState, mut stop: watch::Receiver<bool>) {
     let (days, artifact_days) = (state.settings.upload_retention_days, state.settings.artifact_retention_days);
-    if days <= 0.0 && artifact_days <= 0.0 {
-        return;
-    }
     loop {
+        match state.store.remove_orphan_uploads().await {
+            Ok(0) => {}
+            Ok(n) => tracing::info!(removed = n, "retention: deleted upload files no inspection names"),
+            Err(e) => tracing::warn!(error = %e, "orphan upload sweep failed"),
+        }
         if days > 0.0 {
             let cutoff = now_ms() - (days * 86_400_000.0) as i64;
             match state.store.purge_uploads(cutoff).await {

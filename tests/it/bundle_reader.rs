@@ -62,6 +62,8 @@ fn malformed_field_is_named_by_its_path() {
     let s = Scratch::new();
     s.edit(|m| m["views"][1]["pose"]["angle_deg"] = json!("north"));
     expect_error(open(s.path()), "invalid_manifest", &["views[1].pose.angle_deg"]);
+    s.edit(|m| m["views"][1]["pose"]["angle_deg"] = json!(1e300));
+    expect_error(open(s.path()), "invalid_manifest", &["views[1].pose.angle_deg", "outside"]);
     std::fs::write(s.path().join("manifest.json"), b"{\"format\": \"crestscan.focal-stack/1\", ").unwrap();
     expect_error(open(s.path()), "invalid_manifest", &["manifest.json", "line 1"]);
 }
@@ -201,6 +203,8 @@ fn bad_optics_name_the_field() {
         ("focus_distance_mm", json!(40.0), "optics.focus_distance_mm"),
         ("pixel_pitch_um", json!(0.0), "optics.pixel_pitch_um"),
         ("f_number", json!("NaN"), "optics.f_number"),
+        ("f_number", json!(1e308), "optics.f_number"),
+        ("pixel_pitch_um", json!(1e300), "optics.pixel_pitch_um"),
         ("projection", json!("fisheye"), "optics.projection"),
     ];
     for (field, value, culprit) in cases {

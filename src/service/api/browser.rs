@@ -37,14 +37,18 @@ impl BrowserPolicy {
     }
 
     /// Whether a request carrying `origin` may change state: the same origin as the `Host` it
-    /// was sent to, or a listed one. `null` (sandboxed frames, file: pages) never is.
+    /// was sent to, or a listed one. `null` (sandboxed frames, file: pages) never is. The service
+    /// speaks plain HTTP, so the same origin is `http://` and the Host; behind a TLS proxy the
+    /// `https://` origin is listed in `allowed_origins`.
     pub fn origin_allowed(&self, origin: &str, host: Option<&str>) -> bool {
         let origin = origin.trim().to_ascii_lowercase();
         if origin == "null" {
             return false;
         }
-        let authority = origin.split_once("://").map_or("", |(_, rest)| rest);
-        host.is_some_and(|h| h.eq_ignore_ascii_case(authority)) || self.origins.iter().any(|o| *o == origin)
+        let same = origin
+            .strip_prefix("http://")
+            .is_some_and(|authority| host.is_some_and(|h| h.eq_ignore_ascii_case(authority)));
+        same || self.origins.iter().any(|o| *o == origin)
     }
 }
 
@@ -151,5 +155,8 @@ mod tests {
         assert!(policy.origin_allowed("https://mes.plant.local", Some("127.0.0.1:8080")));
         assert!(!policy.origin_allowed("null", Some("127.0.0.1:8080")));
         assert!(!policy.origin_allowed("http://127.0.0.1:8080", None));
+        // The service is plain HTTP: an https origin with the same authority is another origin.
+        assert!(!policy.origin_allowed("https://127.0.0.1:8080", Some("127.0.0.1:8080")));
+        assert!(!policy.origin_allowed("ftp://127.0.0.1:8080", Some("127.0.0.1:8080")));
     }
 }

@@ -42,15 +42,24 @@ pub struct Readiness {
     pub running: i64,
 }
 
-/// Readiness: the database answers, the data directory takes writes and has more free space than
-/// its floor; reports the free space and the queue depth.
+/// Readiness: the database answers and commits a write, the data directory takes writes and has
+/// more free space than its floor; reports the free space and the queue depth.
 #[utoipa::path(get, path = "/readyz", operation_id = "readyz", tag = "operations",
     responses(
         (status = 200, description = "Ready", body = Readiness),
-        (status = 503, description = "Not ready (database, disk not writable, or free space under the floor)", body = Problem, content_type = "application/problem+json"),
+        (status = 503, description = "Not ready (database unreachable or not taking writes, disk not writable, or free space under the floor)", body = Problem, content_type = "application/problem+json"),
     ))]
 pub async fn readyz(State(state): State<AppState>) -> Result<Json<Readiness>, ApiError> {
     state.store.ping().await.map_err(|e| ApiError::new(Code::NotReady, format!("database: {e}")))?;
+    // A database that reads but cannot write (disk full, write lock held) is not ready; the probe
+    // is bounded well under the store's 10 s busy timeout, so a stuck lock answers promptly.
+    match tokio::time::timeout(std::time::Duration::from_secs(2), state.store.probe_write()).await {
+        Ok(Ok(())) => {}
+        Ok(Err(e)) => return Err(ApiError::new(Code::NotReady, format!("database does not take writes: {e}"))),
+        Err(_) => {
+            return Err(ApiError::new(Code::NotReady, "database does not take writes: no write lock within 2 s"));
+        }
+    }
     let files = state.store.files.clone();
     let (room, free) = tokio::task::spawn_blocking(move || {
         files.check_writable()?;

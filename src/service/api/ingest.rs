@@ -86,6 +86,9 @@ struct Upload {
     next_space_check: u64,
     rules: UploadRules,
     started: std::time::Instant,
+    /// This upload's place in the [`UploadGate`]: its progress is shown there, and the gate may
+    /// take the place back from an upload too slow to keep it.
+    slot: std::sync::Arc<UploadSlot>,
 }
 
 /// What an upload may take: its size, and how slowly it may come.
@@ -99,7 +102,17 @@ pub struct UploadRules {
     pub min_bytes_per_s: f64,
 }
 
+/// How long an upload may run before its average rate is held to the floor: long enough for a
+/// connection to reach its pace, short enough that a trickle cannot hold a place for the 30 s
+/// idle limit.
+const RATE_GRACE: std::time::Duration = std::time::Duration::from_secs(5);
+
 impl UploadRules {
+    /// When the rate floor starts to apply: after [`RATE_GRACE`], or the idle limit if shorter.
+    fn rate_grace(&self) -> std::time::Duration {
+        self.idle.min(RATE_GRACE)
+    }
+
     pub fn of(settings: &crate::service::config::Settings) -> Self {
         Self {
             limit: settings.max_upload_bytes(),
@@ -148,7 +161,7 @@ pub fn write_failed(e: &std::io::Error) -> ApiError {
 }
 
 impl Upload {
-    fn start(files: &FileStore, rules: UploadRules) -> Result<Self, ApiError> {
+    fn start(files: &FileStore, rules: UploadRules, slot: std::sync::Arc<UploadSlot>) -> Result<Self, ApiError> {
         let file = files.temp_file().map_err(|e| write_failed(&e))?;
         let handle = file.reopen().map_err(ApiError::internal)?;
         let (tx, rx) = mpsc::channel(64);
@@ -161,13 +174,26 @@ impl Upload {
             files: files.clone(),
             next_space_check: SPACE_CHECK_BYTES,
             rules,
-            started: std::time::Instant::now(),
+            started: slot.started,
+            slot,
         })
     }
 
-    /// Awaits the body's next piece within the idle limit, then checks the average rate.
+    /// Awaits the body's next piece within the idle limit, then checks the average rate (once the
+    /// grace has passed). Ends at once if the gate took this upload's place for a faster one.
     async fn paced<T>(&self, next: impl std::future::Future<Output = T>) -> Result<T, ApiError> {
-        let Ok(value) = tokio::time::timeout(self.rules.idle, next).await else {
+        let evicted = self.slot.evicted.notified();
+        tokio::pin!(evicted);
+        // Registered before the flag is read, so an eviction between the two is not missed.
+        evicted.as_mut().enable();
+        if self.slot.is_evicted() {
+            return Err(self.evicted_error());
+        }
+        let value = tokio::select! {
+            value = tokio::time::timeout(self.rules.idle, next) => value,
+            _ = &mut evicted => return Err(self.evicted_error()),
+        };
+        let Ok(value) = value else {
             return Err(too_slow(format!(
                 "the upload sent nothing for {:.0} s (upload_idle_seconds) after {} bytes",
                 self.rules.idle.as_secs_f64(),
@@ -175,7 +201,7 @@ impl Upload {
             )));
         };
         let elapsed = self.started.elapsed();
-        if elapsed > self.rules.idle {
+        if elapsed > self.rules.rate_grace() {
             let rate = self.received as f64 / elapsed.as_secs_f64();
             if rate < self.rules.min_bytes_per_s {
                 return Err(too_slow(format!(
@@ -189,8 +215,19 @@ impl Upload {
         Ok(value)
     }
 
+    fn evicted_error(&self) -> ApiError {
+        let elapsed = self.started.elapsed().as_secs_f64().max(1e-3);
+        too_slow(format!(
+            "the upload came at {:.1} KiB/s over {elapsed:.1} s, under the {:.0} KiB/s floor (min_upload_kib_per_s), \
+             while every upload place was taken: its place went to an upload that keeps the pace",
+            self.received as f64 / elapsed / 1024.0,
+            self.rules.min_bytes_per_s / 1024.0
+        ))
+    }
+
     fn count(&mut self, n: usize) -> Result<(), ApiError> {
         self.received += n as u64;
+        self.slot.received.store(self.received, std::sync::atomic::Ordering::Relaxed);
         if self.received > self.rules.limit {
             return Err(too_large(self.rules.limit));
         }
@@ -253,7 +290,12 @@ fn too_large(limit: u64) -> ApiError {
 }
 
 /// Streams the request body into the file store's temporary area.
-pub async fn receive(request: Request, files: &FileStore, rules: UploadRules) -> Result<Received, ApiError> {
+pub async fn receive(
+    request: Request,
+    files: &FileStore,
+    rules: UploadRules,
+    slot: std::sync::Arc<UploadSlot>,
+) -> Result<Received, ApiError> {
     let limit = rules.limit;
     let content_type =
         request.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_ascii_lowercase();
@@ -277,12 +319,12 @@ pub async fn receive(request: Request, files: &FileStore, rules: UploadRules) ->
     }
     let essence = content_type.split(';').next().unwrap_or("").trim().to_string();
     match essence.as_str() {
-        "multipart/form-data" => receive_multipart(request, files, rules).await,
+        "multipart/form-data" => receive_multipart(request, files, rules, slot).await,
         "application/zip"
         | "application/x-zip-compressed"
         | "application/x-tar"
         | "application/tar"
-        | "application/octet-stream" => receive_raw(request.into_body(), files, rules).await,
+        | "application/octet-stream" => receive_raw(request.into_body(), files, rules, slot).await,
         other => {
             let error = ApiError::new(
             Code::UnsupportedMediaType,
@@ -298,8 +340,13 @@ pub async fn receive(request: Request, files: &FileStore, rules: UploadRules) ->
     }
 }
 
-async fn receive_raw(body: Body, files: &FileStore, rules: UploadRules) -> Result<Received, ApiError> {
-    let mut upload = Upload::start(files, rules)?;
+async fn receive_raw(
+    body: Body,
+    files: &FileStore,
+    rules: UploadRules,
+    slot: std::sync::Arc<UploadSlot>,
+) -> Result<Received, ApiError> {
+    let mut upload = Upload::start(files, rules, slot)?;
     let mut stream = body.into_data_stream();
     while let Some(chunk) = upload.paced(stream.next()).await? {
         let chunk = chunk.map_err(|e| ApiError::new(Code::BadRequest, format!("reading the body: {e}")))?;
@@ -310,7 +357,9 @@ async fn receive_raw(body: Body, files: &FileStore, rules: UploadRules) -> Resul
         upload.send(Chunk::Raw(chunk)).await?;
     }
     if upload.received == 0 {
-        return Err(ApiError::new(Code::InvalidArchive, "the body is empty: expected a zip or tar bundle"));
+        return Err(
+            ApiError::new(Code::InvalidArchive, "the body is empty: expected a zip or tar bundle").with_culprit("body")
+        );
     }
     upload.finish(None).await
 }
@@ -319,14 +368,19 @@ fn multipart_error(e: axum::extract::multipart::MultipartError) -> ApiError {
     if e.status() == axum::http::StatusCode::PAYLOAD_TOO_LARGE {
         return ApiError::new(Code::BodyTooLarge, e.body_text());
     }
-    ApiError::new(Code::InvalidMultipart, e.body_text())
+    ApiError::new(Code::InvalidMultipart, e.body_text()).with_culprit("body")
 }
 
-async fn receive_multipart(request: Request, files: &FileStore, rules: UploadRules) -> Result<Received, ApiError> {
+async fn receive_multipart(
+    request: Request,
+    files: &FileStore,
+    rules: UploadRules,
+    slot: std::sync::Arc<UploadSlot>,
+) -> Result<Received, ApiError> {
     let mut multipart = Multipart::from_request(request, &())
         .await
-        .map_err(|e| ApiError::new(Code::InvalidMultipart, e.body_text()))?;
-    let result = read_parts(&mut multipart, files, rules).await;
+        .map_err(|e| ApiError::new(Code::InvalidMultipart, e.body_text()).with_culprit("body"))?;
+    let result = read_parts(&mut multipart, files, rules, slot).await;
     // A slow client is not waited for again.
     if result.as_ref().is_err_and(|e| e.code != Code::RequestTimeout) {
         // As for raw bodies: read (and drop) a moderate rest so the client sees the problem.
@@ -365,8 +419,13 @@ async fn read_part(
     Ok(data)
 }
 
-async fn read_parts(multipart: &mut Multipart, files: &FileStore, rules: UploadRules) -> Result<Received, ApiError> {
-    let mut upload = Upload::start(files, rules)?;
+async fn read_parts(
+    multipart: &mut Multipart,
+    files: &FileStore,
+    rules: UploadRules,
+    slot: std::sync::Arc<UploadSlot>,
+) -> Result<Received, ApiError> {
+    let mut upload = Upload::start(files, rules, slot)?;
     let mut options = None;
     let (mut archive_part, mut manifest_part, mut frame_parts) = (false, false, 0usize);
     while let Some(mut field) = upload.paced(multipart.next_field()).await?.map_err(multipart_error)? {
@@ -442,7 +501,8 @@ async fn read_parts(multipart: &mut Multipart, files: &FileStore, rules: UploadR
         return Err(ApiError::new(
             Code::InvalidMultipart,
             "no bundle: send a `bundle` part (zip or tar), or a `manifest` part and one part per frame named by its manifest path",
-        ));
+        )
+        .with_culprit("bundle"));
     }
     upload.finish(options).await
 }
@@ -450,58 +510,160 @@ async fn read_parts(multipart: &mut Multipart, files: &FileStore, rules: UploadR
 /// Caps on uploads received at once, over all clients and per client address. Each upload holds a
 /// writer thread of the blocking pool and a temporary file while it streams, so without a cap slow
 /// clients could take every thread.
+///
+/// The places belong to uploads that keep the pace: when every place is taken, a new upload takes
+/// the place of the slowest one that has run for [`EVICT_AFTER`] and averages under the rate floor
+/// (`min_upload_kib_per_s`); that one ends with 408. So however many clients trickle, a client at
+/// the floor or faster still gets in (issue 48: 100 uploads at 1 byte/s held every place until
+/// their 30 s timeout). With no floor (0), no place is taken back.
 pub struct UploadGate {
     global: usize,
     per_client: usize,
-    open: std::sync::Mutex<(usize, std::collections::HashMap<std::net::IpAddr, usize>)>,
+    floor_bytes_per_s: f64,
+    open: std::sync::Mutex<GateState>,
 }
 
-/// An admitted upload; leaving frees its places.
+#[derive(Default)]
+struct GateState {
+    total: usize,
+    by_client: std::collections::HashMap<std::net::IpAddr, usize>,
+    slots: Vec<(std::net::IpAddr, std::sync::Arc<UploadSlot>)>,
+}
+
+/// How long an upload runs before the gate may judge it by its average rate.
+pub const EVICT_AFTER: std::time::Duration = std::time::Duration::from_secs(1);
+
+/// One upload's place: when it started, what it has received, and whether the gate took it back.
+#[derive(Debug)]
+pub struct UploadSlot {
+    started: std::time::Instant,
+    received: std::sync::atomic::AtomicU64,
+    evicted_flag: std::sync::atomic::AtomicBool,
+    evicted: tokio::sync::Notify,
+}
+
+impl UploadSlot {
+    fn new() -> Self {
+        Self {
+            started: std::time::Instant::now(),
+            received: Default::default(),
+            evicted_flag: Default::default(),
+            evicted: tokio::sync::Notify::new(),
+        }
+    }
+
+    fn is_evicted(&self) -> bool {
+        self.evicted_flag.load(std::sync::atomic::Ordering::Acquire)
+    }
+
+    /// Average bytes/s so far, once it has run [`EVICT_AFTER`]; None before.
+    fn judged_rate(&self, now: std::time::Instant) -> Option<f64> {
+        let age = now.saturating_duration_since(self.started);
+        (age >= EVICT_AFTER)
+            .then(|| self.received.load(std::sync::atomic::Ordering::Relaxed) as f64 / age.as_secs_f64())
+    }
+}
+
+/// An admitted upload; leaving frees its places (unless the gate took them back already).
 pub struct UploadPass<'a> {
     gate: &'a UploadGate,
     client: std::net::IpAddr,
+    slot: std::sync::Arc<UploadSlot>,
+}
+
+impl UploadPass<'_> {
+    pub fn slot(&self) -> std::sync::Arc<UploadSlot> {
+        self.slot.clone()
+    }
+}
+
+impl GateState {
+    fn release(&mut self, client: std::net::IpAddr, slot: &std::sync::Arc<UploadSlot>) {
+        let Some(at) = self.slots.iter().position(|(_, s)| std::sync::Arc::ptr_eq(s, slot)) else { return };
+        self.slots.swap_remove(at);
+        self.total -= 1;
+        if let Some(n) = self.by_client.get_mut(&client) {
+            *n -= 1;
+            if *n == 0 {
+                self.by_client.remove(&client);
+            }
+        }
+    }
+
+    /// The slowest upload under `floor` (of `client` only, when given) that has run long enough
+    /// to be judged.
+    fn slowest_under(
+        &self,
+        floor: f64,
+        client: Option<std::net::IpAddr>,
+    ) -> Option<(std::net::IpAddr, std::sync::Arc<UploadSlot>)> {
+        let now = std::time::Instant::now();
+        self.slots
+            .iter()
+            .filter(|(c, _)| client.is_none_or(|wanted| *c == wanted))
+            .filter_map(|(c, s)| s.judged_rate(now).filter(|&r| r < floor).map(|r| (r, c, s)))
+            .min_by(|a, b| a.0.total_cmp(&b.0))
+            .map(|(_, c, s)| (*c, s.clone()))
+    }
+
+    /// Takes a place back from a too-slow upload: it is told, and its place is free at once.
+    fn evict(&mut self, client: std::net::IpAddr, slot: std::sync::Arc<UploadSlot>) {
+        slot.evicted_flag.store(true, std::sync::atomic::Ordering::Release);
+        slot.evicted.notify_waiters();
+        tracing::warn!(%client, received = slot.received.load(std::sync::atomic::Ordering::Relaxed),
+            seconds = slot.started.elapsed().as_secs_f64(), "slow upload's place given to a new upload");
+        self.release(client, &slot);
+    }
 }
 
 impl UploadGate {
-    pub fn new(global: usize, per_client: usize) -> Self {
-        Self { global, per_client, open: Default::default() }
+    pub fn new(global: usize, per_client: usize, floor_bytes_per_s: f64) -> Self {
+        Self { global, per_client, floor_bytes_per_s, open: Default::default() }
     }
 
     pub fn enter(&self, client: std::net::IpAddr) -> Result<UploadPass<'_>, ApiError> {
         let mut open = self.open.lock().expect("gate lock");
-        let (total, by_client) = &mut *open;
-        let mine = by_client.get(&client).copied().unwrap_or(0);
+        let floor = self.floor_bytes_per_s;
+        let mine = open.by_client.get(&client).copied().unwrap_or(0);
         if mine >= self.per_client {
-            return Err(ApiError::new(
-                Code::TooManyUploads,
-                format!(
-                    "{mine} uploads from {client} are already being received (max_uploads_per_client); retry when one ends"
-                ),
-            ));
+            match (floor > 0.0).then(|| open.slowest_under(floor, Some(client))).flatten() {
+                Some((c, slot)) => open.evict(c, slot),
+                None => {
+                    return Err(ApiError::new(
+                        Code::TooManyUploads,
+                        format!(
+                            "{mine} uploads from {client} are already being received (max_uploads_per_client); retry when one ends"
+                        ),
+                    ));
+                }
+            }
         }
-        if *total >= self.global {
-            return Err(ApiError::new(
-                Code::ServerBusy,
-                format!("{total} uploads are being received (max_concurrent_uploads); retry shortly"),
-            ));
+        if open.total >= self.global {
+            match (floor > 0.0).then(|| open.slowest_under(floor, None)).flatten() {
+                Some((c, slot)) => open.evict(c, slot),
+                None => {
+                    return Err(ApiError::new(
+                        Code::ServerBusy,
+                        format!(
+                            "{} uploads are being received (max_concurrent_uploads), each at the rate floor or faster; retry shortly",
+                            open.total
+                        ),
+                    ));
+                }
+            }
         }
-        *total += 1;
-        *by_client.entry(client).or_insert(0) += 1;
-        Ok(UploadPass { gate: self, client })
+        let slot = std::sync::Arc::new(UploadSlot::new());
+        open.total += 1;
+        *open.by_client.entry(client).or_insert(0) += 1;
+        open.slots.push((client, slot.clone()));
+        Ok(UploadPass { gate: self, client, slot })
     }
 }
 
 impl Drop for UploadPass<'_> {
     fn drop(&mut self) {
         let mut open = self.gate.open.lock().expect("gate lock");
-        let (total, by_client) = &mut *open;
-        *total -= 1;
-        if let Some(n) = by_client.get_mut(&self.client) {
-            *n -= 1;
-            if *n == 0 {
-                by_client.remove(&self.client);
-            }
-        }
+        open.release(self.client, &self.slot);
     }
 }
 
@@ -511,7 +673,7 @@ mod gate_tests {
 
     #[test]
     fn the_gate_caps_each_client_and_all_of_them_and_frees_places_on_leaving() {
-        let gate = UploadGate::new(3, 2);
+        let gate = UploadGate::new(3, 2, 64.0 * 1024.0);
         let (a, b, c): (std::net::IpAddr, std::net::IpAddr, std::net::IpAddr) =
             ("10.0.0.1".parse().unwrap(), "10.0.0.2".parse().unwrap(), "10.0.0.3".parse().unwrap());
         let a1 = gate.enter(a).unwrap();
@@ -522,5 +684,38 @@ mod gate_tests {
         drop(a1);
         let _c1 = gate.enter(c).unwrap();
         assert_eq!(gate.enter(b).err().unwrap().code, Code::ServerBusy);
+    }
+
+    #[test]
+    fn a_full_gate_gives_the_place_of_the_slowest_trickle_to_a_new_upload() {
+        let floor = 64.0 * 1024.0;
+        let gate = UploadGate::new(2, 2, floor);
+        let (a, b, c): (std::net::IpAddr, std::net::IpAddr, std::net::IpAddr) =
+            ("10.0.0.1".parse().unwrap(), "10.0.0.2".parse().unwrap(), "10.0.0.3".parse().unwrap());
+        let trickle = gate.enter(a).unwrap();
+        let steady = gate.enter(a).unwrap();
+        // Young uploads are not judged: the gate is simply full.
+        assert_eq!(gate.enter(b).err().unwrap().code, Code::ServerBusy);
+        std::thread::sleep(EVICT_AFTER + std::time::Duration::from_millis(100));
+        trickle.slot().received.store(3, std::sync::atomic::Ordering::Relaxed);
+        steady.slot().received.store(10 << 20, std::sync::atomic::Ordering::Relaxed);
+        let newcomer = gate.enter(b).expect("the trickle's place");
+        assert!(trickle.slot().is_evicted() && !steady.slot().is_evicted());
+        // The steady upload keeps its place; the newcomer is too young to judge.
+        assert_eq!(gate.enter(c).err().unwrap().code, Code::ServerBusy);
+        // The evicted pass leaving frees nothing twice.
+        drop(trickle);
+        assert_eq!(gate.enter(c).err().unwrap().code, Code::ServerBusy);
+        drop(newcomer);
+        let _c = gate.enter(c).unwrap();
+    }
+
+    #[test]
+    fn without_a_floor_no_place_is_taken_back() {
+        let gate = UploadGate::new(1, 1, 0.0);
+        let a: std::net::IpAddr = "10.0.0.1".parse().unwrap();
+        let _slow = gate.enter(a).unwrap();
+        std::thread::sleep(EVICT_AFTER + std::time::Duration::from_millis(100));
+        assert_eq!(gate.enter("10.0.0.2".parse().unwrap()).err().unwrap().code, Code::ServerBusy);
     }
 }

@@ -336,6 +336,10 @@ pub fn resolve_options(
         pipeline.arc_rule = rule;
     }
     pipeline.check_ranges().map_err(|e| ApiError::of(&e))?;
+    pipeline.check_model_names().map_err(|e| {
+        let culprit = e.culprit().map(|c| format!("pipeline.{c}"));
+        ApiError::of(&e).with_culprit(culprit.as_deref().unwrap_or("pipeline"))
+    })?;
     let callback_url = part.callback_url.or(query.callback_url);
     if let Some(url) = &callback_url {
         crate::service::webhooks::callback_allowed(settings, url)
@@ -385,6 +389,7 @@ fn accepted(row: InspectionRow, replayed: bool) -> Response {
             headers(("Location" = String, description = "The inspection's URL"))),
         (status = 400, description = "Malformed request or multipart body", body = Problem, content_type = "application/problem+json"),
         (status = 413, description = "Body or bundle too large", body = Problem, content_type = "application/problem+json"),
+        (status = 414, description = "Query string too long (the server's URI limit)", body = Problem, content_type = "application/problem+json"),
         (status = 415, description = "Unsupported Content-Type", body = Problem, content_type = "application/problem+json"),
         (status = 408, description = "The upload stalled or came too slowly (upload_idle_seconds, min_upload_kib_per_s)", body = Problem, content_type = "application/problem+json"),
         (status = 422, description = "Invalid bundle, option (out of its range), callback_url not allowed, over the worker's memory budget, or Idempotency-Key reused with another body", body = Problem, content_type = "application/problem+json"),
@@ -419,7 +424,8 @@ pub async fn create_inspection(
             return Err(e);
         }
     };
-    let received = ingest::receive(request, &state.store.files, ingest::UploadRules::of(&state.settings)).await;
+    let received =
+        ingest::receive(request, &state.store.files, ingest::UploadRules::of(&state.settings), pass.slot()).await;
     drop(pass);
     let received = received?;
     let (reference, options) = resolve_options(query, received.options_part.as_deref(), &state.settings)?;
@@ -580,7 +586,7 @@ pub struct InspectionPage {
     tag = "inspections",
     params(ListQuery),
     responses(
-        (status = 200, description = "A page of inspections", body = InspectionPage),
+        (status = 200, description = "A page of inspections: at most `limit` of them, and fewer where their JSON would pass about 1 MiB (`next_cursor` then continues)", body = InspectionPage),
         (status = 400, description = "Invalid filter or cursor", body = Problem, content_type = "application/problem+json"),
     )
 )]
@@ -629,13 +635,31 @@ pub async fn list_inspections(
         limit: limit + 1,
     };
     let mut rows = state.store.list(&filter).await?;
-    let next_cursor = if rows.len() > limit as usize {
-        rows.truncate(limit as usize);
-        rows.last().map(|r| r.id.clone())
-    } else {
-        None
-    };
-    Ok(super::Rounded(InspectionPage { items: rows.into_iter().map(Inspection::from).collect(), next_cursor }))
+    let more = rows.len() > limit as usize;
+    rows.truncate(limit as usize);
+    let (items, cut) = within_page_bytes(rows.into_iter().map(Inspection::from), PAGE_BYTES);
+    let next_cursor = if more || cut { items.last().map(|i| i.id.clone()) } else { None };
+    Ok(super::Rounded(InspectionPage { items, next_cursor }))
+}
+
+/// About the most a page of the list holds, bytes of JSON: with every text capped a row is a few
+/// KiB, but rows stored before the caps may be larger, and one answer must never be hundreds of MiB.
+pub const PAGE_BYTES: usize = 1 << 20;
+
+/// The leading items whose JSON together stays within `budget` bytes (always at least one), and
+/// whether any were left out for it.
+fn within_page_bytes<T: Serialize>(items: impl Iterator<Item = T>, budget: usize) -> (Vec<T>, bool) {
+    let mut kept = Vec::new();
+    let mut used = 0usize;
+    for item in items {
+        let size = serde_json::to_vec(&item).map(|b| b.len()).unwrap_or(usize::MAX);
+        if !kept.is_empty() && used.saturating_add(size) > budget {
+            return (kept, true);
+        }
+        used = used.saturating_add(size);
+        kept.push(item);
+    }
+    (kept, false)
 }
 
 /// Get an inspection: status, progress, timestamps, verdict, and the error if it failed.
@@ -857,4 +881,20 @@ pub async fn cancel_inspection(State(state): State<AppState>, Path(id): Path<Str
     let row = state.store.request_cancel(&id.0).await?;
     let code = if row.status() == Status::Canceled { StatusCode::OK } else { StatusCode::ACCEPTED };
     Ok((code, super::Rounded(Inspection::from(row))).into_response())
+}
+
+#[cfg(test)]
+mod page_tests {
+    use super::within_page_bytes;
+
+    #[test]
+    fn a_page_stops_at_its_byte_budget_but_always_holds_one_item() {
+        let items = vec!["a".repeat(400), "b".repeat(400), "c".repeat(400)];
+        let (kept, cut) = within_page_bytes(items.clone().into_iter(), 1000);
+        assert_eq!((kept.len(), cut), (2, true));
+        let (kept, cut) = within_page_bytes(items.clone().into_iter(), 10);
+        assert_eq!((kept.len(), cut), (1, true));
+        let (kept, cut) = within_page_bytes(items.into_iter(), 1 << 20);
+        assert_eq!((kept.len(), cut), (3, false));
+    }
 }

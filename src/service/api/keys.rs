@@ -60,7 +60,14 @@ async fn authenticate(state: &AppState, headers: &HeaderMap) -> Result<(KeyRow, 
             "this service needs an API key: send Authorization: Bearer csk_… (crestscan keys create)".into(),
         ));
     };
-    let token = value.to_str().ok().and_then(|v| v.strip_prefix("Bearer ")).map(str::trim).unwrap_or("");
+    // The scheme's name is case-insensitive (RFC 9110 §11.1): `bearer` and `BEARER` are Bearer.
+    let token = value
+        .to_str()
+        .ok()
+        .and_then(|v| v.split_once(' '))
+        .filter(|(scheme, _)| scheme.eq_ignore_ascii_case("bearer"))
+        .map(|(_, token)| token.trim())
+        .unwrap_or("");
     let invalid = || unauthorized(Code::InvalidKey, "the API key is not valid (unknown, malformed or revoked)".into());
     let Some((id, secret)) = auth::split_token(token) else { return Err(invalid()) };
     let row = match state.store.key(id).await {
@@ -222,7 +229,8 @@ pub struct ApiKeys {
 #[derive(Clone, Debug, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct NewApiKey {
-    /// Who or what holds it (`mes-line-3`), 1–100 characters.
+    /// Who or what holds it (`mes-line-3`), 1–100 characters (surrounding spaces are trimmed).
+    #[schema(min_length = 1, max_length = 100)]
     pub name: String,
     pub scopes: Vec<Scope>,
 }
@@ -246,6 +254,8 @@ pub async fn list_keys(State(state): State<AppState>) -> Result<Json<ApiKeys>, A
     request_body = NewApiKey,
     responses(
         (status = 201, description = "Created", body = CreatedApiKey),
+        (status = 400, description = "Malformed JSON body", body = Problem, content_type = "application/problem+json"),
+        (status = 415, description = "Not application/json", body = Problem, content_type = "application/problem+json"),
         (status = 422, description = "Invalid name or scopes", body = Problem, content_type = "application/problem+json"),
     ))]
 pub async fn create_key(

@@ -61,7 +61,56 @@ impl ApiError {
 /// key, a number that is not one).
 impl From<axum::extract::rejection::QueryRejection> for ApiError {
     fn from(e: axum::extract::rejection::QueryRejection) -> Self {
-        Self::new(Code::InvalidQuery, e.body_text())
+        let text = e.body_text();
+        let culprit = query_culprit(&text);
+        let error = Self::new(Code::InvalidQuery, text);
+        match culprit {
+            Some(name) => error.with_culprit(name),
+            None => error,
+        }
+    }
+}
+
+/// The parameter a query's parse error is about: `arc_rule: unknown variant …` (the path serde
+/// gives), or the one quoted in `unknown field `x`` / `duplicate field `x``.
+fn query_culprit(text: &str) -> Option<String> {
+    let detail = text.split_once(": ").map_or(text, |(_, rest)| rest);
+    let is_name = |s: &str| !s.is_empty() && s.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_');
+    if let Some((path, _)) = detail.split_once(": ")
+        && is_name(path)
+    {
+        return Some(path.to_string());
+    }
+    for marker in ["unknown field `", "duplicate field `"] {
+        if let Some(rest) = detail.split(marker).nth(1)
+            && let Some((name, _)) = rest.split_once('`')
+            && is_name(name)
+        {
+            return Some(name.to_string());
+        }
+    }
+    None
+}
+
+#[cfg(test)]
+mod query_culprit_tests {
+    #[test]
+    fn the_parameter_at_fault_is_read_off_the_parse_error() {
+        use super::query_culprit;
+        assert_eq!(
+            query_culprit("Failed to deserialize query string: arc_rule: unknown variant `x`, expected one of …")
+                .as_deref(),
+            Some("arc_rule")
+        );
+        assert_eq!(
+            query_culprit("Failed to deserialize query string: duplicate field `format`").as_deref(),
+            Some("format")
+        );
+        assert_eq!(
+            query_culprit("Failed to deserialize query string: unknown field `limt`, expected …").as_deref(),
+            Some("limt")
+        );
+        assert_eq!(query_culprit("Failed to deserialize query string: invalid type"), None);
     }
 }
 

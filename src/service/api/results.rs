@@ -51,6 +51,7 @@ pub(super) async fn succeeded(state: &AppState, id: &str) -> Result<InspectionId
             (String = "text/html"),
         ), headers(("ETag" = String))),
         (status = 304, description = "Not modified"),
+        (status = 400, description = "Malformed query (format given twice)", body = Problem, content_type = "application/problem+json"),
         (status = 404, description = "No such inspection", body = Problem, content_type = "application/problem+json"),
         (status = 406, description = "Unsupported format", body = Problem, content_type = "application/problem+json"),
         (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),

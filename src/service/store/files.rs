@@ -164,6 +164,27 @@ impl FileStore {
         Ok(n)
     }
 
+    /// The hashes of the upload files stored (`ab/abcdef…`); names of any other shape are not ours
+    /// and are left out.
+    pub fn stored_hashes(&self) -> io::Result<Vec<String>> {
+        let mut hashes = Vec::new();
+        for dir in std::fs::read_dir(&self.root)? {
+            let dir = dir?;
+            let prefix = dir.file_name().to_string_lossy().into_owned();
+            if prefix.len() != 2 || !dir.file_type()?.is_dir() {
+                continue;
+            }
+            for file in std::fs::read_dir(dir.path())? {
+                let name = file?.file_name().to_string_lossy().into_owned();
+                if name.len() == 64 && name.starts_with(&prefix) && name.bytes().all(|b| b.is_ascii_hexdigit()) {
+                    hashes.push(name);
+                }
+            }
+        }
+        hashes.sort();
+        Ok(hashes)
+    }
+
     /// Whether the data directory accepts writes (for `/readyz`).
     pub fn check_writable(&self) -> io::Result<()> {
         let mut f = self.temp_file()?;

@@ -146,7 +146,11 @@ impl Store {
             .synchronous(SqliteSynchronous::Full)
             .foreign_keys(true)
             .busy_timeout(Duration::from_secs(10));
-        let pool = SqlitePoolOptions::new().max_connections(8).connect_with(options).await?;
+        let pool = SqlitePoolOptions::new()
+            .max_connections(8)
+            .after_release(|conn, _| Box::pin(clean_on_release(conn)))
+            .connect_with(options)
+            .await?;
         MIGRATOR.run(&pool).await?;
         let files = FileStore::open(uploads, tmp)?;
         let (changes, _) = tokio::sync::broadcast::channel(256);
@@ -167,6 +171,70 @@ impl Store {
         sqlx::query("SELECT 1").execute(&self.pool).await?;
         Ok(())
     }
+
+    /// Writes and commits one small row: fails where the database reads but cannot take a write
+    /// (its disk full, its write lock held by a stuck connection).
+    pub async fn probe_write(&self) -> Result<(), StoreError> {
+        sqlx::query("INSERT INTO write_probe (id, at) VALUES (1, ?) ON CONFLICT (id) DO UPDATE SET at = excluded.at")
+            .bind(now_ms())
+            .execute(&self.pool)
+            .await?;
+        Ok(())
+    }
+
+    /// Deletes upload files that no live upload row names: left behind when the transaction that
+    /// placed one failed to commit (a full disk). Each is checked and deleted under the database's
+    /// write lock, which a submission holds while it places its file, so a file being accepted
+    /// right now is never taken.
+    pub async fn remove_orphan_uploads(&self) -> Result<usize, StoreError> {
+        let files = self.files.clone();
+        let candidates = tokio::task::spawn_blocking(move || files.stored_hashes())
+            .await
+            .map_err(|e| StoreError::Io(std::io::Error::other(e)))??;
+        let mut removed = 0;
+        for sha in candidates {
+            let mut tx = self.pool.begin_with("BEGIN IMMEDIATE").await?;
+            let live: Option<(i64,)> = sqlx::query_as("SELECT 1 FROM uploads WHERE sha256 = ? AND purged_at IS NULL")
+                .bind(&sha)
+                .fetch_optional(&mut *tx)
+                .await?;
+            if live.is_none() {
+                self.files.remove(&sha)?;
+                removed += 1;
+            }
+            tx.commit().await?;
+        }
+        Ok(removed)
+    }
+}
+
+/// Whether a connection coming back to the pool is clean: no transaction open, neither in SQLite
+/// nor in sqlx's count of them. A connection that is not is closed (which rolls back whatever it
+/// held) instead of being handed to the next caller.
+///
+/// Why: when a COMMIT fails with SQLITE_FULL, SQLite rolls the transaction back itself, but sqlx
+/// 0.8's count stays at one (its ROLLBACK on drop then fails with "no transaction is active").
+/// The next `begin()` on that connection issued a SAVEPOINT instead of BEGIN; a later `ROLLBACK
+/// TO` of it left a transaction open holding the write lock: every other connection then got
+/// "database is locked", and this one's "commits" were RELEASEs inside a transaction never
+/// committed (an accepted upload answered 202 and then 404; issue 48).
+async fn clean_on_release(conn: &mut sqlx::SqliteConnection) -> Result<bool, sqlx::Error> {
+    use sqlx::Connection;
+    // Queued behind any rollback a dropped transaction sent, so that it has run.
+    let mut handle = conn.lock_handle().await?;
+    // SAFETY: the handle is locked out from sqlx's worker thread while it lives;
+    // sqlite3_get_autocommit only reads the connection's flag.
+    let autocommit = unsafe { libsqlite3_sys::sqlite3_get_autocommit(handle.as_raw_handle().as_ptr()) } != 0;
+    drop(handle);
+    let clean = autocommit && !conn.is_in_transaction();
+    if !clean {
+        tracing::warn!(
+            sqlite_in_transaction = !autocommit,
+            sqlx_in_transaction = conn.is_in_transaction(),
+            "a database connection came back with a transaction open (a failed commit?); closed, not reused"
+        );
+    }
+    Ok(clean)
 }
 
 /// A strong ETag: the quoted sha256 of the bytes.

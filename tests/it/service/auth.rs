@@ -144,6 +144,16 @@ async fn the_cli_key_works_against_the_served_binary_and_the_audit_names_it() {
     assert_eq!(list.status(), StatusCode::UNAUTHORIZED);
     let list = client.get(format!("{base}/v1/inspections")).bearer_auth(&mes).send().await.unwrap();
     assert_eq!(list.status(), StatusCode::OK);
+    // The scheme's name is case-insensitive (RFC 9110 §11.1).
+    for scheme in ["bearer", "BEARER", "BeArEr"] {
+        let list = client
+            .get(format!("{base}/v1/inspections"))
+            .header("authorization", format!("{scheme} {mes}"))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(list.status(), StatusCode::OK, "{scheme}");
+    }
     let submit = || {
         client
             .post(format!("{base}/v1/inspections"))

@@ -3,6 +3,8 @@
 
 mod auth;
 mod browser;
+mod caps;
+mod disk_full;
 mod hostile;
 mod inspections;
 mod models;
