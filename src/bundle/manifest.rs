@@ -8,6 +8,115 @@ use serde::{Deserialize, Serialize};
 
 pub const FORMAT_V1: &str = "crestscan.focal-stack/1";
 
+/// The fields this reader knows, by their place in manifest.json (`views[].pose`; `[]` stands for
+/// every item of a list). A test holds the table to the published JSON Schema.
+pub const KNOWN_FIELDS: &[(&str, &[&str])] = &[
+    ("", &["format", "part", "optics", "views"]),
+    ("part", &["serial", "connection", "thread"]),
+    (
+        "part.thread",
+        &[
+            "family",
+            "pitch_mm",
+            "thread_height_mm",
+            "height_tolerance_mm",
+            "taper_on_diameter",
+            "pipe_od_mm",
+            "lc_mm",
+            "load_flank_deg",
+            "stab_flank_deg",
+            "crest_width_mm",
+            "flank_deg",
+            "root_truncation_mm",
+        ],
+    ),
+    (
+        "optics",
+        &[
+            "projection",
+            "focal_length_mm",
+            "f_number",
+            "focus_distance_mm",
+            "pixel_pitch_um",
+            "principal_point_px",
+            "magnification",
+        ],
+    ),
+    ("views[]", &["id", "pose", "frames"]),
+    ("views[].pose", &["angle_deg", "axial_mm", "lens_radius_mm"]),
+    ("views[].frames[]", &["file", "offset_mm"]),
+];
+
+/// A field of the manifest this reader does not know: a near miss of a known field at its place
+/// (a typo: refused, with the field meant), or one the contract lets a newer writer add (read past,
+/// and listed for the user).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct UnknownField {
+    /// Its path (`part.serail`, `views[2].pose.angel_deg`).
+    pub path: String,
+    /// The known field it nearly spells, absent from its object.
+    pub did_you_mean: Option<&'static str>,
+}
+
+/// The manifest's fields that [`KNOWN_FIELDS`] does not name, in document order.
+pub fn unknown_fields(manifest: &serde_json::Value) -> Vec<UnknownField> {
+    fn walk(value: &serde_json::Value, place: &str, path: &str, out: &mut Vec<UnknownField>) {
+        match value {
+            serde_json::Value::Object(map) => {
+                let Some((_, known)) = KNOWN_FIELDS.iter().find(|(p, _)| *p == place) else { return };
+                for (key, child) in map {
+                    let child_path = if path.is_empty() { key.clone() } else { format!("{path}.{key}") };
+                    if known.contains(&key.as_str()) {
+                        let child_place = if place.is_empty() { key.clone() } else { format!("{place}.{key}") };
+                        walk(child, &child_place, &child_path, out);
+                    } else {
+                        let did_you_mean = known
+                            .iter()
+                            .filter(|k| !map.contains_key(**k))
+                            .map(|k| (edit_distance(&key.to_ascii_lowercase(), k), *k))
+                            .filter(|(d, k)| *d <= 2.min(k.len() / 3).max(1))
+                            .min()
+                            .map(|(_, k)| k);
+                        out.push(UnknownField { path: child_path, did_you_mean });
+                    }
+                }
+            }
+            serde_json::Value::Array(items) => {
+                for (i, item) in items.iter().enumerate() {
+                    walk(item, &format!("{place}[]"), &format!("{path}[{i}]"), out);
+                }
+            }
+            _ => {}
+        }
+    }
+    let mut out = Vec::new();
+    walk(manifest, "", "", &mut out);
+    out
+}
+
+/// Levenshtein distance (insertions, deletions, substitutions), with a swap of two neighbours
+/// counted as one: `serail` is one from `serial`.
+fn edit_distance(a: &str, b: &str) -> usize {
+    let (a, b): (Vec<char>, Vec<char>) = (a.chars().collect(), b.chars().collect());
+    let mut d = vec![vec![0usize; b.len() + 1]; a.len() + 1];
+    for (i, row) in d.iter_mut().enumerate() {
+        row[0] = i;
+    }
+    for j in 0..=b.len() {
+        d[0][j] = j;
+    }
+    for i in 1..=a.len() {
+        for j in 1..=b.len() {
+            let cost = usize::from(a[i - 1] != b[j - 1]);
+            d[i][j] = (d[i - 1][j] + 1).min(d[i][j - 1] + 1).min(d[i - 1][j - 1] + cost);
+            if i > 1 && j > 1 && a[i - 1] == b[j - 2] && a[i - 2] == b[j - 1] {
+                d[i][j] = d[i][j].min(d[i - 2][j - 2] + 1);
+            }
+        }
+    }
+    d[a.len()][b.len()]
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[schema(
     description = "manifest.json of a focal-stack bundle (docs/bundle.md); fields not named here are accepted and ignored"
@@ -79,4 +188,40 @@ pub struct ViewManifest {
     pub pose: ViewPose,
     /// The focal stack, offsets growing from near to far; at least 3 frames.
     pub frames: Vec<FrameEntry>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    #[test]
+    fn near_misses_are_named_with_the_field_meant_and_new_fields_are_read_past() {
+        let manifest = json!({
+            "fromat": "crestscan.focal-stack/1",
+            "part": {"serail": "P-1", "connection": "BC 4-1/2", "station_note": "line 3"},
+            "optics": {"F_number": 2.8},
+            "views": [{"id": "a", "pose": {"angel_deg": 0.0, "axial_mm": 1.0, "lens_radius_mm": 2.0}, "frames": []}],
+            "vendor": {"anything": 1}
+        });
+        let found = unknown_fields(&manifest);
+        let meant: Vec<(&str, Option<&str>)> = found.iter().map(|u| (u.path.as_str(), u.did_you_mean)).collect();
+        assert_eq!(
+            meant,
+            [
+                ("fromat", Some("format")),
+                ("optics.F_number", Some("f_number")),
+                ("part.serail", Some("serial")),
+                ("part.station_note", None),
+                ("vendor", None),
+                ("views[0].pose.angel_deg", Some("angle_deg")),
+            ]
+        );
+    }
+
+    #[test]
+    fn a_known_field_is_not_suggested_where_it_is_present() {
+        let found = unknown_fields(&json!({"part": {"serial": "P-1", "serials": "x"}}));
+        assert_eq!(found, [UnknownField { path: "part.serials".into(), did_you_mean: None }]);
+    }
 }

@@ -10,7 +10,9 @@ mod validate;
 
 pub use crate::domain::frame::FrameEntry;
 pub use decode::decode;
-pub use manifest::{CustomThread, FORMAT_V1, Manifest, PartManifest, ViewManifest};
+pub use manifest::{
+    CustomThread, FORMAT_V1, KNOWN_FIELDS, Manifest, PartManifest, UnknownField, ViewManifest, unknown_fields,
+};
 pub use source::{Limits, Source, check_relative_path};
 pub use validate::resolve_part;
 
@@ -47,6 +49,12 @@ pub enum BundleError {
     Offsets { field: String, message: String },
     #[error("{path}: file not found in the bundle")]
     MissingFile { path: String },
+    /// The archive holds the bundle deeper than the contract allows (`tar -cf x.tar out/ci`).
+    #[error(
+        "manifest.json: not at the archive's root nor in one top-level folder, but at {found}: make the archive \
+         from inside the bundle's folder, e.g. `tar -C {folder} -cf bundle.tar .`"
+    )]
+    NestedBundle { found: String, folder: String },
     #[error("{path}: unreadable frame: {message}")]
     UnreadableFrame { path: String, message: String },
     #[error("{path}: {message}")]
@@ -88,6 +96,7 @@ impl ErrorCode for BundleError {
             BundleError::InspectionTooLarge { .. } => Code::InspectionTooLarge,
             BundleError::StationOutOfRange { .. } => Code::StationOutOfRange,
             BundleError::Archive { .. } => Code::InvalidArchive,
+            BundleError::NestedBundle { .. } => Code::MissingFile,
             BundleError::Io { .. } => Code::IoError,
         }
     }
@@ -104,6 +113,7 @@ impl ErrorCode for BundleError {
             BundleError::Optics { field, .. } => Some(format!("manifest.json: optics.{field}")),
             BundleError::Thread { field, .. } => Some(format!("manifest.json: part.thread.{field}")),
             BundleError::UnknownConnection { .. } => Some("manifest.json: part.connection".into()),
+            BundleError::NestedBundle { .. } => Some("manifest.json".into()),
             BundleError::MissingFile { path }
             | BundleError::UnreadableFrame { path, .. }
             | BundleError::InconsistentFrames { path, .. }
@@ -144,6 +154,9 @@ pub struct Bundle {
     pub part: Part,
     pub optics: Optics,
     pub views: Vec<View>,
+    /// Manifest fields this reader does not know and read past (the contract lets a newer writer
+    /// add optional fields; a near miss of a known one is refused instead): their paths.
+    pub unread_fields: Vec<String>,
     source: Source,
 }
 
@@ -158,7 +171,7 @@ impl Bundle {
         let source = Source::open(path, options.limits, options.name)?;
         source.check_dir_limits()?;
         let manifest_bytes = source.read_manifest()?;
-        let manifest = parse_manifest(&manifest_bytes)?;
+        let (manifest, unread_fields) = parse_manifest_noting(&manifest_bytes)?;
         drop(manifest_bytes);
         check_counts(&manifest, options.limits)?;
         check_texts(&manifest)?;
@@ -168,7 +181,7 @@ impl Bundle {
         check_work(&part, &manifest.optics, &views, options.limits)?;
         check_station(&part, &manifest.optics, &views)?;
         let optics = manifest.optics.clone();
-        Ok(Self { manifest, part, optics, views, source })
+        Ok(Self { manifest, part, optics, views, unread_fields, source })
     }
 
     pub fn frame_count(&self) -> usize {
@@ -268,11 +281,35 @@ fn check_texts(manifest: &Manifest) -> Result<(), BundleError> {
 }
 
 pub fn parse_manifest(bytes: &[u8]) -> Result<Manifest, BundleError> {
-    // The version decides the shape, so it is checked before the typed parse.
+    parse_manifest_noting(bytes).map(|(manifest, _)| manifest)
+}
+
+/// The manifest, and the paths of the fields it has that this reader does not know. A field that
+/// nearly spells a known one absent from its object (`part.serail`) is refused, naming the field
+/// meant: a typo would otherwise drop the value silently.
+pub fn parse_manifest_noting(bytes: &[u8]) -> Result<(Manifest, Vec<String>), BundleError> {
     let value: serde_json::Value = serde_json::from_slice(bytes).map_err(|e| BundleError::Manifest {
         field: format!("line {} column {}", e.line(), e.column()),
         message: format!("not valid JSON: {e}"),
     })?;
+    let unknown = manifest::unknown_fields(&value);
+    if let Some(typo) = unknown.iter().find(|u| u.did_you_mean.is_some()) {
+        let meant = typo.did_you_mean.unwrap_or_default();
+        let meant_path = match typo.path.rsplit_once('.') {
+            Some((parent, _)) => format!("{parent}.{meant}"),
+            None => meant.to_string(),
+        };
+        return Err(BundleError::Manifest {
+            field: typo.path.clone(),
+            message: format!("unknown field: did you mean `{meant_path}`?"),
+        });
+    }
+    let unread = unknown.into_iter().map(|u| u.path).collect();
+    parse_manifest_value(value).map(|manifest| (manifest, unread))
+}
+
+fn parse_manifest_value(value: serde_json::Value) -> Result<Manifest, BundleError> {
+    // The version decides the shape, so it is checked before the typed parse.
     match value.get("format") {
         Some(serde_json::Value::String(s)) if s == FORMAT_V1 => {}
         Some(serde_json::Value::String(s)) => {

@@ -124,9 +124,52 @@ impl Source {
             Self::open_zip(file, limits, display)
         } else if n >= 262 && &head[257..262] == b"ustar" {
             Self::open_tar(file, limits, display)
+        } else if n >= 2 && head[..2] == [0x1f, 0x8b] {
+            Self::open_tar_gz(file, path, limits, display)
         } else {
-            Err(BundleError::Archive { message: format!("{display}: neither a directory, a zip nor a tar archive") })
+            Err(BundleError::Archive {
+                message: format!("{display}: neither a zip, a tar nor a gzipped tar (.tar.gz) archive"),
+            })
         }
+    }
+
+    /// A gzipped tar: inflated into an unnamed temporary file beside it, held to the caps on the
+    /// bundle's bytes and on the compression ratio that apply to a zip, then read as a tar.
+    fn open_tar_gz(file: File, path: &Path, limits: Limits, display: String) -> Result<Self, BundleError> {
+        let compressed = file.metadata().map_err(|e| io_err(&display, e))?.len();
+        let beside = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+        let mut out =
+            tempfile::tempfile_in(beside).or_else(|_| tempfile::tempfile()).map_err(|e| io_err(&display, e))?;
+        // A tar adds a 512-byte header and up to 511 bytes of padding to each file.
+        let cap = limits.max_total_bytes.saturating_add((limits.max_files as u64 + 2).saturating_mul(1024));
+        let mut inflating = flate2::read::MultiGzDecoder::new(std::io::BufReader::new(file)).take(cap + 1);
+        let inflated = std::io::copy(&mut inflating, &mut out).map_err(|e| match e.kind() {
+            std::io::ErrorKind::InvalidData | std::io::ErrorKind::InvalidInput | std::io::ErrorKind::UnexpectedEof => {
+                BundleError::Archive { message: format!("{display}: not a readable gzip: {e}") }
+            }
+            _ => io_err(&display, e),
+        })?;
+        if inflated > cap {
+            return Err(too_many_bytes(inflated, limits));
+        }
+        if inflated > RATIO_CHECKED_BYTES && inflated > limits.max_compression_ratio.saturating_mul(compressed) {
+            return Err(BundleError::Limit {
+                culprit: None,
+                message: format!(
+                    "{display}: inflates from {compressed} to more than {inflated} bytes, more than \
+                     max_compression_ratio ({}:1) allows",
+                    limits.max_compression_ratio
+                ),
+            });
+        }
+        out.seek(SeekFrom::Start(0)).map_err(|e| io_err(&display, e))?;
+        let mut head = [0u8; 512];
+        let n = read_up_to(&mut out, &mut head).map_err(|e| io_err(&display, e))?;
+        out.seek(SeekFrom::Start(0)).map_err(|e| io_err(&display, e))?;
+        if !(n >= 262 && &head[257..262] == b"ustar") {
+            return Err(BundleError::Archive { message: format!("{display}: a gzip that holds no tar archive") });
+        }
+        Self::open_tar(out, limits, display)
     }
 
     fn open_zip(file: File, limits: Limits, display: String) -> Result<Self, BundleError> {
@@ -462,6 +505,11 @@ fn bundle_prefix<'a>(names: impl Iterator<Item = &'a str>) -> Result<String, Bun
         && names.iter().any(|n| *n == format!("{first}/manifest.json"))
     {
         return Ok(format!("{first}/"));
+    }
+    // Deeper (an archive made from outside the bundle's folder): the folder to make it from.
+    if let Some(found) = names.iter().filter(|n| n.ends_with("/manifest.json")).min_by_key(|n| n.len()) {
+        let folder = found.trim_end_matches("manifest.json").trim_end_matches('/').to_string();
+        return Err(BundleError::NestedBundle { found: found.to_string(), folder });
     }
     Err(BundleError::MissingFile { path: "manifest.json".into() })
 }

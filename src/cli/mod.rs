@@ -162,7 +162,16 @@ impl From<DepthArgs> for DepthOptions {
 
 /// Opens a bundle with the API 5B table; an error reads `[code] message`.
 fn open_bundle(path: &Path, options: OpenOptions) -> Result<Bundle> {
-    Bundle::open(path, &ConnectionTable::api5b(), options).map_err(|e| anyhow::anyhow!("[{}] {e}", e.code()))
+    let bundle =
+        Bundle::open(path, &ConnectionTable::api5b(), options).map_err(|e| anyhow::anyhow!("[{}] {e}", e.code()))?;
+    if !bundle.unread_fields.is_empty() {
+        eprintln!(
+            "note: manifest.json has fields this crestscan does not read (accepted: a newer writer may add \
+             optional fields): {}",
+            bundle.unread_fields.join(", ")
+        );
+    }
+    Ok(bundle)
 }
 
 /// A command whose output is piped into a reader that stops early (`crestscan inspect B | head`)
@@ -175,6 +184,23 @@ fn stop_quietly_on_closed_stdout() {
     unsafe {
         libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
+}
+
+/// An error as anyhow prints it (`Error: …` and its causes), without the backtrace.
+pub fn error_text(error: &anyhow::Error) -> String {
+    let mut text = format!("Error: {error}");
+    let causes: Vec<String> = error.chain().skip(1).map(|c| c.to_string()).collect();
+    match causes.as_slice() {
+        [] => {}
+        [one] => text.push_str(&format!("\n\nCaused by:\n    {one}")),
+        many => {
+            text.push_str("\n\nCaused by:");
+            for (i, cause) in many.iter().enumerate() {
+                text.push_str(&format!("\n    {i}: {cause}"));
+            }
+        }
+    }
+    text
 }
 
 pub fn main() -> Result<()> {

@@ -357,6 +357,65 @@ fn zip_and_tar_archives_at_the_root_or_in_one_folder() {
     expect_error(open(&junk), "invalid_archive", &["junk.bin"]);
 }
 
+/// Issue 49: a `.tar.gz` reads as its tar does; an archive made from outside the bundle's folder
+/// (`tar -cf x.tar out/ci`) is answered with the `tar -C` that makes it right; a gzip bomb hits the
+/// caps a zip's does.
+#[test]
+fn gzipped_tars_read_and_a_too_deep_bundle_gets_the_tar_c_hint() {
+    let s = Scratch::new();
+    let out = tempfile::tempdir().unwrap();
+    let tar_path = out.path().join("b.tar");
+    tar_dir(s.path(), &tar_path, Some("P-000123"));
+    let gz_path = out.path().join("b.tar.gz");
+    let mut gz = flate2::write::GzEncoder::new(std::fs::File::create(&gz_path).unwrap(), flate2::Compression::fast());
+    gz.write_all(&std::fs::read(&tar_path).unwrap()).unwrap();
+    gz.finish().unwrap();
+    let from_tar = open(&tar_path).unwrap().read_frame(2, 7).unwrap();
+    let bundle = open(&gz_path).unwrap();
+    assert_eq!(bundle.views.len(), 3);
+    assert_eq!(bundle.read_frame(2, 7).unwrap(), from_tar);
+    // Held to the same caps as any archive.
+    let caps = Limits { max_total_bytes: 1_000_000, ..Limits::default() };
+    expect_error(open_with(&gz_path, caps), "bundle_too_large", &[]);
+    // A gzip of something else.
+    let not_tar = out.path().join("x.gz");
+    let mut gz = flate2::write::GzEncoder::new(std::fs::File::create(&not_tar).unwrap(), flate2::Compression::fast());
+    gz.write_all(&[b'x'; 4096]).unwrap();
+    gz.finish().unwrap();
+    expect_error(open(&not_tar), "invalid_archive", &["holds no tar"]);
+
+    // Two folders deep, as `tar -cf x.tar out/ci` makes it.
+    let deep = out.path().join("deep.tar");
+    tar_dir(s.path(), &deep, Some("out/ci"));
+    let message = expect_error(open(&deep), "missing_file", &["out/ci/manifest.json", "tar -C out/ci"]);
+    assert!(message.contains("-cf bundle.tar ."), "{message}");
+}
+
+/// Issue 49: a misspelt manifest key is refused naming the key meant; a field this reader does not
+/// know and that spells no known one is read past and listed (the contract lets new optional
+/// fields appear).
+#[test]
+fn a_misspelt_key_is_named_with_the_key_meant() {
+    let s = Scratch::new();
+    s.edit(|m| {
+        let serial = m["part"]["serial"].take();
+        m["part"].as_object_mut().unwrap().remove("serial");
+        m["part"]["serail"] = serial;
+    });
+    expect_error(open(s.path()), "invalid_manifest", &["part.serail", "did you mean `part.serial`"]);
+    let s = Scratch::new();
+    s.edit(|m| {
+        let format = m["format"].take();
+        m.as_object_mut().unwrap().remove("format");
+        m["fromat"] = format;
+    });
+    expect_error(open(s.path()), "invalid_manifest", &["fromat", "did you mean `format`"]);
+    let s = Scratch::new();
+    s.edit(|m| m["station"] = json!({"line": 3}));
+    let bundle = open(s.path()).unwrap();
+    assert_eq!(bundle.unread_fields, ["station"]);
+}
+
 #[test]
 fn archive_bombs_hit_the_caps() {
     let s = Scratch::new();
@@ -507,4 +566,28 @@ fn a_station_the_method_cannot_measure_at_is_refused_naming_its_parameter() {
     assert!(message.contains("spans 0.750 mm") && message.contains("1.575 mm deep"), "{message}");
     // The same bundle as it is opens.
     assert!(open(Scratch::new().path()).is_ok());
+}
+
+/// Issue 49: a command's error is its message and causes; a `RUST_BACKTRACE` set for other
+/// programs adds no frames, and `CRESTSCAN_BACKTRACE=1` asks for them.
+#[test]
+fn cli_errors_carry_a_backtrace_only_when_asked() {
+    let missing = tempfile::tempdir().unwrap().path().join("nowhere.tar");
+    let run = |var: &str| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_crestscan"))
+            .args(["validate", missing.to_str().unwrap()])
+            .env_remove("RUST_BACKTRACE")
+            .env_remove("CRESTSCAN_BACKTRACE")
+            .env(var, "1")
+            .output()
+            .unwrap()
+    };
+    let plain = run("RUST_BACKTRACE");
+    assert!(!plain.status.success());
+    let text = String::from_utf8_lossy(&plain.stderr).into_owned();
+    assert!(text.starts_with("Error: ") && text.contains("nowhere.tar"), "{text}");
+    assert!(text.lines().count() <= 4, "a {} line error:\n{text}", text.lines().count());
+    let asked = run("CRESTSCAN_BACKTRACE");
+    let traced = String::from_utf8_lossy(&asked.stderr).into_owned();
+    assert!(traced.starts_with(&text) && traced.lines().count() > text.lines().count() + 3, "{traced}");
 }

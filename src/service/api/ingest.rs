@@ -324,12 +324,16 @@ pub async fn receive(
         | "application/x-zip-compressed"
         | "application/x-tar"
         | "application/tar"
-        | "application/octet-stream" => receive_raw(request.into_body(), files, rules, slot).await,
+        | "application/octet-stream"
+        | "application/gzip"
+        | "application/x-gzip"
+        | "application/x-gtar"
+        | "application/x-compressed-tar" => receive_raw(request.into_body(), files, rules, slot).await,
         other => {
             let error = ApiError::new(
             Code::UnsupportedMediaType,
             format!(
-                "Content-Type {:?}: send the bundle as application/zip, application/x-tar, application/octet-stream or multipart/form-data",
+                "Content-Type {:?}: send the bundle as application/zip, application/x-tar, application/gzip (a .tar.gz), application/octet-stream or multipart/form-data",
                 if other.is_empty() { "(none)" } else { other }
             ),
             )

@@ -362,7 +362,8 @@ fn accepted(row: InspectionRow, replayed: bool) -> Response {
 /// Submit a bundle for inspection.
 ///
 /// The body is the bundle: a raw zip or tar (`application/zip`, `application/x-tar`,
-/// `application/octet-stream`), or `multipart/form-data` with one `bundle` part (zip/tar), or a
+/// `application/octet-stream`; a gzipped tar as `application/gzip`), or `multipart/form-data` with
+/// one `bundle` part (zip/tar/tar.gz), or a
 /// `manifest` part plus one part per frame named by its manifest path; an optional `options` part
 /// (JSON) carries the submission options. The whole bundle is validated before the answer: a bad
 /// one is a 4xx naming the field or file, and nothing is stored.
@@ -380,6 +381,7 @@ fn accepted(row: InspectionRow, replayed: bool) -> Response {
             (Binary = "application/octet-stream"),
             (Binary = "application/zip"),
             (Binary = "application/x-tar"),
+            (Binary = "application/gzip"),
             (BundleForm = "multipart/form-data"),
         ),
         description = "The bundle (docs/bundle.md)."
@@ -482,6 +484,9 @@ pub async fn create_inspection(
             OpenOptions { limits, frame_check: FrameCheck::Headers, name: Some("the upload") },
         )?;
         crate::service::queue::check_memory(&bundle, &pipeline_options, &settings).map_err(|e| ApiError::of(&e))?;
+        if !bundle.unread_fields.is_empty() {
+            tracing::info!(fields = %bundle.unread_fields.join(", "), "manifest fields not read (accepted)");
+        }
         let serial = bundle.manifest.part.serial.clone();
         let connection = bundle.manifest.part.connection.clone();
         let summary = crate::service::store::UploadInfo {

@@ -390,3 +390,36 @@ async fn event_streams_send_every_state_in_order_and_end_with_the_job_or_the_ser
     let kinds: Vec<&str> = events.iter().map(|(_, e, _)| e.as_str()).collect();
     assert_eq!(kinds, ["state", "shutdown"]);
 }
+
+/// Issue 49: a `.tar.gz` upload is taken as its tar is; a tar made from outside the bundle's
+/// folder is answered with the `tar -C` that makes it right.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_gzipped_tar_is_accepted_and_a_too_deep_one_gets_the_hint() {
+    use std::io::Write;
+    let app = spawn_app_with(|s| s.workers = 0).await;
+    let mut gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+    gz.write_all(&ci_tar()).unwrap();
+    let gz = gz.finish().unwrap();
+    let response = app
+        .client
+        .post(app.url("/v1/inspections"))
+        .header("content-type", "application/gzip")
+        .body(gz)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(response.status(), StatusCode::ACCEPTED);
+
+    let mut builder = tar::Builder::new(Vec::new());
+    for file in walk(ci_bundle()) {
+        let rel = file.strip_prefix(ci_bundle()).unwrap().to_string_lossy().replace('\\', "/");
+        if !rel.starts_with("truth") {
+            builder.append_path_with_name(&file, format!("out/ci/{rel}")).unwrap();
+        }
+    }
+    let v =
+        problem(app.submit(builder.into_inner().unwrap(), "").await, StatusCode::UNPROCESSABLE_ENTITY, "missing_file")
+            .await;
+    assert!(v["detail"].as_str().unwrap().contains("tar -C out/ci"), "{v}");
+    app.stop().await;
+}
