@@ -95,5 +95,5 @@ impl KeysCommand {
 }
 
 fn rfc3339(ms: i64) -> String {
-    crestscan::service::api::rfc3339(ms)
+    crestscan::service::wire::rfc3339(ms)
 }

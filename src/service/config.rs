@@ -2,7 +2,7 @@
 //! (`CRESTSCAN_*`) < command-line flags; the CLI layer (clap, with `env`) merges the last two.
 
 use crate::bundle::Limits;
-use crate::service::webhooks::{EndpointSettings, Secret};
+use crate::service::webhook_settings::{EndpointSettings, Secret};
 use serde::{Deserialize, Serialize};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -263,7 +263,7 @@ impl Settings {
 
     #[allow(clippy::neg_cmp_op_on_partial_ord)]
     fn validate_webhooks(&self) -> Result<(), ConfigError> {
-        use crate::service::webhooks::{CALLBACK, origin_of};
+        use crate::service::webhook_settings::{CALLBACK, origin_of};
         let invalid = |field, message: String| Err(ConfigError::Invalid { field, message });
         if !(self.webhook_timeout_seconds > 0.0 && self.webhook_timeout_seconds <= 600.0) {
             return invalid("webhook_timeout_seconds", "must be more than 0 and at most 600".into());
@@ -434,7 +434,7 @@ mod tests {
         .unwrap();
         let s = Settings::from_file(&path).unwrap();
         s.validate().unwrap();
-        assert_eq!(s.webhooks[0].events, vec![crate::service::webhooks::EventType::Failed]);
+        assert_eq!(s.webhooks[0].events, vec![crate::service::webhook_settings::EventType::Failed]);
         let endpoint = s.webhooks[0].clone();
         let refused = |edit: &dyn Fn(&mut Settings)| {
             let mut bad = s.clone();

@@ -7,5 +7,7 @@ pub mod queue;
 pub mod startup;
 pub mod store;
 pub mod telemetry;
+pub mod webhook_settings;
 pub mod webhooks;
+pub mod wire;
 pub mod worker;

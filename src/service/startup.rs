@@ -72,7 +72,7 @@ impl Application {
                 settings.max_uploads_per_client,
                 settings.min_upload_kib_per_s * 1024.0,
             )),
-            browser: Arc::new(crate::service::api::browser::BrowserPolicy::new(
+            browser: Arc::new(crate::service::api::origins::BrowserPolicy::new(
                 &settings.allowed_hosts,
                 &settings.allowed_origins,
             )),

@@ -362,8 +362,7 @@ fn failure(e: &impl ErrorCode) -> Outcome {
     }
 }
 
-/// The artifact holding an inspection's pitch profiles ([`crate::eval::pairs::ProfileSet`]).
-pub const PITCH_PROFILES: &str = "pitch-profiles";
+pub use crate::service::store::PITCH_PROFILES;
 
 pub fn encode_results(
     inspection: &pipeline::Inspection,

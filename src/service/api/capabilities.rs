@@ -1,6 +1,6 @@
 //! What this service can measure: the station envelope its accuracy figures were measured in.
 
-use super::AppState;
+use super::common::AppState;
 use super::problem::Problem;
 use crate::domain::station::{Envelope, IN_FOCUS_BLUR_PX, MAX_OBJECT_PIXEL_MM, MEASURED, StationClass};
 use axum::Json;

@@ -1,13 +1,13 @@
 //! CMM measurements of an inspection (JSON or CSV per the contract) and their comparison with
 //! crestscan's heights.
 
+use super::common::{AppState, InspectionId, succeeded};
 use super::problem::{ApiError, Problem};
-use super::results::succeeded;
-use super::{AppState, InspectionId, rfc3339};
 use crate::eval::cmm::{self, CmmMeasurements, CmmPoint, Comparison};
 use crate::pipeline::report::Report;
 use crate::problem::Code;
 use crate::service::store::StoreError;
+use crate::service::wire::rfc3339;
 use axum::Json;
 use axum::body::Bytes;
 use axum::extract::{Path, Query, State};
@@ -55,7 +55,7 @@ pub struct StoredCmm {
     params(("id" = uuid::Uuid, Path, description = "Inspection id")),
     request_body(content(
         (CmmMeasurements = "application/json"),
-        (super::Binary = "text/csv"),
+        (super::common::Binary = "text/csv"),
     )),
     responses(
         (status = 200, description = "Stored", body = StoredCmm),
@@ -71,7 +71,7 @@ pub async fn put_cmm(
     Path(id): Path<String>,
     headers: HeaderMap,
     body: axum::body::Body,
-) -> Result<super::Rounded<StoredCmm>, ApiError> {
+) -> Result<super::common::Rounded<StoredCmm>, ApiError> {
     let id = succeeded(&state, &id).await?;
     let body: Bytes = axum::body::to_bytes(body, MAX_CMM_BYTES).await.map_err(|e| {
         if std::error::Error::source(&e).is_some_and(|s| s.is::<http_body_util::LengthLimitError>()) {
@@ -97,7 +97,7 @@ pub async fn put_cmm(
     .map_err(|e| ApiError::new(Code::InvalidCmm, e.to_string()).with_culprit(e.field.clone()))?;
     let version = state.store.put_cmm(&id.0, &parsed, Some(&peer.ip().to_string())).await?;
     tracing::info!(inspection = %id.0, version, by = %peer.ip(), points = parsed.points.len(), "CMM data stored");
-    Ok(super::Rounded(stored_cmm(&state, id, Some(version)).await?))
+    Ok(super::common::Rounded(stored_cmm(&state, id, Some(version)).await?))
 }
 
 #[derive(Clone, Debug, Default, Deserialize, IntoParams)]
@@ -135,12 +135,12 @@ pub async fn get_cmm(
     State(state): State<AppState>,
     Path(id): Path<String>,
     query: Result<Query<CmmVersionQuery>, axum::extract::rejection::QueryRejection>,
-) -> Result<super::Rounded<StoredCmm>, ApiError> {
+) -> Result<super::common::Rounded<StoredCmm>, ApiError> {
     let Query(q) = query?;
     let version = checked_version(q.version)?;
     let id = InspectionId::parse(&id)?;
-    state.store.inspection(&id.0).await.map_err(|e| super::missing_inspection(e, &id.0))?;
-    Ok(super::Rounded(stored_cmm(&state, id, version).await?))
+    state.store.inspection(&id.0).await.map_err(|e| super::common::missing_inspection(e, &id.0))?;
+    Ok(super::common::Rounded(stored_cmm(&state, id, version).await?))
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
@@ -179,7 +179,7 @@ pub async fn list_cmm_versions(
     Path(id): Path<String>,
 ) -> Result<Json<CmmVersions>, ApiError> {
     let id = InspectionId::parse(&id)?;
-    state.store.inspection(&id.0).await.map_err(|e| super::missing_inspection(e, &id.0))?;
+    state.store.inspection(&id.0).await.map_err(|e| super::common::missing_inspection(e, &id.0))?;
     let versions = state
         .store
         .cmm_versions(&id.0)
@@ -293,7 +293,7 @@ pub async fn get_cmm_comparison(
     State(state): State<AppState>,
     Path(id): Path<String>,
     query: Result<Query<ComparisonQuery>, axum::extract::rejection::QueryRejection>,
-) -> Result<super::Rounded<CmmComparison>, ApiError> {
+) -> Result<super::common::Rounded<CmmComparison>, ApiError> {
     let Query(q) = query?;
     if let Some(t) = q.tolerance_mm
         && !(t.is_finite() && t > 0.0)
@@ -312,7 +312,7 @@ pub async fn get_cmm_comparison(
         measured_at: stored.measured_at.clone(),
         points: stored.points,
     };
-    Ok(super::Rounded(CmmComparison {
+    Ok(super::common::Rounded(CmmComparison {
         inspection_id: id.0,
         cmm_version: stored.version,
         instrument: stored.instrument,
@@ -348,8 +348,8 @@ pub async fn get_training_pairs(
     use axum::response::IntoResponse;
     let id = succeeded(&state, &id).await?;
     let stored = stored_cmm(&state, id.clone(), None).await?;
-    let kind = crate::service::worker::PITCH_PROFILES;
-    let artifact = match super::results::stored_artifact(&state, &id.0, kind).await {
+    let kind = crate::service::store::PITCH_PROFILES;
+    let artifact = match super::common::stored_artifact(&state, &id.0, kind).await {
         Err(e) if e.code == Code::InvalidId => {
             return Err(ApiError::new(
                 Code::NotFound,

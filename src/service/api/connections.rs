@@ -1,6 +1,6 @@
 //! `/v1/connections`: the API 5B connection table the rule engine uses.
 
-use super::AppState;
+use super::common::AppState;
 use super::problem::{ApiError, Problem};
 use crate::domain::thread::Connection;
 use crate::problem::Code;
@@ -27,7 +27,7 @@ pub struct ConnectionQuery {
 const KINDS: [&str; 3] = ["BC", "LC", "STC"];
 
 fn kind_values() -> utoipa::openapi::schema::Object {
-    super::one_of(KINDS, "BC (buttress), LC (long round) or STC (short round).")
+    super::common::one_of(KINDS, "BC (buttress), LC (long round) or STC (short round).")
 }
 
 #[derive(Clone, Debug, Serialize, ToSchema)]

@@ -1,6 +1,6 @@
 //! Liveness, readiness and metrics.
 
-use super::AppState;
+use super::common::AppState;
 use super::problem::{ApiError, Problem};
 use crate::problem::Code;
 use axum::Json;

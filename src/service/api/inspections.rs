@@ -1,8 +1,8 @@
 //! `/v1/inspections`: submit (202 + Location), list with filters and a cursor, get, cancel.
 
+use super::common::{AppState, Binary, InspectionId};
 use super::ingest;
 use super::problem::{ApiError, Problem};
-use super::{AppState, Binary, InspectionId, parse_rfc3339, rfc3339};
 use crate::bundle::{Bundle, FrameCheck, OpenOptions};
 use crate::domain::rules::{ArcRule, Verdict};
 use crate::pipeline::PipelineOptions;
@@ -10,6 +10,8 @@ use crate::problem::{Code, ErrorCode};
 use crate::service::queue::JobOptions;
 use crate::service::store::files::sha256_hex;
 use crate::service::store::{Inserted, InspectionRow, ListFilter, NewInspection, Status};
+use crate::service::wire::parse_rfc3339;
+pub use crate::service::wire::{BundleSummary, Inspection, Links, Progress};
 use axum::extract::{Path, Query, Request, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
@@ -24,130 +26,6 @@ pub fn router() -> OpenApiRouter<AppState> {
         .routes(routes!(get_inspection))
         .routes(routes!(inspection_events))
         .routes(routes!(cancel_inspection))
-}
-
-#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
-pub struct Progress {
-    /// depth, register, fuse, mesh, profile, crest_and_rules.
-    pub stage: String,
-    /// 0–1 within the stage.
-    pub fraction: f64,
-}
-
-#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
-pub struct BundleSummary {
-    pub sha256: String,
-    pub size_bytes: i64,
-    pub views: i64,
-    pub frames: i64,
-}
-
-#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
-pub struct Links {
-    #[serde(rename = "self")]
-    pub self_: String,
-    pub report: String,
-    pub threads: String,
-    pub mesh: String,
-    pub height_map: String,
-    pub all_in_focus: String,
-    pub cmm: String,
-    pub cmm_comparison: String,
-    pub cancel: String,
-}
-
-/// An inspection job and, once it succeeded, where its results are.
-#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
-pub struct Inspection {
-    pub id: String,
-    pub status: Status,
-    /// While running: the pipeline stage and how far it is.
-    pub progress: Option<Progress>,
-    /// Once succeeded: the black-crest rules' verdict on the best estimates.
-    #[schema(value_type = Option<crate::domain::rules::Verdict>)]
-    pub verdict: Option<String>,
-    /// Once succeeded: whether the result needs a person's review before its verdict is acted on
-    /// (the report's `quality` says why). Null before, and for inspections that succeeded before
-    /// quality was assessed.
-    pub review_required: Option<bool>,
-    /// Once succeeded: the decision per ISO 14253-1 (conforms, does_not_conform or
-    /// indeterminate: whether the verdict holds with every measured value moved by its
-    /// uncertainty). Null before, and for inspections that succeeded before it was made.
-    #[schema(value_type = Option<crate::pipeline::uncertainty::Decision>)]
-    pub decision: Option<String>,
-    pub serial: Option<String>,
-    pub connection: Option<String>,
-    pub client_reference: Option<String>,
-    pub created_at: String,
-    pub updated_at: String,
-    pub started_at: Option<String>,
-    pub finished_at: Option<String>,
-    /// Claims so far (a retry or a re-claim after a crash counts).
-    pub attempts: i64,
-    pub cancel_requested: bool,
-    pub bundle: BundleSummary,
-    /// The options the pipeline runs with (defaults filled in), under `pipeline`.
-    #[schema(value_type = Object)]
-    pub options: serde_json::Value,
-    /// The origin (scheme, host, port) of the submission's `callback_url`, if it gave one. The URL
-    /// itself is not shown: its query may hold the receiver's token, and every reader of the
-    /// inspection (and every webhook endpoint) sees this resource.
-    pub callback_origin: Option<String>,
-    /// Why it failed: the same problem object HTTP errors use.
-    pub error: Option<Problem>,
-    pub links: Links,
-}
-
-impl From<InspectionRow> for Inspection {
-    fn from(r: InspectionRow) -> Self {
-        let status = r.status();
-        let mut options: serde_json::Value = serde_json::from_str(&r.options_json).unwrap_or(serde_json::Value::Null);
-        let callback_origin = options
-            .as_object_mut()
-            .and_then(|o| o.remove("callback_url"))
-            .and_then(|url| url.as_str().and_then(|u| crate::service::webhooks::origin_of(u).ok()));
-        let base = format!("/v1/inspections/{}", r.id);
-        Self {
-            progress: match (status, &r.progress_stage, r.progress_fraction) {
-                (Status::Running, Some(stage), Some(fraction)) => Some(Progress { stage: stage.clone(), fraction }),
-                _ => None,
-            },
-            status,
-            verdict: r.verdict,
-            review_required: r.review_required,
-            decision: r.decision,
-            serial: r.serial,
-            connection: r.connection,
-            client_reference: r.client_reference,
-            created_at: rfc3339(r.created_at),
-            updated_at: rfc3339(r.updated_at),
-            started_at: r.started_at.map(rfc3339),
-            finished_at: r.finished_at.map(rfc3339),
-            attempts: r.attempts,
-            cancel_requested: r.cancel_requested,
-            bundle: BundleSummary {
-                sha256: r.upload_sha256,
-                size_bytes: r.size_bytes,
-                views: r.views,
-                frames: r.frames,
-            },
-            options,
-            callback_origin,
-            error: r.error_json.as_deref().and_then(|e| serde_json::from_str(e).ok()),
-            links: Links {
-                report: format!("{base}/report"),
-                threads: format!("{base}/threads"),
-                mesh: format!("{base}/mesh"),
-                height_map: format!("{base}/images/height-map"),
-                all_in_focus: format!("{base}/images/all-in-focus"),
-                cmm: format!("{base}/cmm"),
-                cmm_comparison: format!("{base}/cmm-comparison"),
-                cancel: format!("{base}/cancel"),
-                self_: base,
-            },
-            id: r.id,
-        }
-    }
 }
 
 /// Submission options, as query parameters or as a multipart `options` part (JSON; it wins).
@@ -350,7 +228,7 @@ pub fn resolve_options(
 
 fn accepted(row: InspectionRow, replayed: bool) -> Response {
     let location = format!("/v1/inspections/{}", row.id);
-    let mut response = (StatusCode::ACCEPTED, super::Rounded(Inspection::from(row))).into_response();
+    let mut response = (StatusCode::ACCEPTED, super::common::Rounded(Inspection::from(row))).into_response();
     let headers = response.headers_mut();
     headers.insert(header::LOCATION, HeaderValue::from_str(&location).expect("ids are ASCII"));
     if replayed {
@@ -557,19 +435,19 @@ pub struct ListQuery {
 }
 
 fn status_values() -> utoipa::openapi::schema::Object {
-    super::one_of(Status::ALL.map(Status::as_str), "Only inspections in this status.")
+    super::common::one_of(Status::ALL.map(Status::as_str), "Only inspections in this status.")
 }
 fn verdict_values() -> utoipa::openapi::schema::Object {
-    super::one_of(Verdict::ALL.map(Verdict::as_str), "Only inspections with this verdict.")
+    super::common::one_of(Verdict::ALL.map(Verdict::as_str), "Only inspections with this verdict.")
 }
 fn boolean_values() -> utoipa::openapi::schema::Object {
-    super::one_of(
+    super::common::one_of(
         ["true", "false"],
         "Only succeeded inspections whose result does (true) or does not (false) need review.",
     )
 }
 fn arc_rule_values() -> utoipa::openapi::schema::Object {
-    super::one_of(
+    super::common::one_of(
         ArcRule::NAMES,
         "How the buttress 25% limit applies: per thread (default) or over the threads combined.",
     )
@@ -598,7 +476,7 @@ pub struct InspectionPage {
 pub async fn list_inspections(
     State(state): State<AppState>,
     query: Result<Query<ListQuery>, axum::extract::rejection::QueryRejection>,
-) -> Result<super::Rounded<InspectionPage>, ApiError> {
+) -> Result<super::common::Rounded<InspectionPage>, ApiError> {
     let Query(q) = query?;
     let invalid = |field: &str, message: String| {
         ApiError::new(Code::InvalidQuery, format!("{field}: {message}")).with_culprit(field)
@@ -644,7 +522,7 @@ pub async fn list_inspections(
     rows.truncate(limit as usize);
     let (items, cut) = within_page_bytes(rows.into_iter().map(Inspection::from), PAGE_BYTES);
     let next_cursor = if more || cut { items.last().map(|i| i.id.clone()) } else { None };
-    Ok(super::Rounded(InspectionPage { items, next_cursor }))
+    Ok(super::common::Rounded(InspectionPage { items, next_cursor }))
 }
 
 /// About the most a page of the list holds, bytes of JSON: with every text capped a row is a few
@@ -684,11 +562,12 @@ pub async fn get_inspection(
     State(state): State<AppState>,
     Path(id): Path<String>,
     query: Result<Query<WaitQuery>, axum::extract::rejection::QueryRejection>,
-) -> Result<super::Rounded<Inspection>, ApiError> {
+) -> Result<super::common::Rounded<Inspection>, ApiError> {
     let Query(q) = query?;
     let wait = q.wait.as_deref().map(parse_wait).transpose()?.unwrap_or_default();
     let id = InspectionId::parse(&id)?;
-    let fetch = || async { state.store.inspection(&id.0).await.map_err(|e| super::missing_inspection(e, &id.0)) };
+    let fetch =
+        || async { state.store.inspection(&id.0).await.map_err(|e| super::common::missing_inspection(e, &id.0)) };
     let mut row = fetch().await?;
     // Long-poll by re-reading the row: the worker may be another process on the same database,
     // so an in-process notification would miss its changes.
@@ -705,7 +584,7 @@ pub async fn get_inspection(
             break;
         }
     }
-    Ok(super::Rounded(row.into()))
+    Ok(super::common::Rounded(row.into()))
 }
 
 /// What a waiter watches of an inspection (the long-poll, the event stream): its status and
@@ -749,7 +628,7 @@ pub async fn inspection_events(State(state): State<AppState>, Path(id): Path<Str
     let id = InspectionId::parse(&id)?;
     // Subscribed before the first read, so no change after it is missed.
     let changes = state.store.changes.subscribe();
-    let first = state.store.inspection(&id.0).await.map_err(|e| super::missing_inspection(e, &id.0))?;
+    let first = state.store.inspection(&id.0).await.map_err(|e| super::common::missing_inspection(e, &id.0))?;
     struct Cursor {
         state: AppState,
         changes: tokio::sync::broadcast::Receiver<std::sync::Arc<InspectionRow>>,
@@ -879,13 +758,13 @@ fn parse_wait(text: &str) -> Result<std::time::Duration, ApiError> {
 )]
 pub async fn cancel_inspection(State(state): State<AppState>, Path(id): Path<String>) -> Result<Response, ApiError> {
     let id = InspectionId::parse(&id)?;
-    let before = state.store.inspection(&id.0).await.map_err(|e| super::missing_inspection(e, &id.0))?;
+    let before = state.store.inspection(&id.0).await.map_err(|e| super::common::missing_inspection(e, &id.0))?;
     if matches!(before.status(), Status::Succeeded | Status::Failed) {
         return Err(ApiError::new(Code::InspectionFinished, format!("inspection {} already {}", id.0, before.status)));
     }
     let row = state.store.request_cancel(&id.0).await?;
     let code = if row.status() == Status::Canceled { StatusCode::OK } else { StatusCode::ACCEPTED };
-    Ok((code, super::Rounded(Inspection::from(row))).into_response())
+    Ok((code, super::common::Rounded(Inspection::from(row))).into_response())
 }
 
 #[cfg(test)]

@@ -2,22 +2,21 @@
 //! (scopes by route), per-key submission limits, the audit trail, and the admin routes for keys and
 //! the audit log.
 
+use super::common::AppState;
 use super::problem::{ApiError, Problem};
-use super::{AppState, rfc3339};
 use crate::problem::Code;
 use crate::service::auth::{self, Scope};
 use crate::service::config::AuthMode;
 use crate::service::store::{AuditEntry, KeyRow, StoreError};
+use crate::service::wire::rfc3339;
 use axum::Json;
 use axum::extract::{ConnectInfo, MatchedPath, Path, Query, Request, State};
 use axum::http::{HeaderMap, HeaderValue, Method, StatusCode, header};
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use serde::{Deserialize, Serialize};
-use std::collections::{HashMap, VecDeque};
 use std::net::SocketAddr;
-use std::sync::Mutex;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 use utoipa::{IntoParams, ToSchema};
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
@@ -82,30 +81,6 @@ async fn authenticate(state: &AppState, headers: &HeaderMap) -> Result<(KeyRow, 
     Ok((row, scopes))
 }
 
-/// Submissions per key in the last minute (`submissions_per_minute`).
-#[derive(Default)]
-pub struct SubmissionLimiter {
-    recent: Mutex<HashMap<String, VecDeque<Instant>>>,
-}
-
-impl SubmissionLimiter {
-    /// Counts a submission of `key`; Err(seconds to wait) when it would exceed `per_minute`.
-    fn admit(&self, key: &str, per_minute: u32, now: Instant) -> Result<(), u64> {
-        let mut recent = self.recent.lock().unwrap_or_else(|p| p.into_inner());
-        let window = recent.entry(key.to_string()).or_default();
-        while window.front().is_some_and(|t| now.duration_since(*t) >= Duration::from_secs(60)) {
-            window.pop_front();
-        }
-        if window.len() >= per_minute as usize {
-            let oldest = *window.front().expect("a full window is not empty");
-            let wait = Duration::from_secs(60).saturating_sub(now.duration_since(oldest));
-            return Err(wait.as_secs_f64().ceil().max(1.0) as u64);
-        }
-        window.push_back(now);
-        Ok(())
-    }
-}
-
 /// Checks the key (auth required), its scope and its submission rate, then records what the
 /// audit keeps: every change, and every read of an inspection's results.
 pub async fn guard(State(state): State<AppState>, request: Request, next: Next) -> Response {
@@ -119,7 +94,7 @@ pub async fn guard(State(state): State<AppState>, request: Request, next: Next) 
     {
         let (row, scopes) = match authenticate(&state, request.headers()).await {
             Ok(found) => found,
-            Err(response) => return super::refuse(request, response).await,
+            Err(response) => return super::common::refuse(request, response).await,
         };
         if !auth::allows(&scopes, needed) {
             let response = ApiError::new(
@@ -134,7 +109,7 @@ pub async fn guard(State(state): State<AppState>, request: Request, next: Next) 
             )
             .with_culprit("Authorization")
             .into_response();
-            return super::refuse(request, response).await;
+            return super::common::refuse(request, response).await;
         }
         let per_minute = state.settings.submissions_per_minute;
         if per_minute > 0
@@ -148,7 +123,7 @@ pub async fn guard(State(state): State<AppState>, request: Request, next: Next) 
             )
             .into_response();
             response.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from(wait));
-            return super::refuse(request, response).await;
+            return super::common::refuse(request, response).await;
         }
         principal = Principal { key_id: Some(row.id), key_name: Some(row.name) };
     }
@@ -332,7 +307,7 @@ pub async fn get_audit(
     query: Result<Query<AuditQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Json<AuditPage>, ApiError> {
     let Query(q) = query?;
-    let limit = super::page_limit(q.limit, 100, 1000)?;
+    let limit = super::common::page_limit(q.limit, 100, 1000)?;
     let rows = state.store.audit_log(limit, q.before, q.target.as_deref()).await?;
     let next_before = (rows.len() as i64 == limit).then(|| rows.last().map(|r| r.seq)).flatten();
     let entries = rows
@@ -354,6 +329,8 @@ pub async fn get_audit(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::service::api::limiter::SubmissionLimiter;
+    use std::time::Duration;
 
     #[test]
     fn the_limiter_admits_per_minute_per_key_and_says_how_long_to_wait() {

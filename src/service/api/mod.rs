@@ -5,6 +5,7 @@
 pub mod browser;
 pub mod capabilities;
 pub mod cmm;
+pub mod common;
 pub mod connections;
 pub mod dashboard;
 pub mod health;
@@ -12,132 +13,28 @@ mod http;
 pub mod ingest;
 pub mod inspections;
 pub mod keys;
+pub mod limiter;
+pub mod origins;
 pub mod problem;
 pub mod results;
 pub mod schemas;
 pub mod webhooks;
 
-use crate::domain::thread::ConnectionTable;
 use crate::problem::Code;
-use crate::service::config::Settings;
-use crate::service::store::Store;
-use crate::service::telemetry::Metrics;
 use axum::Router;
 use axum::extract::{DefaultBodyLimit, MatchedPath, Request, State};
 use axum::http::{HeaderValue, header};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
+use common::refuse;
 use problem::{ApiError, PROBLEM_JSON};
-use std::sync::Arc;
+
+pub use crate::service::wire::{parse_rfc3339, rfc3339};
+pub use common::{AppState, Binary, InspectionId, Rounded, missing_inspection, one_of, page_limit};
 use std::time::Instant;
-use tokio::sync::Notify;
 use utoipa::OpenApi;
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_swagger_ui::SwaggerUi;
-
-#[derive(Clone)]
-pub struct AppState {
-    pub store: Store,
-    pub table: Arc<ConnectionTable>,
-    pub metrics: Arc<Metrics>,
-    pub settings: Arc<Settings>,
-    /// Wakes idle workers when an inspection is queued.
-    pub wake: Arc<Notify>,
-    /// Uploads received at once.
-    pub uploads: Arc<ingest::UploadGate>,
-    /// The hosts and origins browsers may reach the service by.
-    pub browser: Arc<browser::BrowserPolicy>,
-    /// The learned models: shipped, and installed in `<data_dir>/models`.
-    pub models: Arc<crate::learned::Models>,
-    /// Turns true when the service is stopping: long-polls and event streams end then, so that
-    /// the drain does not wait on them.
-    pub stopping: tokio::sync::watch::Receiver<bool>,
-    /// Submissions per API key in the last minute.
-    pub submissions: Arc<keys::SubmissionLimiter>,
-}
-
-/// An inspection id: a UUID, rendered in its canonical lowercase form.
-#[derive(Clone, Debug, PartialEq, Eq)]
-pub struct InspectionId(pub String);
-
-impl InspectionId {
-    pub fn parse(s: &str) -> Result<Self, ApiError> {
-        // Only the hyphenated form the ids are written in (the document's `format: uuid`);
-        // uuid also reads braced, URN and unhyphenated forms.
-        Some(s)
-            .filter(|s| s.len() == 36)
-            .and_then(|s| uuid::Uuid::parse_str(s).ok())
-            .map(|u| Self(u.to_string()))
-            .ok_or(())
-            .map_err(|_| ApiError::new(Code::InvalidId, format!("{s:?} is not an inspection id")).with_culprit("id"))
-    }
-}
-
-/// 404 for an unknown inspection; any other store failure stays a 500.
-pub fn missing_inspection(e: crate::service::store::StoreError, id: &str) -> ApiError {
-    match e {
-        crate::service::store::StoreError::NotFound => ApiError::not_found(id),
-        other => other.into(),
-    }
-}
-
-/// A page's `limit` parameter: `default` when absent, else within 1 to `max` (400 `invalid_query`).
-pub fn page_limit(limit: Option<i64>, default: i64, max: i64) -> Result<i64, ApiError> {
-    let limit = limit.unwrap_or(default);
-    if !(1..=max).contains(&limit) {
-        return Err(
-            ApiError::new(Code::InvalidQuery, format!("limit: {limit} is not within 1–{max}")).with_culprit("limit")
-        );
-    }
-    Ok(limit)
-}
-
-/// A JSON answer whose numbers are rounded to their resolution ([`crate::export::json`]).
-pub struct Rounded<T>(pub T);
-
-impl<T: serde::Serialize> IntoResponse for Rounded<T> {
-    fn into_response(self) -> Response {
-        match crate::export::json::to_vec(&self.0) {
-            Ok(body) => ([(header::CONTENT_TYPE, HeaderValue::from_static("application/json"))], body).into_response(),
-            Err(e) => ApiError::internal(e).into_response(),
-        }
-    }
-}
-
-pub fn rfc3339(ms: i64) -> String {
-    time::OffsetDateTime::from_unix_timestamp_nanos(ms as i128 * 1_000_000)
-        .ok()
-        .and_then(|t| t.format(&time::format_description::well_known::Rfc3339).ok())
-        .unwrap_or_default()
-}
-
-pub fn parse_rfc3339(s: &str) -> Result<i64, String> {
-    time::OffsetDateTime::parse(s, &time::format_description::well_known::Rfc3339)
-        .map(|t| (t.unix_timestamp_nanos() / 1_000_000) as i64)
-        .map_err(|e| format!("{s:?} is not an RFC 3339 time ({e})"))
-}
-
-/// A string parameter's schema: exactly one of `values` (what the server takes, case and all).
-/// The description lives here because `schema_with` replaces the field's doc comment.
-pub fn one_of<'a>(values: impl IntoIterator<Item = &'a str>, description: &str) -> utoipa::openapi::schema::Object {
-    use utoipa::openapi::schema::{ObjectBuilder, Type};
-    ObjectBuilder::new().schema_type(Type::String).enum_values(Some(values)).description(Some(description)).build()
-}
-
-/// Raw bytes (a bundle archive, a mesh, a PNG) in the OpenAPI document.
-pub struct Binary;
-
-impl utoipa::PartialSchema for Binary {
-    fn schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
-        use utoipa::openapi::schema::{KnownFormat, ObjectBuilder, SchemaFormat, Type};
-        ObjectBuilder::new()
-            .schema_type(Type::String)
-            .format(Some(SchemaFormat::KnownFormat(KnownFormat::Binary)))
-            .into()
-    }
-}
-
-impl utoipa::ToSchema for Binary {}
 
 #[derive(OpenApi)]
 #[openapi(
@@ -365,14 +262,6 @@ async fn unknown_query_parameters(request: Request, next: Next) -> Response {
             refuse(request, response).await
         }
     }
-}
-
-/// Answers a request refused before its handler once its body is read (for a bounded time, as
-/// the upload's own refusals do), so that a client still sending an upload gets the answer, not a
-/// broken pipe.
-async fn refuse(request: Request, response: Response) -> Response {
-    ingest::drain(request.into_body()).await;
-    response
 }
 
 async fn route_not_found(request: Request) -> ApiError {

@@ -1,11 +1,10 @@
 //! Results of a succeeded inspection: report, per-thread table, mesh, images; immutable, with
 //! strong ETags.
 
+use super::common::{AppState, Binary, stored_artifact, succeeded};
 use super::http::{if_none_match, immutable, negotiate};
 use super::problem::{ApiError, Problem};
-use super::{AppState, Binary, InspectionId};
 use crate::problem::Code;
-use crate::service::store::Status;
 use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, header};
 use axum::response::{IntoResponse, Response};
@@ -20,19 +19,6 @@ pub fn router() -> OpenApiRouter<AppState> {
         .routes(routes!(get_threads))
         .routes(routes!(get_mesh))
         .routes(routes!(get_image))
-}
-
-/// 404 for an unknown id, 409 while it has no results.
-pub(super) async fn succeeded(state: &AppState, id: &str) -> Result<InspectionId, ApiError> {
-    let id = InspectionId::parse(id)?;
-    let row = state.store.inspection(&id.0).await.map_err(|e| super::missing_inspection(e, &id.0))?;
-    if row.status() != Status::Succeeded {
-        return Err(ApiError::new(
-            Code::InspectionNotSucceeded,
-            format!("inspection {} is {}; results exist once it succeeded", id.0, row.status),
-        ));
-    }
-    Ok(id)
 }
 
 /// The inspection report: verdict, reasons, per-thread heights and black crests, registration,
@@ -84,7 +70,7 @@ pub async fn get_report(
             format!(
                 "The images and the mesh of this inspection were deleted on {} (artifact_retention_days); the \
                  report's figures above are kept.",
-                super::rfc3339(at)
+                crate::service::wire::rfc3339(at)
             )
         }),
         _ => None,
@@ -141,7 +127,7 @@ pub struct ReportFormatQuery {
 const REPORT_FORMATS: [(&str, &str); 2] = [("json", "application/json"), ("html", "text/html")];
 
 fn report_formats() -> utoipa::openapi::schema::Object {
-    super::one_of(REPORT_FORMATS.map(|f| f.0), "Overrides `Accept`.")
+    super::common::one_of(REPORT_FORMATS.map(|f| f.0), "Overrides `Accept`.")
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
@@ -201,10 +187,10 @@ const MESH_FORMATS: [(&str, &str); 3] =
     [("ply", "application/x-ply"), ("stl", "model/stl"), ("glb", "model/gltf-binary")];
 
 fn table_formats() -> utoipa::openapi::schema::Object {
-    super::one_of(TABLE_FORMATS.map(|f| f.0), "Overrides `Accept`.")
+    super::common::one_of(TABLE_FORMATS.map(|f| f.0), "Overrides `Accept`.")
 }
 fn mesh_formats() -> utoipa::openapi::schema::Object {
-    super::one_of(MESH_FORMATS.map(|f| f.0), "Overrides `Accept`.")
+    super::common::one_of(MESH_FORMATS.map(|f| f.0), "Overrides `Accept`.")
 }
 
 /// The per-thread height table: JSON, or CSV (`thread,angle_deg,height_mm,uncertainty_mm`: the
@@ -374,26 +360,4 @@ pub async fn get_image(
     let id = succeeded(&state, &id).await?;
     let a = stored_artifact(&state, &id.0, kind).await?;
     Ok(immutable(&headers, &a.etag, &a.content_type, a.body))
-}
-
-/// A stored mesh or image, or 410 when the retention deleted it.
-pub(super) async fn stored_artifact(
-    state: &AppState,
-    id: &str,
-    kind: &str,
-) -> Result<crate::service::store::StoredArtifact, ApiError> {
-    match state.store.artifact(id, kind).await {
-        Err(crate::service::store::StoreError::NotFound) => match state.store.artifacts_purged_at(id).await? {
-            Some(at) => Err(ApiError::new(
-                Code::ResultExpired,
-                format!(
-                    "the {kind} of this inspection was deleted on {} (artifact_retention_days); its report and thread \
-                     table are kept",
-                    crate::service::api::rfc3339(at)
-                ),
-            )),
-            None => Err(ApiError::not_found(id)),
-        },
-        other => Ok(other?),
-    }
 }

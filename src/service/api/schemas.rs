@@ -1,7 +1,7 @@
 //! The bundle contract published with the service: the manifest's JSON Schema (draft 2020-12),
 //! made from the same declarations the reader parses with, so it cannot drift from the code.
 
-use super::AppState;
+use super::common::AppState;
 use super::problem::Problem;
 use axum::http::{HeaderValue, header};
 use axum::response::{IntoResponse, Response};
@@ -13,11 +13,22 @@ pub fn router() -> OpenApiRouter<AppState> {
     OpenApiRouter::new().routes(routes!(get_manifest_schema))
 }
 
-/// The manifest's schema as a standalone JSON Schema: `Manifest` of the OpenAPI document's
-/// components with every schema it refers to under `$defs`.
+/// The manifest's schema as a standalone JSON Schema: `Manifest` with every schema it refers to
+/// under `$defs`, from the same declarations the OpenAPI document's components come from (read
+/// off the types, not the document, so that this module does not import the router).
 pub fn manifest_schema() -> Value {
-    let doc = serde_json::to_value(super::openapi()).expect("the document serialises");
-    let components = &doc["components"]["schemas"];
+    use utoipa::{PartialSchema, ToSchema};
+    let mut collected = Vec::new();
+    <crate::bundle::Manifest as ToSchema>::schemas(&mut collected);
+    let mut map = serde_json::Map::new();
+    for (name, schema) in collected {
+        map.insert(name, serde_json::to_value(schema).expect("a schema serialises"));
+    }
+    map.insert(
+        "Manifest".into(),
+        serde_json::to_value(<crate::bundle::Manifest as PartialSchema>::schema()).expect("a schema serialises"),
+    );
+    let components = &Value::Object(map);
     let mut defs = serde_json::Map::new();
     let mut pending = vec!["Manifest".to_string()];
     while let Some(name) = pending.pop() {

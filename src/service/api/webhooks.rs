@@ -1,9 +1,10 @@
 //! The webhook deliveries' record, for admins: what was sent where, each attempt and its answer.
 
+use super::common::AppState;
 use super::problem::{ApiError, Problem};
-use super::{AppState, rfc3339};
 use crate::problem::Code;
 use crate::service::store::DeliveryFilter;
+use crate::service::wire::rfc3339;
 use axum::Json;
 use axum::extract::{Query, State};
 use serde::{Deserialize, Serialize};
@@ -98,7 +99,7 @@ pub async fn list_deliveries(
     query: Result<Query<DeliveryQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Json<DeliveryPage>, ApiError> {
     let Query(q) = query?;
-    let limit = super::page_limit(q.limit, 100, 1000)?;
+    let limit = super::common::page_limit(q.limit, 100, 1000)?;
     if let Some(status) = q.status.as_deref().filter(|s| !DELIVERY_STATUSES.contains(s)) {
         return Err(ApiError::new(
             Code::InvalidQuery,

@@ -14,7 +14,7 @@ pub use cmm::{CmmRow, CmmVersionRow};
 pub use inspections::{Inserted, InspectionRow, ListFilter, NewInspection, UploadInfo};
 pub use keys::{AuditEntry, AuditRow, KeyRow};
 pub use queue::{Claimed, Heartbeat};
-pub use results::{Artifact, HeightRow, JobResults, StoredArtifact, ThreadRow};
+pub use results::{Artifact, HeightRow, JobResults, PITCH_PROFILES, StoredArtifact, ThreadRow};
 pub use webhooks::{AttemptOutcome, AttemptRow, DeliveryFilter, DeliveryRow, NewDelivery};
 
 use crate::problem::{Code, ErrorCode, Problem};

@@ -3,6 +3,10 @@
 
 use super::*;
 
+/// The artifact holding an inspection's pitch profiles ([`crate::eval::pairs::ProfileSet`]): the
+/// worker writes it, the CMM routes read it.
+pub const PITCH_PROFILES: &str = "pitch-profiles";
+
 /// A result file kept as a BLOB.
 #[derive(Clone, Debug)]
 pub struct Artifact {
