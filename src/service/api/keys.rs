@@ -207,6 +207,8 @@ pub struct NewApiKey {
     /// Who or what holds it (`mes-line-3`), 1–100 characters (surrounding spaces are trimmed).
     #[schema(min_length = 1, max_length = 100)]
     pub name: String,
+    /// What it may do; at least one.
+    #[schema(min_items = 1)]
     pub scopes: Vec<Scope>,
 }
 

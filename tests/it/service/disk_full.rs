@@ -322,3 +322,29 @@ async fn a_full_disk_answers_507_and_every_202_survives_recovery_and_restart() {
     store.pool.close().await;
     app.stop().await;
 }
+
+/// An upload file that no row names (its submission's commit failed after the file was placed) is
+/// deleted when the service starts; a file whose row exists is kept.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn upload_files_without_a_row_are_removed_at_start_up() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = open_store(dir.path()).await;
+    let kept = created(insert(&store, b"a real upload", "{}".into(), None).await.unwrap());
+    let kept_sha = store.inspection(&kept).await.unwrap().upload_sha256;
+    store.pool.close().await;
+    let orphan_sha = crestscan::service::store::files::sha256_hex(b"an upload whose commit failed");
+    let orphan = dir.path().join("uploads").join(&orphan_sha[..2]).join(&orphan_sha);
+    std::fs::create_dir_all(orphan.parent().unwrap()).unwrap();
+    std::fs::write(&orphan, b"an upload whose commit failed").unwrap();
+    // Not ours: names of another shape are left alone.
+    let stranger = dir.path().join("uploads").join("README");
+    std::fs::write(&stranger, b"left by a person").unwrap();
+
+    let app = spawn_app_in(dir.path(), |s| s.workers = 0).await;
+    assert!(!orphan.exists(), "the orphan upload file is still there");
+    assert!(stranger.exists());
+    let store = app.store().await;
+    assert!(store.files.exists(&kept_sha), "the upload with its row was removed");
+    store.pool.close().await;
+    app.stop().await;
+}
