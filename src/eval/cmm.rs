@@ -17,6 +17,11 @@ pub struct CmmPoint {
     /// [0, 25) mm.
     #[schema(minimum = 0.0, exclusive_maximum = 25.0)]
     pub height_mm: f64,
+    /// The CMM's expanded uncertainty (k = 2) of this height, mm, where its software states one:
+    /// with crestscan's own it gives the point's normalised error Eₙ.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(exclusive_minimum = 0.0, maximum = 1.0)]
+    pub uncertainty_mm: Option<f64>,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
@@ -32,6 +37,11 @@ pub struct CmmMeasurements {
     /// 1 to 100 000 points.
     #[schema(min_items = 1, max_items = 100_000)]
     pub points: Vec<CmmPoint>,
+    /// The CMM's expanded uncertainty (k = 2), mm, for every point that states none of its own
+    /// (`# uncertainty_mm: …` in CSV); kept with each point.
+    #[serde(default, skip_serializing)]
+    #[schema(exclusive_minimum = 0.0, maximum = 1.0)]
+    pub uncertainty_mm: Option<f64>,
 }
 
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -106,7 +116,7 @@ impl CmmMeasurements {
         let text = std::str::from_utf8(bytes).map_err(|e| err("body", format!("not UTF-8 text: {e}")))?;
         let text = text.strip_prefix('\u{feff}').unwrap_or(text);
         // Metadata lines before the header.
-        let (mut instrument, mut measured_at, mut file_unit) = (None, None, None);
+        let (mut instrument, mut measured_at, mut file_unit, mut file_uncertainty) = (None, None, None, None);
         let mut body_start = 0;
         let mut header_line = 1;
         for line in text.split_inclusive('\n') {
@@ -122,6 +132,12 @@ impl CmmMeasurements {
                 "instrument" => instrument = Some(value),
                 "measured_at" => measured_at = Some(value),
                 "units" | "unit" => file_unit = Some(Unit::parse(&value, "units")?),
+                "uncertainty_mm" => {
+                    let u = value.replacen(',', ".", 1).parse::<f64>().map_err(|_| {
+                        err("uncertainty_mm", format!("{} is not a number", crate::domain::text::preview(&value)))
+                    })?;
+                    file_uncertainty = Some(u);
+                }
                 _ => {}
             }
         }
@@ -151,6 +167,7 @@ impl CmmMeasurements {
             (None, None, None) => return Err(err("header", format!("missing the height column ({expected})"))),
         };
         let unit_col = find("unit").or_else(|| find("units"));
+        let uncertainty_col = find("uncertainty_mm");
         if column_unit.is_none() && unit_col.is_none() && file_unit.is_none() {
             return Err(err(
                 "header",
@@ -195,9 +212,16 @@ impl CmmMeasurements {
                 (None, Some(c)) => c,
                 (None, None) => file_unit.expect("checked above: some unit is declared"),
             };
-            points.push(CmmPoint { thread, angle_deg, height_mm: unit.to_mm(height) });
+            let uncertainty_mm = match uncertainty_col.map(get).filter(|u| !u.is_empty()) {
+                Some(u) => Some(
+                    number(u)
+                        .ok_or_else(|| err(format!("line {line}, uncertainty_mm"), format!("{u:?} is not a number")))?,
+                ),
+                None => None,
+            };
+            points.push(CmmPoint { thread, angle_deg, height_mm: unit.to_mm(height), uncertainty_mm });
         }
-        let parsed = Self { instrument, measured_at, points };
+        let parsed = Self { instrument, measured_at, points, uncertainty_mm: file_uncertainty };
         parsed.validate()?;
         Ok(parsed.normalised())
     }
@@ -206,6 +230,7 @@ impl CmmMeasurements {
     /// [0, 360): 359.99999 is stored as 0, not as a 360 that the range forbids and no bin matches.
     fn normalised(mut self) -> Self {
         for p in &mut self.points {
+            p.uncertainty_mm = p.uncertainty_mm.or(self.uncertainty_mm);
             if let Some(a) = p.angle_deg.as_mut() {
                 let at_resolution = (*a * ANGLE_STEPS_PER_DEG).round() / ANGLE_STEPS_PER_DEG;
                 *a = if at_resolution >= 360.0 { 0.0 } else { at_resolution };
@@ -239,6 +264,14 @@ impl CmmMeasurements {
             {
                 return Err(err(format!("points[{i}].angle_deg"), format!("{a} is outside [0, 360)")));
             }
+            if let Some(u) = p.uncertainty_mm.or(self.uncertainty_mm)
+                && !(u.is_finite() && u > 0.0 && u <= 1.0)
+            {
+                return Err(err(
+                    format!("points[{i}].uncertainty_mm"),
+                    format!("{u} is not a CMM's expanded uncertainty in mm (0 < U ≤ 1)"),
+                ));
+            }
             if !(p.height_mm.is_finite() && p.height_mm >= 0.0 && p.height_mm < 25.0) {
                 return Err(err(
                     format!("points[{i}].height_mm"),
@@ -260,6 +293,13 @@ pub struct PointComparison {
     pub crestscan_height_mm: Option<f64>,
     /// crestscan − CMM.
     pub deviation_mm: Option<f64>,
+    /// crestscan's expanded uncertainty (k = 2) of its height there, mm.
+    pub crestscan_uncertainty_mm: Option<f64>,
+    /// The CMM's, where it stated one.
+    pub cmm_uncertainty_mm: Option<f64>,
+    /// Normalised error Eₙ = deviation / √(U_crestscan² + U_CMM²) (ISO/IEC 17043): |Eₙ| ≤ 1 is
+    /// agreement within the two instruments' stated uncertainties. Null where either is unknown.
+    pub en: Option<f64>,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
@@ -276,10 +316,30 @@ pub struct Agreement {
     pub sd_mm: Option<f64>,
     /// Bland–Altman 95% limits of agreement: bias ± 1.96 sd.
     pub limits_of_agreement_mm: Option<[f64; 2]>,
+    /// 95% confidence interval of the bias: bias ± t(0.975, n − 1)·sd/√n (two or more points).
+    pub bias_ci95_mm: Option<[f64; 2]>,
+    /// 95% confidence intervals of the lower and the upper limit of agreement: each ± t(0.975, n −
+    /// 1)·sd·√(3/n) (Bland and Altman 1986): how well so few points pin the limits down.
+    pub limits_of_agreement_ci95_mm: Option<[[f64; 2]; 2]>,
+    /// Points with an Eₙ (both uncertainties known).
+    pub en_points: usize,
+    /// The largest |Eₙ|; null when no point has one.
+    pub en_max_abs: Option<f64>,
+    /// Every Eₙ within ±1; null when no point has one.
+    pub en_within_1: Option<bool>,
+    /// The agreement tolerance, mm (`tolerance_mm`; default a tenth of the thread-height band).
     pub tolerance_mm: f64,
-    /// Every compared deviation within ± tolerance (and at least one compared).
+    /// Every compared deviation within ± tolerance, over at least [`MIN_AGREEMENT_POINTS`] points
+    /// (fewer say nothing of the limits: `warnings` says so).
     pub within_tolerance: bool,
+    /// What limits these figures, in words: too few points, CMM points where crestscan measured
+    /// nothing, no uncertainty stated for the CMM.
+    pub warnings: Vec<String>,
 }
+
+/// The fewest compared points from which agreement is claimed: with fewer, the limits of agreement
+/// are uncertain by more than their own width's half (their interval at n = 10 is ±1.2 sd).
+pub const MIN_AGREEMENT_POINTS: usize = 10;
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Comparison {
@@ -294,9 +354,12 @@ pub fn default_tolerance_mm(report: &Report) -> f64 {
 
 /// crestscan's height of `thread` at `angle_deg` (the bin whose centre is nearest, within half a
 /// bin), or its mean over measured bins when no angle is given.
-fn crestscan_height(report: &Report, thread: u32, angle_deg: Option<f64>) -> Option<f64> {
+/// With the height, its expanded uncertainty where the report has one for that very quantity: a
+/// bin's; none for a thread's mean over its measured bins (the report's U is of its finding's
+/// mean, over machined crests within Lc: another quantity).
+fn crestscan_height(report: &Report, thread: u32, angle_deg: Option<f64>) -> Option<(f64, Option<f64>)> {
     let t = report.threads.iter().find(|t| t.index == thread)?;
-    let Some(angle) = angle_deg else { return t.mean_height_mm };
+    let Some(angle) = angle_deg else { return t.mean_height_mm.map(|h| (h, None)) };
     let series = &t.height_mm;
     let spacing = if series.angles_deg.len() > 1 { 360.0 / series.angles_deg.len() as f64 } else { 360.0 };
     let circular = |a: f64, b: f64| {
@@ -312,7 +375,22 @@ fn crestscan_height(report: &Report, thread: u32, angle_deg: Option<f64>) -> Opt
     if d > spacing / 2.0 + 1e-9 {
         return None;
     }
-    series.values.get(i).copied().flatten()
+    let height = series.values.get(i).copied().flatten()?;
+    Some((height, series.uncertainty_mm.get(i).copied().flatten()))
+}
+
+/// Refuses CMM points on threads the inspection does not have (a typo, another part's table):
+/// the field names the first such point, the message every unknown thread and the known ones.
+pub fn check_threads(report: &Report, cmm: &CmmMeasurements) -> Result<(), CmmError> {
+    let known: std::collections::BTreeSet<u32> = report.threads.iter().map(|t| t.index).collect();
+    let unknown: std::collections::BTreeSet<u32> =
+        cmm.points.iter().map(|p| p.thread).filter(|t| !known.contains(t)).collect();
+    let Some(first) = cmm.points.iter().position(|p| !known.contains(&p.thread)) else { return Ok(()) };
+    let list = |set: &std::collections::BTreeSet<u32>| set.iter().map(u32::to_string).collect::<Vec<_>>().join(", ");
+    Err(err(
+        format!("points[{first}].thread"),
+        format!("thread(s) {} are not threads of this inspection (it has {})", list(&unknown), list(&known)),
+    ))
 }
 
 pub fn compare(report: &Report, cmm: &CmmMeasurements, tolerance_mm: f64) -> Comparison {
@@ -320,13 +398,20 @@ pub fn compare(report: &Report, cmm: &CmmMeasurements, tolerance_mm: f64) -> Com
         .points
         .iter()
         .map(|p| {
-            let ours = crestscan_height(report, p.thread, p.angle_deg);
+            let found = crestscan_height(report, p.thread, p.angle_deg);
+            let (ours, ours_u) = (found.map(|f| f.0), found.and_then(|f| f.1));
             PointComparison {
                 thread: p.thread,
                 angle_deg: p.angle_deg,
                 cmm_height_mm: p.height_mm,
                 crestscan_height_mm: ours,
                 deviation_mm: ours.map(|h| h - p.height_mm),
+                crestscan_uncertainty_mm: ours_u,
+                cmm_uncertainty_mm: p.uncertainty_mm,
+                en: ours.zip(ours_u).zip(p.uncertainty_mm).and_then(|((h, u), v)| {
+                    let combined = (u * u + v * v).sqrt();
+                    (combined > 0.0).then(|| (h - p.height_mm) / combined)
+                }),
             }
         })
         .collect();
@@ -339,17 +424,51 @@ pub fn compare(report: &Report, cmm: &CmmMeasurements, tolerance_mm: f64) -> Com
         .filter(|_| n > 1)
         .map(|m| (deviations.iter().map(|d| (d - m).powi(2)).sum::<f64>() / (n - 1) as f64).sqrt());
     let limits = mean.zip(sd).map(|(m, s)| [m - 1.96 * s, m + 1.96 * s]);
+    let t = (n > 1).then(|| crate::numeric::stats::student_t_975(n - 1));
+    let bias_ci = mean.zip(sd).zip(t).map(|((m, s), t)| {
+        let half = t * s / (n as f64).sqrt();
+        [m - half, m + half]
+    });
+    let limits_ci = limits.zip(sd).zip(t).map(|((l, s), t)| {
+        let half = t * s * (3.0 / n as f64).sqrt();
+        [[l[0] - half, l[0] + half], [l[1] - half, l[1] + half]]
+    });
+    let ens: Vec<f64> = points.iter().filter_map(|p| p.en).collect();
+    let en_max = ens.iter().map(|e| e.abs()).fold(None, |m: Option<f64>, e| Some(m.map_or(e, |m| m.max(e))));
+    let unmatched = points.len() - n;
+    let mut warnings = Vec::new();
+    if n < MIN_AGREEMENT_POINTS {
+        warnings.push(format!(
+            "Only {n} point(s) could be compared; agreement is not claimed from fewer than {MIN_AGREEMENT_POINTS} \
+             (the limits of agreement would be uncertain by more than half their width)."
+        ));
+    }
+    if unmatched > 0 {
+        warnings
+            .push(format!("{unmatched} CMM point(s) fall where crestscan measured no height; they are not compared."));
+    }
+    if n > 0 && ens.is_empty() {
+        warnings.push(
+            "The CMM data state no uncertainty (`uncertainty_mm`), so no normalised error Eₙ is given.".to_string(),
+        );
+    }
     Comparison {
         agreement: Agreement {
             compared: n,
-            unmatched: points.len() - n,
+            unmatched,
             bias_mm: mean,
             rms_mm: rms,
             max_abs_deviation_mm: max_abs,
             sd_mm: sd,
             limits_of_agreement_mm: limits,
+            bias_ci95_mm: bias_ci,
+            limits_of_agreement_ci95_mm: limits_ci,
+            en_points: ens.len(),
+            en_max_abs: en_max,
+            en_within_1: en_max.map(|m| m <= 1.0),
             tolerance_mm,
-            within_tolerance: n > 0 && max_abs.is_some_and(|m| m <= tolerance_mm),
+            within_tolerance: n >= MIN_AGREEMENT_POINTS && max_abs.is_some_and(|m| m <= tolerance_mm),
+            warnings,
         },
         points,
     }
@@ -409,7 +528,7 @@ mod tests {
     #[test]
     fn the_contracts_csv_reads_as_before() {
         let m = CmmMeasurements::from_csv(b"thread,angle_deg,height_mm\n3,12.5,1.5748\n4,,1.576\n").unwrap();
-        assert_eq!(m.points[0], CmmPoint { thread: 3, angle_deg: Some(12.5), height_mm: 1.5748 });
+        assert_eq!(m.points[0], CmmPoint { thread: 3, angle_deg: Some(12.5), height_mm: 1.5748, uncertainty_mm: None });
         assert_eq!(m.points[1].angle_deg, None);
         assert_eq!((m.instrument, m.measured_at), (None, None));
     }
@@ -419,7 +538,7 @@ mod tests {
         let csv = "\u{feff}# instrument: Zeiss Contura\n# measured_at: 2026-11-30T10:00:00Z\n\
                    thread;angle_deg;height_mm\n3;12,5;1,5748\n4;;1,5760\n";
         let m = CmmMeasurements::from_csv(csv.as_bytes()).unwrap();
-        assert_eq!(m.points[0], CmmPoint { thread: 3, angle_deg: Some(12.5), height_mm: 1.5748 });
+        assert_eq!(m.points[0], CmmPoint { thread: 3, angle_deg: Some(12.5), height_mm: 1.5748, uncertainty_mm: None });
         assert_eq!(heights(&m), [1.5748, 1.576]);
         assert_eq!(m.instrument.as_deref(), Some("Zeiss Contura"));
         assert_eq!(m.measured_at.as_deref(), Some("2026-11-30T10:00:00Z"));

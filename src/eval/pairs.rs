@@ -236,11 +236,12 @@ mod tests {
             instrument: None,
             measured_at: None,
             points: vec![
-                crate::eval::cmm::CmmPoint { thread: 2, angle_deg: Some(10.2), height_mm: 1.50 },
-                crate::eval::cmm::CmmPoint { thread: 2, angle_deg: Some(10.8), height_mm: 1.52 },
-                crate::eval::cmm::CmmPoint { thread: 2, angle_deg: None, height_mm: 1.4 },
-                crate::eval::cmm::CmmPoint { thread: 4, angle_deg: Some(10.5), height_mm: 1.4 },
+                crate::eval::cmm::CmmPoint { thread: 2, angle_deg: Some(10.2), height_mm: 1.50, uncertainty_mm: None },
+                crate::eval::cmm::CmmPoint { thread: 2, angle_deg: Some(10.8), height_mm: 1.52, uncertainty_mm: None },
+                crate::eval::cmm::CmmPoint { thread: 2, angle_deg: None, height_mm: 1.4, uncertainty_mm: None },
+                crate::eval::cmm::CmmPoint { thread: 4, angle_deg: Some(10.5), height_mm: 1.4, uncertainty_mm: None },
             ],
+            uncertainty_mm: None,
         };
         let pairs = set.with_cmm("x", &cmm);
         assert_eq!(pairs.len(), 1, "one bin has CMM points: thread 2 at 10–11°");

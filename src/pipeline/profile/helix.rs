@@ -264,30 +264,6 @@ pub enum PhaseError {
     Uniform { half_width_mm: f64 },
 }
 
-/// Student's t at 97.5% for `dof` degrees of freedom (conservative between the tabulated ones).
-fn student_t_975(dof: usize) -> f64 {
-    const TABLE: [(usize, f64); 14] = [
-        (1, 12.706),
-        (2, 4.303),
-        (3, 3.182),
-        (4, 2.776),
-        (5, 2.571),
-        (6, 2.447),
-        (7, 2.365),
-        (8, 2.306),
-        (9, 2.262),
-        (10, 2.228),
-        (12, 2.179),
-        (15, 2.131),
-        (20, 2.086),
-        (30, 2.042),
-    ];
-    if dof > 30 {
-        return 1.96;
-    }
-    TABLE.iter().rev().find(|(d, _)| *d <= dof).map_or(12.706, |(_, t)| *t)
-}
-
 /// The smallest shift along z at which the nominal form differs from itself by `rms_mm` RMS over
 /// a pitch; None where no shift up to half a pitch does.
 fn shift_of_residual(form: &ThreadForm, rms_mm: f64) -> Option<f64> {
@@ -385,7 +361,7 @@ impl Helix {
         }
         // About zero: z_h is the generatrices' mean, not the sectors', and the difference counts.
         let between = (means.iter().map(|m| m * m).sum::<f64>() / (k - 1) as f64).sqrt();
-        let z_h_u = 0.5 * student_t_975(k - 1) * between / (k as f64).sqrt();
+        let z_h_u = 0.5 * crate::numeric::stats::student_t_975(k - 1) * between / (k as f64).sqrt();
         let sigma_mm = spread_mm.hypot(z_h_u);
         // A normal distribution as wide as the pitch's uniform one says no more than it.
         if sigma_mm >= p / 12f64.sqrt() {

@@ -95,6 +95,10 @@ pub async fn put_cmm(
         }
     }
     .map_err(|e| ApiError::new(Code::InvalidCmm, e.to_string()).with_culprit(e.field.clone()))?;
+    let (json, _) = state.store.report(&id.0).await?;
+    let report: Report = serde_json::from_str(&json).map_err(ApiError::internal)?;
+    cmm::check_threads(&report, &parsed)
+        .map_err(|e| ApiError::new(Code::InvalidCmm, e.to_string()).with_culprit(e.field.clone()))?;
     let version = state.store.put_cmm(&id.0, &parsed, Some(&peer.ip().to_string())).await?;
     tracing::info!(inspection = %id.0, version, by = %peer.ip(), points = parsed.points.len(), "CMM data stored");
     Ok(super::common::Rounded(stored_cmm(&state, id, Some(version)).await?))
@@ -235,6 +239,7 @@ pub(super) async fn comparison_if_uploaded(
         instrument: stored.instrument.clone(),
         measured_at: stored.measured_at,
         points: stored.points,
+        uncertainty_mm: None,
     };
     let c = cmm::compare(report, &measurements, cmm::default_tolerance_mm(report));
     Ok(Some(crate::export::html::CmmPanel {
@@ -311,6 +316,7 @@ pub async fn get_cmm_comparison(
         instrument: stored.instrument.clone(),
         measured_at: stored.measured_at.clone(),
         points: stored.points,
+        uncertainty_mm: None,
     };
     Ok(super::common::Rounded(CmmComparison {
         inspection_id: id.0,
@@ -360,8 +366,12 @@ pub async fn get_training_pairs(
         other => other?,
     };
     let set = crate::eval::pairs::ProfileSet::decode(&artifact.body).map_err(ApiError::internal)?;
-    let measurements =
-        CmmMeasurements { instrument: stored.instrument, measured_at: stored.measured_at, points: stored.points };
+    let measurements = CmmMeasurements {
+        instrument: stored.instrument,
+        measured_at: stored.measured_at,
+        points: stored.points,
+        uncertainty_mm: None,
+    };
     let mut body = Vec::new();
     for pair in set.with_cmm(&id.0, &measurements) {
         serde_json::to_writer(&mut body, &pair).map_err(ApiError::internal)?;

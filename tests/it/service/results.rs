@@ -212,6 +212,27 @@ async fn round_trip_on_the_ci_preset() {
     assert_eq!(strict["agreement"]["within_tolerance"], false);
     let loose: Value = app.get(&format!("{location}/cmm-comparison?tolerance_mm=1")).await.json().await.unwrap();
     assert_eq!(loose["agreement"]["within_tolerance"], true);
+    // Issue 49: the bias and the limits with their 95% intervals (t with n − 1 degrees of freedom,
+    // Bland–Altman's √(3/n) for the limits), and what limits them said in words.
+    let n = devs.len() as f64;
+    let sd = (devs.iter().map(|d| (d - bias).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
+    let t = crestscan::numeric::stats::student_t_975(devs.len() - 1);
+    let ci = &agreement["bias_ci95_mm"];
+    assert!((ci[0].as_f64().unwrap() - (bias - t * sd / n.sqrt())).abs() <= 2e-4, "{agreement}");
+    assert!((ci[1].as_f64().unwrap() - (bias + t * sd / n.sqrt())).abs() <= 2e-4, "{agreement}");
+    let loa_ci = &agreement["limits_of_agreement_ci95_mm"];
+    let half = t * sd * (3.0 / n).sqrt();
+    assert!(
+        (loa_ci[0][1].as_f64().unwrap() - loa_ci[0][0].as_f64().unwrap() - 2.0 * half).abs() <= 3e-4,
+        "{agreement}"
+    );
+    assert!(loa_ci[1][0].as_f64().unwrap() < hi && hi < loa_ci[1][1].as_f64().unwrap(), "{agreement}");
+    // No uncertainty stated by this CMM: no Eₙ, and the warning says why.
+    assert_eq!(agreement["en_points"], 0);
+    assert!(
+        agreement["warnings"].as_array().unwrap().iter().any(|w| w.as_str().unwrap().contains("Eₙ")),
+        "{agreement}"
+    );
     // The page now shows crestscan against the CMM, with the comparison's own figures.
     let page = html_report(&app, &location, "").await;
     assert!(page.contains("id=\"cmm\""));
@@ -257,6 +278,46 @@ async fn round_trip_on_the_ci_preset() {
         problem(app.get(&format!("{location}/cmm?version=3")).await, StatusCode::NOT_FOUND, "cmm_not_found").await;
     assert_eq!(missing["culprit"], "version");
     problem(app.get(&format!("{location}/cmm?version=0")).await, StatusCode::BAD_REQUEST, "invalid_query").await;
+    // The one point of version 2 is too few to claim agreement from, however close.
+    let one: Value = app.get(&format!("{location}/cmm-comparison?tolerance_mm=1")).await.json().await.unwrap();
+    assert_eq!(one["agreement"]["within_tolerance"], false, "{one}");
+    assert!(one["agreement"]["warnings"][0].as_str().unwrap().starts_with("Only "), "{one}");
+
+    // A thread the inspection does not have is refused, naming the point and the threads there are.
+    let unknown = app
+        .client
+        .put(app.url(&format!("{location}/cmm")))
+        .header("content-type", "text/csv")
+        .body(format!("thread,angle_deg,height_mm\n{thread},12,1.57\n55,12,1.57\n"))
+        .send()
+        .await
+        .unwrap();
+    let v = problem(unknown, StatusCode::UNPROCESSABLE_ENTITY, "invalid_cmm").await;
+    assert_eq!(v["culprit"], "points[1].thread", "{v}");
+    assert!(v["detail"].as_str().unwrap().contains("55"), "{v}");
+    // With the CMM's stated uncertainty, each bin point gets its normalised error Eₙ.
+    let (t0, a0, h0, u0) = report
+        .threads
+        .iter()
+        .find_map(|t| {
+            let i = t.height_mm.values.iter().position(|v| v.is_some())?;
+            Some((t.index, t.height_mm.angles_deg[i], t.height_mm.values[i]?, t.height_mm.uncertainty_mm[i]?))
+        })
+        .expect("a measured bin with its U");
+    let put = app
+        .client
+        .put(app.url(&format!("{location}/cmm")))
+        .header("content-type", "text/csv")
+        .body(format!("# uncertainty_mm: 0.002\nthread,angle_deg,height_mm\n{t0},{a0},{}\n", h0 + 0.004))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(put.status(), StatusCode::OK);
+    let en: Value = app.get(&format!("{location}/cmm-comparison")).await.json().await.unwrap();
+    let expected = -0.004 / (u0 * u0 + 0.002f64 * 0.002).sqrt();
+    let got = en["points"][0]["en"].as_f64().unwrap();
+    assert!((got - expected).abs() <= 0.01 * expected.abs().max(1.0), "Eₙ {got}, expected {expected}: {en}");
+    assert_eq!(en["agreement"]["en_points"], 1);
 
     // The list finds it by its client reference; metrics counted the polls by route.
     let page: Value = app.get("/v1/inspections?client_reference=MES-4711&status=succeeded").await.json().await.unwrap();
