@@ -7,7 +7,8 @@ use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct CmmPoint {
-    /// Thread number as the contract counts them (1 = nearest the pipe end).
+    /// Thread number as the contract counts them (1 = nearest the pipe end); one of the
+    /// inspection's threads (its report's `threads[].index`), else the upload is refused.
     #[schema(minimum = 1, maximum = 1000)]
     pub thread: u32,
     /// Angle around the pipe, [0, 360); absent means the thread's mean height.

@@ -200,7 +200,8 @@ fn run_stages(
             quality::QualityStatus::Degraded,
             quality::QualityCode::DepthLearned,
             format!(
-                "depth came from the {} model {} (sha256 {}): the method's uncertainty was measured for the \
+                "Depth came from a learned model whose accuracy crestscan has not measured, so no decision is made. \
+                 The {} model {} (sha256 {}) made the depth; the method's uncertainty was measured for the \
                  classical depth, so each height's U includes the heights' dispersion along the helix and their \
                  thread's distance from nominal, and no decision is made (docs/models.md)",
                 m.role.as_str(),
@@ -214,7 +215,8 @@ fn run_stages(
             quality::QualityStatus::Degraded,
             quality::QualityCode::ProfileCorrected,
             format!(
-                "the heights were read off pitches corrected by the {} model {} (sha256 {}): the method's uncertainty \
+                "The heights were corrected by a learned model whose accuracy crestscan has not measured, so no \
+                 decision is made. They were read off pitches corrected by the {} model {} (sha256 {}); the method's uncertainty \
                  was measured for the classical heights, so each height's U includes the heights' dispersion along \
                  the helix and their thread's distance from nominal, and no decision is made (docs/models.md)",
                 m.role.as_str(),
@@ -228,9 +230,9 @@ fn run_stages(
             quality::QualityStatus::Degraded,
             quality::QualityCode::ProfileCorrectionUnavailable,
             format!(
-                "this station's object pixel called for the profile-correction MLP (profile.correction auto) and it \
-                 could not run: the heights are the classical fits, which at such stations erred about twice as much \
-                 (docs/models.md). {e}"
+                "The heights could not be corrected as this station needs, so they may be about twice as far off. \
+                 This station's object pixel called for the profile-correction MLP (profile.correction auto) and it \
+                 could not run: the heights are the classical fits (docs/models.md). {e}"
             ),
         );
     }

@@ -147,7 +147,8 @@ pub fn assess(
             QualityStatus::Degraded,
             QualityCode::StationUnmeasured,
             format!(
-                "the station lies outside the envelope the accuracy figures were measured in: {}; {}",
+                "This station is unlike those crestscan's accuracy was measured at, so its heights may be further off \
+                 than the stated figures. Outside the measured envelope: {}; {}",
                 outside.join("; "),
                 match station.class {
                     Some(class) => format!(
@@ -166,8 +167,8 @@ pub fn assess(
             QualityStatus::Degraded,
             QualityCode::HelixResidualLarge,
             format!(
-                "the helix fits the surface with a residual of {:.0} µm RMS, over {:.0}% of the {:.0} µm thread \
-                 height: the heights' windows may not sit on the crests and roots",
+                "The thread's helix fits the surface poorly, so heights may have been read off the crests and roots. \
+                 The helix fits with a residual of {:.0} µm RMS, over {:.0}% of the {:.0} µm thread height",
                 surface.helix_fit_rms_um,
                 100.0 * HELIX_RESIDUAL_OF_HEIGHT,
                 height_um
@@ -179,10 +180,10 @@ pub fn assess(
             QualityStatus::Insufficient,
             QualityCode::HelixPhaseUnknown,
             format!(
-                "the helix phase was read on {} sector{} of the circumference (one view's spacing each) and the helix \
-                 fits the surface too loosely to bound it, or the sectors' readings scatter over the pitch: the \
-                 heights' windows may sit anywhere between crest and root, and each height's U takes in the whole \
-                 pitch",
+                "Where the crests lie along the pipe could not be read reliably, so any height may have been taken \
+                 between a crest and a root. The helix phase was read on {} sector{} of the circumference (one \
+                 view's spacing each) and the helix fits the surface too loosely to bound it, or the sectors' \
+                 readings scatter over the pitch; each height's U takes in the whole pitch",
                 surface.phase_sectors,
                 if surface.phase_sectors == 1 { "" } else { "s" }
             ),
@@ -194,7 +195,8 @@ pub fn assess(
             QualityStatus::Degraded,
             QualityCode::DepthCoverageLow,
             format!(
-                "depth from focus trusted {:.0}% of the pixels (under {:.0}%): much of the surface is unmeasured",
+                "Much of the surface could not be measured. Depth from focus trusted {:.0}% of the pixels (under \
+                 {:.0}%)",
                 100.0 * depth_coverage,
                 100.0 * MIN_DEPTH_COVERAGE
             ),
@@ -220,7 +222,8 @@ pub fn assess(
             QualityStatus::Degraded,
             QualityCode::RegistrationIncomplete,
             format!(
-                "registration measured {} of {} overlaps; not measured: {}",
+                "Some neighbouring views could not be aligned by their texture, so the surface may be pieced together \
+                 less exactly. Registration measured {} of {} overlaps; not measured: {}",
                 registration.pairs_measured,
                 registration.pairs_expected,
                 unmeasured.join("; ")
@@ -231,7 +234,11 @@ pub fn assess(
         flag(
             QualityStatus::Degraded,
             QualityCode::NoOverlaps,
-            format!("the {} views do not overlap: every view keeps its encoder pose", views.len()),
+            format!(
+                "The views do not overlap, so none could be aligned with another. Each of the {} views keeps its \
+                 encoder pose",
+                views.len()
+            ),
         );
     } else if views.len() > 1 && !registration.unregistered_views.is_empty() {
         let names: Vec<String> = registration.unregistered_views.iter().map(|&v| name(v)).collect();
@@ -273,7 +280,8 @@ pub fn assess(
             at,
             QualityCode::ViewsUnregistered,
             format!(
-                "{} of {} views have no measured overlap and keep their encoder poses: {}{placed}",
+                "Some views could not be aligned with any other and stay where the encoders put them. {} of {} views \
+                 have no measured overlap: {}{placed}",
                 names.len(),
                 views.len(),
                 names.join(", ")
@@ -291,7 +299,8 @@ pub fn assess(
             QualityStatus::Degraded,
             QualityCode::RegistrationOutliers,
             format!(
-                "{} measured overlap(s) disagree with the solved ring by over three times the robust kernel's bound: {}",
+                "Some view alignments disagreed with the rest and were set aside. {} measured overlap(s) disagree \
+                 with the solved ring by over three times the robust kernel's bound: {}",
                 outliers.len(),
                 outliers.join(", ")
             ),
@@ -304,8 +313,9 @@ pub fn assess(
             at,
             QualityCode::PartialCoverage,
             format!(
-                "the views showed {seen_deg:.0}° of the {within_deg:.0}° of thread crest within Lc \
-                 ({:.0}%): the verdict holds for the crests seen",
+                "Only {:.0}% of the thread crest within Lc was imaged; the unseen crests could be black. The views \
+                 showed {seen_deg:.0}° of the {within_deg:.0}° of crest within Lc: the verdict holds for the crests \
+                 seen",
                 100.0 * seen_deg / within_deg.max(1e-9)
             ),
         );

@@ -499,8 +499,9 @@ pub fn decide(
     let mut reasons = Vec::new();
     if failed {
         reasons.push(
-            "no decision: the measurement failed its quality checks or its station's optics lie outside the \
-             envelope its uncertainty was measured in (the quality reasons say which); its heights and black \
+            "No decision is made: crestscan cannot state how far off this measurement may be. It failed its \
+             quality checks or its station's optics lie outside the envelope its uncertainty was measured in (the \
+             quality reasons say which); its heights and black \
              crests may be wrong by more than their local scatter shows, and each height's uncertainty \
              includes the heights' dispersion along the helix and their thread's distance from nominal"
                 .to_string(),
@@ -536,14 +537,16 @@ pub fn decide(
         };
         if reject_side.verdict == Verdict::Reject {
             reasons.push(format!(
-                "within the uncertainty the verdict could be reject ({margins}{unseen}): {}",
+                "The measurement is not certain enough to accept: within its uncertainty the part could be a reject. \
+                 With {margins}{unseen}: {}",
                 bound(&reject_side)
             ));
         }
         if accept_side.verdict == Verdict::Accept {
             reasons.push(format!(
-                "within the uncertainty the verdict could be accept (black arcs {:.1}° shorter at each end, the \
-                 onset {:.1} µm higher, Lc {:.3} mm shorter): {}",
+                "The measurement is not certain enough to reject: within its uncertainty the part could be an \
+                 accept. With black arcs {:.1}° shorter at each end, the onset {:.1} µm higher and Lc {:.3} mm \
+                 shorter: {}",
                 budget.arc_end_deg,
                 budget.crest_deficit_um,
                 budget.z_mm,
@@ -770,7 +773,7 @@ mod tests {
         let at_limit = part(6, |t, k| t == 4 && (100..190).contains(&k), |_, _| false);
         let d = decide_on(&at_limit, Family::Buttress, &ok());
         assert_eq!((d.verdict_toward_reject, d.decision), (Verdict::Reject, Decision::Indeterminate), "{d:?}");
-        assert!(d.reasons[0].contains("could be reject"), "{:?}", d.reasons);
+        assert!(d.reasons[0].contains("could be a reject"), "{:?}", d.reasons);
         // Black against the edge of the crests seen (a sector's edge, where the cone is fitted
         // least well): it may be the fit's, so the verdict could be accept.
         let at_edge = part(6, |t, k| (2..=4).contains(&t) && (60..120).contains(&k), |_, k| k >= 120);

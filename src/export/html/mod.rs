@@ -191,7 +191,7 @@ fn header(page: &mut String, r: &Report, inputs: &PageInputs, title: &str) {
     }
     page.push_str("</ul>\n");
     let mut review: Vec<String> =
-        r.quality.reasons.iter().map(|q| format!("{}: {}", wire(&q.code), q.message)).collect();
+        r.quality.reasons.iter().map(|q| format!("{} ({})", q.message, wire(&q.code))).collect();
     if let Some(f) = &r.decision_finding {
         review.extend(f.reasons.iter().cloned());
     }
