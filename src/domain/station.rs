@@ -45,7 +45,7 @@ pub struct Station {
 /// The classes of the declared envelope. `standard` is where the accuracy targets were met (the
 /// presets' station ±10%); `fine`, `medium` and `coarse` split the station benchmark's ranges
 /// ([`BENCHMARKED`]) by object pixel (≤ 0.06 mm, ≤ 0.10 mm, above), each with the figures the
-/// station benchmark measured there, far from the targets (README, docs/benchmark.md): a result
+/// station benchmark measured there, far from the targets (docs/status.md, docs/benchmark.md): a result
 /// there is inspected, degraded and flagged for review.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]

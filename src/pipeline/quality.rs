@@ -152,7 +152,7 @@ pub fn assess(
                 outside.join("; "),
                 match station.class {
                     Some(class) => format!(
-                        "it is in the {} station class, whose figures (GET /v1/capabilities, README) are far from \
+                        "it is in the {} station class, whose figures (GET /v1/capabilities, docs/status.md) are far from \
                          the targets",
                         class.as_str()
                     ),

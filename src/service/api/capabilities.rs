@@ -99,14 +99,14 @@ pub async fn get_capabilities() -> Json<Capabilities> {
             ranges: envelope(class.envelope()),
             results: match class {
                 StationClass::Standard => "the accuracy suites' station: the published accuracy figures hold \
-                                           (README, docs/benchmark.md); decisions conform or not by the uncertainty"
+                                           (docs/status.md, docs/benchmark.md); decisions conform or not by the uncertainty"
                     .into(),
                 _ => format!(
                     "inspected, quality degraded (station_unmeasured), review_required; where the optics (object \
                      pixel, depth of field, frame step, frame noise) lie outside the standard class, the decision \
                      is indeterminate and each height's uncertainty includes the heights' dispersion along the \
                      helix and their thread's distance from nominal. The station benchmark's {} class figures \
-                     (README, Stations; docs/benchmark.md) are far from the targets",
+                     (docs/status.md, Accuracy; docs/benchmark.md) are far from the targets",
                     class.as_str()
                 ),
             },
