@@ -13,6 +13,7 @@ pub const IN_FOCUS_BLUR_PX: f64 = 1.0;
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Station {
+    /// The camera's projection: perspective or telecentric.
     pub projection: Projection,
     /// One pixel on the part at the focus distance, mm.
     pub object_pixel_mm: f64,
@@ -20,9 +21,11 @@ pub struct Station {
     pub depth_of_field_mm: f64,
     /// The median spacing of the frames' offsets, mm, and as a fraction of the depth of field.
     pub frame_step_mm: f64,
+    /// That spacing as a fraction of the depth of field.
     pub frame_step_dof: f64,
     /// The fewest frames of any view.
     pub frames_per_view: usize,
+    /// How many views the bundle has.
     pub views: usize,
     /// Distinct axial positions of the views.
     pub axial_rows: usize,
@@ -30,6 +33,8 @@ pub struct Station {
     /// overlap along the arc at the pipe's radius (negative: a gap), degrees. None for one view
     /// per row.
     pub view_spacing_deg: Option<f64>,
+    /// How far neighbouring views' footprints overlap along the arc at the pipe's radius,
+    /// degrees (negative: a gap); null for one view per row.
     pub overlap_deg: Option<f64>,
     /// The frames' pixel noise, in per cent of their brightness: measured on the frames by the depth
     /// stage (the median over the views' first frames), not declared by the manifest. None before

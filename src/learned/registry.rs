@@ -58,9 +58,13 @@ impl ModelSource {
 /// Which model produced part of a report.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct ModelUse {
+    /// What the model does: depth from focus, or the profile correction.
     pub role: ModelRole,
+    /// Its name (a shipped model's, or one installed in `<data_dir>/models`).
     pub name: String,
+    /// The sha256 of its ONNX file: which weights ran.
     pub sha256: String,
+    /// Whether it shipped with crestscan or was installed.
     pub source: ModelSource,
 }
 

@@ -63,13 +63,18 @@ pub enum QualityCode {
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct QualityReason {
+    /// The reason's stable machine code.
     pub code: QualityCode,
+    /// The reason in words: a plain sentence first, the figures after it.
     pub message: String,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Quality {
+    /// ok, degraded (some of the surface or registration is missing or weak) or insufficient (too
+    /// little was measured to trust the result).
     pub status: QualityStatus,
+    /// What was not measured, or measured poorly; empty when the status is ok.
     pub reasons: Vec<QualityReason>,
 }
 

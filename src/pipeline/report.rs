@@ -17,6 +17,7 @@ use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct HeightSeries {
+    /// The centre of each 1° bin around the pipe, degrees (0.5, 1.5, …, 359.5).
     pub angles_deg: Vec<f64>,
     /// null where the views did not cover the bin.
     pub values: Vec<Option<f64>>,
@@ -28,15 +29,25 @@ pub struct HeightSeries {
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct ThreadReport {
+    /// The thread's number, 1 nearest the pipe end (the contract's numbering).
     pub index: u32,
+    /// The thread's height per 1° bin around the pipe, mm, with each value's uncertainty.
     pub height_mm: HeightSeries,
+    /// Arcs of black crest, [start, end] degrees around the pipe.
     pub black_crest_arcs_deg: Vec<[f64; 2]>,
+    /// The black crest's length along the helix within Lc, mm (what API 5B limits).
     pub black_crest_length_mm: f64,
     // Extras.
+    /// Where the thread's crest runs along the pipe axis, [first, last] mm from the end face over
+    /// its turn.
     pub crest_z_mm: [f64; 2],
+    /// The smallest measured height over the bins, mm; null when no bin was measured.
     pub min_height_mm: Option<f64>,
+    /// The mean of the measured bins' heights, mm; null when none was.
     pub mean_height_mm: Option<f64>,
+    /// The largest measured height, mm; null when no bin was measured.
     pub max_height_mm: Option<f64>,
+    /// How many of the 360 bins have a height.
     pub bins_measured: usize,
     /// The thread's height judged against nominal ± tolerance with its uncertainty: the mean over
     /// its crests within Lc that are neither black nor the chamfer, and that mean's expanded
@@ -47,8 +58,11 @@ pub struct ThreadReport {
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct ThreadHeightFinding {
+    /// The height against nominal ± tolerance, judged with the mean's uncertainty (ISO 14253-1).
     pub finding: HeightFinding,
+    /// The mean height over the thread's machined crests within Lc, mm.
     pub mean_height_mm: Option<f64>,
+    /// That mean's expanded uncertainty (k = 2), mm.
     pub uncertainty_mm: Option<f64>,
     /// Bins the mean is over.
     pub bins: usize,
@@ -56,7 +70,10 @@ pub struct ThreadHeightFinding {
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct StageTiming {
+    /// The pipeline stage (depth, register, fuse, mesh, profile, crest_and_rules), or a part of one
+    /// (profile_correction, depth_cnn).
     pub stage: String,
+    /// Its wall-clock time, seconds.
     pub seconds: f64,
 }
 
@@ -76,15 +93,25 @@ impl StageTiming {
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Report {
+    /// The API 5B connection designation (`BC 4-1/2`); null for a custom thread form.
     pub connection: Option<String>,
+    /// The thread form's family: round or buttress.
     pub family: Family,
+    /// The pipe's outside diameter, mm.
     pub pipe_od_mm: f64,
+    /// Lc, the length from the pipe end within which black crests are limited, mm.
     pub lc_mm: f64,
+    /// The pipe's circumference, mm (25% of it is the buttress rule's limit on a black crest).
     pub circumference_mm: f64,
+    /// The thread pitch, mm (nominal).
     pub pitch_mm: f64,
+    /// The nominal thread height, mm.
     pub nominal_height_mm: f64,
+    /// Per thread: heights around the pipe, black crests, and the height's finding.
     pub threads: Vec<ThreadReport>,
+    /// The API 5B verdict on the measured values as they are (accept / reject).
     pub verdict: Verdict,
+    /// Why the verdict is what it is, in words (the rules' reasons).
     pub reasons: Vec<String>,
     /// How far the result can be trusted: what was not measured, or measured poorly.
     #[serde(default = "Quality::not_assessed")]
@@ -93,6 +120,8 @@ pub struct Report {
     /// its uncertainty (`indeterminate` in reports stored before it was made).
     #[serde(default = "indeterminate")]
     pub decision: Decision,
+    /// How the decision was reached: the verdict at each end of the uncertainty, and why it is
+    /// indeterminate where it is.
     #[serde(default)]
     pub decision_finding: Option<DecisionFinding>,
     /// True when the quality is not ok or the decision indeterminate: a person should look before
@@ -111,29 +140,40 @@ pub struct Report {
     #[serde(default)]
     pub provenance: Option<Provenance>,
     // Extras.
+    /// The part's serial number, from the bundle's manifest.
     pub serial: Option<String>,
+    /// The thread-height tolerance, ± mm.
     pub height_tolerance_mm: f64,
+    /// The API 5B rules' assessment in full: the black threads, the limits, the reasons by code.
     pub assessment: Assessment,
+    /// The helix fitted to the surface: its pitch and how well it fits.
     pub helix: Helix,
+    /// How the views were aligned: each overlap's status and measure, the corrections, the ring's
+    /// closure.
     pub registration: Registration,
     /// The end face's silhouette, when the views showed it: the ring's axial offset it found and
     /// took out of every pose (registration cannot observe it).
     #[serde(default)]
     pub end_face: Option<EndFace>,
+    /// The share (0–1) of the frames' pixels whose depth from focus was trusted.
     pub depth_coverage: f64,
     /// How many views' focus measure took the noise pre-filter (docs/pipeline.md, 1. Depth from
     /// focus; the frames' noise is the station's `frame_noise_percent`).
     #[serde(default)]
     pub depth_prefiltered_views: usize,
+    /// The share (0–1) of the unrolled surface's cells (z along the inspected length × θ around
+    /// the pipe) that the fused views filled.
     pub map_coverage: f64,
     /// The share of fused cells dropped as implausible: more than a thread height from their
     /// bin's mean line, so no surface of the form (docs/pipeline.md, 4. Fusion and the mesh). Absent in reports
     /// written before the gate existed.
     #[serde(default)]
     pub map_implausible_share: f64,
+    /// The machined crests' brightness (0–1 grey) that a dark, black crest is told from.
     pub machined_crest_gray: f32,
     /// The machined crest cone the geometric black-crest test measured crests against.
     pub crest_cone: Option<CrestCone>,
+    /// Each stage's wall-clock time.
     pub timings: Vec<StageTiming>,
     /// Peak resident memory of the process (Linux VmHWM), when known.
     pub peak_memory_mb: Option<f64>,
@@ -251,6 +291,7 @@ fn indeterminate() -> Decision {
 /// What made a report.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Provenance {
+    /// crestscan's version.
     pub software_version: String,
     /// Every option the pipeline ran with, defaults filled in (the shape of `POST
     /// /v1/inspections`'s `pipeline` option).
@@ -258,6 +299,7 @@ pub struct Provenance {
     pub settings: PipelineOptions,
     /// Set by the service: the inspection's id and the sha256 of its uploaded bundle.
     pub inspection_id: Option<String>,
+    /// The sha256 of the uploaded bundle (set by the service).
     pub bundle_sha256: Option<String>,
     /// The learned models that changed this report, by sha256 (none: the classical pipeline).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]

@@ -65,10 +65,12 @@ impl Default for UncertaintyOptions {
 /// The components of the heights' uncertainty, as the report states them.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct UncertaintyBudget {
+    /// k, the coverage factor of every expanded uncertainty (2: about 95%).
     pub coverage_factor: f64,
     /// Standard uncertainties, µm: the method's (Type B) and registration's, the same for every
     /// bin; the median over the bins of the noise's (Type A).
     pub method_um: f64,
+    /// Registration's standard uncertainty of a height, µm.
     pub registration_um: f64,
     /// The helix phase: the standard uncertainty of a bin's windows' place along z (µm), the
     /// sectors of the circumference that read it, whether it is unknown within the pitch (fewer
@@ -78,12 +80,17 @@ pub struct UncertaintyBudget {
     /// ([`profile::phase_height_rms_mm`], [`profile::PhaseUncertainty`]).
     #[serde(default)]
     pub helix_phase_um: f64,
+    /// Sectors of the circumference (one view's spacing each) that read the helix phase.
     #[serde(default)]
     pub helix_phase_sectors: usize,
+    /// Whether the helix phase is unknown within the pitch (each height's U then takes in the
+    /// whole pitch).
     #[serde(default)]
     pub helix_phase_unknown: bool,
+    /// The standard uncertainty the helix phase puts on a height, µm.
     #[serde(default)]
     pub helix_phase_height_um: f64,
+    /// The median over the bins of the noise's standard uncertainty (Type A), µm.
     pub noise_median_um: Option<f64>,
     /// Where the measurement failed its checks ([`measurement_failed`]) and the method's Type B
     /// term is unknown, two standard uncertainties every height carries besides the others, µm
@@ -97,8 +104,11 @@ pub struct UncertaintyBudget {
     /// `from_nominal_by_thread` each other thread's own.
     #[serde(default)]
     pub along_helix_um: f64,
+    /// The part's heights' median distance from nominal as a standard uncertainty (over √3), µm:
+    /// what a thread with fewer than 5 machined heights carries.
     #[serde(default)]
     pub from_nominal_um: f64,
+    /// Each other thread's own distance from nominal, as a standard uncertainty, µm.
     #[serde(default)]
     pub from_nominal_by_thread: Vec<ThreadTerm>,
     /// Heights left out of those two terms as on or beside a black crest.
@@ -111,14 +121,18 @@ pub struct UncertaintyBudget {
     /// The decision's margins: the expanded uncertainty of a crest's deficit below the machined
     /// cone (µm), of a black arc's end (degrees) and of absolute z (mm).
     pub crest_deficit_um: f64,
+    /// The expanded uncertainty of a black arc's end, degrees.
     pub arc_end_deg: f64,
+    /// The expanded uncertainty of absolute z (where Lc ends), mm.
     pub z_mm: f64,
 }
 
 /// One thread's value of a term of the budget, µm.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct ThreadTerm {
+    /// The thread's number.
     pub thread: u32,
+    /// Its value of the term, µm.
     pub um: f64,
 }
 
@@ -428,9 +442,12 @@ impl Decision {
 /// The decision and how it was reached.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct DecisionFinding {
+    /// The decision (conforms, does_not_conform, indeterminate).
     pub decision: Decision,
     /// The rules' verdict at the bound toward reject and at the bound toward accept.
     pub verdict_toward_reject: Verdict,
+    /// The rules' verdict at the bound toward accept (black arcs shorter, the onset higher, Lc
+    /// shorter, each by its uncertainty).
     pub verdict_toward_accept: Verdict,
     /// Crest degrees within Lc that no view showed, and counted black toward reject.
     pub unseen_crest_within_lc_deg: f64,

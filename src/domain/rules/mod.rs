@@ -122,9 +122,14 @@ pub enum BlackCrestEvidence {
 /// A thread with black crests within Lc.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct BlackThread {
+    /// The thread's number, 1 nearest the pipe end.
     pub index: u32,
+    /// Its black-crest arcs within Lc, [from, to] degrees around the pipe.
     pub arcs_deg: Vec<[f64; 2]>,
+    /// Their length along the helix, mm.
     pub length_mm: f64,
+    /// What showed the crests black: their brightness, their geometry (below the machined cone),
+    /// or both.
     pub evidence: BlackCrestEvidence,
 }
 
@@ -147,26 +152,37 @@ pub enum ReasonCode {
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Reason {
+    /// The reason's stable machine code.
     pub code: ReasonCode,
+    /// The reason in words.
     pub message: String,
     /// Threads the reason is about.
     pub threads: Vec<u32>,
     /// The measured quantity and the limit it was held against, where there is one.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub value: Option<f64>,
+    /// The limit `value` was held against, in `unit`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub limit: Option<f64>,
+    /// The unit of `value` and `limit` (`mm`, `deg`, `threads`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub unit: Option<String>,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Assessment {
+    /// The rules' verdict (accept / reject).
     pub verdict: Verdict,
+    /// Each rule's finding, with its code, threads, value and limit.
     pub reasons: Vec<Reason>,
+    /// The threads with black crest within Lc.
     pub black_threads: Vec<BlackThread>,
+    /// Lc, mm.
     pub lc_mm: f64,
+    /// The pipe's circumference, mm.
     pub circumference_mm: f64,
+    /// How a black arc is measured against the buttress limit: per thread, or along the whole
+    /// helix (the submission's `arc_rule`).
     pub arc_rule: ArcRule,
     /// The buttress arc limit in mm (25% of the circumference); None for round threads.
     pub arc_limit_mm: Option<f64>,
@@ -179,7 +195,9 @@ pub struct Assessment {
 /// Arcs [from, to] in degrees of one thread.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct ThreadArcs {
+    /// The thread's number.
     pub index: u32,
+    /// Its arcs, [from, to] degrees around the pipe.
     pub arcs_deg: Vec<[f64; 2]>,
 }
 

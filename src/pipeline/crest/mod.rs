@@ -95,6 +95,7 @@ impl Default for CrestOptions {
 /// The machined crest cone r = a + b·z + c·cos θ + d·sin θ fitted to the part's crests.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct CrestCone {
+    /// The cone's radius at the end face (z = 0), mm.
     pub radius_at_end_mm: f64,
     /// Radial growth per mm of z (half the taper on diameter).
     pub slope: f64,
@@ -102,9 +103,11 @@ pub struct CrestCone {
     pub axis_offset_mm: [f64; 2],
     /// Robust scatter of the median-filtered crest radii about the cone.
     pub scatter_um: f64,
+    /// The machined crest bins the cone was fitted to.
     pub crests_fitted: usize,
     /// The thresholds the geometric test used.
     pub onset_um: f64,
+    /// How far below the cone, µm, a crest run must reach somewhere to count black by geometry.
     pub extent_um: f64,
 }
 

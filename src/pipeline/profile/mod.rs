@@ -31,11 +31,13 @@ use std::f64::consts::TAU;
 pub struct Helix {
     /// z of thread 1's crest centre line at θ = 0, in [0, pitch).
     pub z_h_mm: f64,
+    /// The pitch the helix was fitted with, mm.
     pub pitch_mm: f64,
     /// Measured taper on diameter (from the detrended generatrix slope).
     pub taper_on_diameter: f64,
     /// RMS of the analytic profile (nominal form at the measured phase, taper line) against data.
     pub fit_rms_um: f64,
+    /// The 1° bins (generatrices) the helix was fitted over.
     pub bins_used: usize,
     /// The measured profile's fundamental over the nominal form's (median over the bins used):
     /// under 1 where depth from focus flattens the profile. None in reports stored before it was.

@@ -35,8 +35,11 @@ use std::f64::consts::TAU;
 
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct PoseCorrection {
+    /// What registration added to the view's angle, degrees.
     pub angle_deg: f64,
+    /// To its axial position, mm.
     pub axial_mm: f64,
+    /// To its lens radius, mm.
     pub lens_radius_mm: f64,
 }
 
@@ -53,12 +56,16 @@ impl PoseCorrection {
 /// One overlapping pair: how far view b's content must move to match view a's.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct PairMeasure {
+    /// The first view's index in the bundle's `views`.
     pub a: usize,
+    /// The second view's.
     pub b: usize,
     /// Measured along the arc, less what the two views' solved lens-radius corrections account
     /// for there (see [`register`]).
     pub shift_angle_deg: f64,
+    /// The shift along the pipe axis, mm.
     pub shift_axial_mm: f64,
+    /// The shift in radius, mm.
     pub shift_radius_mm: f64,
     /// Normalised cross-correlation at the peak (1 = identical texture).
     pub peak_ncc: f64,
@@ -66,10 +73,13 @@ pub struct PairMeasure {
     /// peak's (see `PairCandidate`).
     #[serde(default)]
     pub rival_ratio: f64,
+    /// Cells of the unrolled surface the two views share at that shift.
     pub overlap_cells: usize,
     /// Disagreement with the solved corrections after the graph solve.
     pub residual_angle_deg: f64,
+    /// The axial disagreement, µm.
     pub residual_axial_um: f64,
+    /// The radial disagreement, µm.
     pub residual_radius_um: f64,
 }
 
@@ -100,8 +110,11 @@ pub enum PairStatus {
 /// A candidate overlap and what became of it, with what its correlation found.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct PairCandidate {
+    /// The first view's index in the bundle's `views`.
     pub a: usize,
+    /// The second view's.
     pub b: usize,
+    /// Measured, an outlier, or why it was not measured (too weak, too small, ambiguous, …).
     pub status: PairStatus,
     /// The correlation peak at the best shift found, when the search ran.
     pub peak_ncc: Option<f64>,
@@ -125,12 +138,15 @@ pub struct PairCandidate {
 pub struct RingClosure {
     /// Views in the ring.
     pub views: usize,
+    /// The angles summed around the ring, degrees.
     pub angle_deg: f64,
+    /// The axial shifts summed around the ring, µm.
     pub axial_um: f64,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Registration {
+    /// Per view (in the bundle's order), what registration changed of its encoder pose.
     pub corrections: Vec<PoseCorrection>,
     /// The measured pairs (status measured or outlier), with their residuals.
     pub pairs: Vec<PairMeasure>,
@@ -140,6 +156,7 @@ pub struct Registration {
     /// Candidate overlaps, and how many of them were measured (outliers included).
     #[serde(default)]
     pub pairs_expected: usize,
+    /// Of those, how many were measured (outliers included).
     #[serde(default)]
     pub pairs_measured: usize,
     /// Views none of whose overlaps was measured: they keep their encoder poses (but see

@@ -304,3 +304,65 @@ async fn the_manifest_schema_is_published_and_fits_real_bundles() {
     }
     app.stop().await;
 }
+
+/// Issue 49: every property of the report, and of every schema it refers to, says what it is in
+/// the document (a description on the property, or on the `$ref` of an optional one).
+#[test]
+fn every_report_field_is_described() {
+    let doc: Value = serde_json::from_str(&crestscan::service::api::openapi().to_pretty_json().unwrap()).unwrap();
+    let missing = undescribed(&doc, "Report");
+    assert!(missing.is_empty(), "{} report properties without a description: {}", missing.len(), missing.join(", "));
+}
+
+/// The properties of `root` and of every schema it reaches that carry no description.
+fn undescribed(doc: &Value, root: &str) -> Vec<String> {
+    fn refs(v: &Value, out: &mut Vec<String>) {
+        match v {
+            Value::Object(map) => {
+                for (k, child) in map {
+                    match (k.as_str(), child) {
+                        ("$ref", Value::String(r)) => out.push(r.rsplit('/').next().unwrap().to_string()),
+                        _ => refs(child, out),
+                    }
+                }
+            }
+            Value::Array(items) => items.iter().for_each(|i| refs(i, out)),
+            _ => {}
+        }
+    }
+    let described = |p: &Value| {
+        p.get("description").is_some_and(|d| !d.as_str().unwrap_or("").trim().is_empty())
+            || ["oneOf", "allOf", "anyOf"].iter().any(|k| {
+                p.get(*k).and_then(Value::as_array).is_some_and(|members| {
+                    members.iter().any(|m| m.get("description").is_some_and(|d| !d.as_str().unwrap_or("").is_empty()))
+                })
+            })
+    };
+    let schemas = &doc["components"]["schemas"];
+    let (mut seen, mut pending, mut missing) = (std::collections::BTreeSet::new(), vec![root.to_string()], Vec::new());
+    while let Some(name) = pending.pop() {
+        if !seen.insert(name.clone()) {
+            continue;
+        }
+        let schema = &schemas[&name];
+        for (property, value) in schema["properties"].as_object().into_iter().flatten() {
+            if !described(value) {
+                missing.push(format!("{name}.{property}"));
+            }
+        }
+        refs(schema, &mut pending);
+    }
+    missing.sort();
+    missing
+}
+
+#[test]
+fn the_description_check_finds_a_planted_undescribed_field() {
+    let doc = serde_json::json!({"components": {"schemas": {
+        "Report": {"properties": {"a_mm": {"type": "number", "description": "A length."},
+                                  "part": {"$ref": "#/components/schemas/Part"},
+                                  "maybe": {"oneOf": [{"type": "null"}, {"$ref": "#/components/schemas/Part", "description": "Optional."}]}}},
+        "Part": {"properties": {"serial": {"type": "string"}}}
+    }}});
+    assert_eq!(undescribed(&doc, "Report"), ["Part.serial", "Report.part"]);
+}
