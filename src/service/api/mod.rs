@@ -18,6 +18,7 @@ pub mod origins;
 pub mod problem;
 pub mod results;
 pub mod schemas;
+pub mod submit;
 pub mod webhooks;
 
 use crate::problem::Code;
