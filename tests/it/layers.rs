@@ -125,33 +125,13 @@ fn layers_import_only_the_layers_above_them_and_stages_form_no_cycle() {
         assert!(layers_seen.contains(*layer), "no sources found for the layer {layer}");
     }
     // The stages' import graph is acyclic: depth-first search for a back edge.
-    fn visit<'a>(
-        node: &'a str,
-        edges: &'a BTreeMap<String, BTreeSet<String>>,
-        state: &mut BTreeMap<&'a str, bool>,
-        path: &mut Vec<&'a str>,
-    ) -> Option<String> {
-        match state.get(node) {
-            Some(true) => return None,
-            Some(false) => return Some(format!("{} → {node}", path.join(" → "))),
-            None => {}
-        }
-        state.insert(node, false);
-        path.push(node);
-        for next in edges.get(node).into_iter().flatten() {
-            if let Some(cycle) = visit(next, edges, state, path) {
-                return Some(cycle);
-            }
-        }
-        path.pop();
-        state.insert(node, true);
-        None
-    }
-    let mut state = BTreeMap::new();
-    for node in stage_edges.keys() {
-        if let Some(cycle) = visit(node, &stage_edges, &mut state, &mut Vec::new()) {
-            panic!("the pipeline's stages import each other in a cycle: {cycle}");
-        }
+    // The stages' graph, checked by the same circle finder as the whole crate's.
+    let stage_graph: BTreeMap<Vec<String>, BTreeSet<Vec<String>>> = stage_edges
+        .iter()
+        .map(|(from, to)| (vec![from.clone()], to.iter().map(|t| vec![t.clone()]).collect()))
+        .collect();
+    if let Some(cycle) = find_cycle(&stage_graph) {
+        panic!("the pipeline's stages import each other in a cycle: {cycle}");
     }
     assert!(stage_edges.contains_key("cloud"), "the stage graph was read (cloud imports depth): {stage_edges:?}");
 }
