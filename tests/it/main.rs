@@ -11,5 +11,6 @@ mod learned;
 mod numeric_props;
 mod pipeline;
 mod reader_props;
+mod readme;
 mod service;
 mod simulator;
