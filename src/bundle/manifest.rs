@@ -73,7 +73,7 @@ pub fn unknown_fields(manifest: &serde_json::Value) -> Vec<UnknownField> {
                         let did_you_mean = known
                             .iter()
                             .filter(|k| !map.contains_key(**k))
-                            .map(|k| (edit_distance(&key.to_ascii_lowercase(), k), *k))
+                            .map(|k| (strsim::osa_distance(&key.to_ascii_lowercase(), k), *k))
                             .filter(|(d, k)| *d <= 2.min(k.len() / 3).max(1))
                             .min()
                             .map(|(_, k)| k);
@@ -92,29 +92,6 @@ pub fn unknown_fields(manifest: &serde_json::Value) -> Vec<UnknownField> {
     let mut out = Vec::new();
     walk(manifest, "", "", &mut out);
     out
-}
-
-/// Levenshtein distance (insertions, deletions, substitutions), with a swap of two neighbours
-/// counted as one: `serail` is one from `serial`.
-fn edit_distance(a: &str, b: &str) -> usize {
-    let (a, b): (Vec<char>, Vec<char>) = (a.chars().collect(), b.chars().collect());
-    let mut d = vec![vec![0usize; b.len() + 1]; a.len() + 1];
-    for (i, row) in d.iter_mut().enumerate() {
-        row[0] = i;
-    }
-    for j in 0..=b.len() {
-        d[0][j] = j;
-    }
-    for i in 1..=a.len() {
-        for j in 1..=b.len() {
-            let cost = usize::from(a[i - 1] != b[j - 1]);
-            d[i][j] = (d[i - 1][j] + 1).min(d[i][j - 1] + 1).min(d[i - 1][j - 1] + cost);
-            if i > 1 && j > 1 && a[i - 1] == b[j - 2] && a[i - 2] == b[j - 1] {
-                d[i][j] = d[i][j].min(d[i - 2][j - 2] + 1);
-            }
-        }
-    }
-    d[a.len()][b.len()]
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]

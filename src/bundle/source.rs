@@ -95,6 +95,11 @@ struct TarEntry {
 /// them costs nothing, and a small manifest of repetitive JSON may shrink far more than a frame.
 const RATIO_CHECKED_BYTES: u64 = 1 << 20;
 
+/// Whether an archive's first bytes are a tar's: the ustar magic of its first header.
+fn is_tar(head: &[u8]) -> bool {
+    head.get(257..262) == Some(b"ustar".as_slice())
+}
+
 /// An opened bundle container. Paths given to it are bundle-relative (already checked).
 pub struct Source {
     kind: Kind,
@@ -122,7 +127,7 @@ impl Source {
         file.seek(SeekFrom::Start(0)).map_err(|e| io_err(&display, e))?;
         if n >= 4 && (&head[..4] == b"PK\x03\x04" || &head[..4] == b"PK\x05\x06") {
             Self::open_zip(file, limits, display)
-        } else if n >= 262 && &head[257..262] == b"ustar" {
+        } else if is_tar(&head[..n]) {
             Self::open_tar(file, limits, display)
         } else if n >= 2 && head[..2] == [0x1f, 0x8b] {
             Self::open_tar_gz(file, path, limits, display)
@@ -166,7 +171,7 @@ impl Source {
         let mut head = [0u8; 512];
         let n = read_up_to(&mut out, &mut head).map_err(|e| io_err(&display, e))?;
         out.seek(SeekFrom::Start(0)).map_err(|e| io_err(&display, e))?;
-        if !(n >= 262 && &head[257..262] == b"ustar") {
+        if !is_tar(&head[..n]) {
             return Err(BundleError::Archive { message: format!("{display}: a gzip that holds no tar archive") });
         }
         Self::open_tar(out, limits, display)

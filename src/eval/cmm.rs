@@ -420,7 +420,9 @@ pub fn compare(report: &Report, cmm: &CmmMeasurements, tolerance_mm: f64) -> Com
     let n = deviations.len();
     let mean = (n > 0).then(|| deviations.iter().sum::<f64>() / n as f64);
     let rms = (n > 0).then(|| (deviations.iter().map(|d| d * d).sum::<f64>() / n as f64).sqrt());
-    let max_abs = deviations.iter().map(|d| d.abs()).fold(None, |m: Option<f64>, d| Some(m.map_or(d, |m| m.max(d))));
+    // The largest |value|; None when there is none.
+    let max_abs = |values: &[f64]| values.iter().map(|v| v.abs()).reduce(f64::max);
+    let max_abs_deviation = max_abs(&deviations);
     let sd = mean
         .filter(|_| n > 1)
         .map(|m| (deviations.iter().map(|d| (d - m).powi(2)).sum::<f64>() / (n - 1) as f64).sqrt());
@@ -435,7 +437,7 @@ pub fn compare(report: &Report, cmm: &CmmMeasurements, tolerance_mm: f64) -> Com
         [[l[0] - half, l[0] + half], [l[1] - half, l[1] + half]]
     });
     let ens: Vec<f64> = points.iter().filter_map(|p| p.en).collect();
-    let en_max = ens.iter().map(|e| e.abs()).fold(None, |m: Option<f64>, e| Some(m.map_or(e, |m| m.max(e))));
+    let en_max = max_abs(&ens);
     let unmatched = points.len() - n;
     let mut warnings = Vec::new();
     if n < MIN_AGREEMENT_POINTS {
@@ -459,7 +461,7 @@ pub fn compare(report: &Report, cmm: &CmmMeasurements, tolerance_mm: f64) -> Com
             unmatched,
             bias_mm: mean,
             rms_mm: rms,
-            max_abs_deviation_mm: max_abs,
+            max_abs_deviation_mm: max_abs_deviation,
             sd_mm: sd,
             limits_of_agreement_mm: limits,
             bias_ci95_mm: bias_ci,
@@ -468,7 +470,7 @@ pub fn compare(report: &Report, cmm: &CmmMeasurements, tolerance_mm: f64) -> Com
             en_max_abs: en_max,
             en_within_1: en_max.map(|m| m <= 1.0),
             tolerance_mm,
-            within_tolerance: n >= MIN_AGREEMENT_POINTS && max_abs.is_some_and(|m| m <= tolerance_mm),
+            within_tolerance: n >= MIN_AGREEMENT_POINTS && max_abs_deviation.is_some_and(|m| m <= tolerance_mm),
             warnings,
         },
         points,

@@ -134,7 +134,7 @@ fn sha256_hex(bytes: &[u8]) -> String {
 /// A model's name: 1 to 64 characters of letters, digits, `.`, `_` and `-`, starting with a letter or
 /// digit (a file name in the models directory, so never a path).
 pub fn check_name(role: ModelRole, name: &str) -> Result<(), LearnedError> {
-    let ok = (1..=64).contains(&name.len())
+    let ok = (1..=crate::domain::text::MODEL_NAME_CHARS).contains(&name.len())
         && name.starts_with(|c: char| c.is_ascii_alphanumeric())
         && name.chars().all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-'))
         && !name.contains("..");

@@ -62,7 +62,7 @@ pub fn scope_set(mut scopes: Vec<Scope>) -> Result<Vec<Scope>, String> {
 /// A key's name, trimmed: 1 to 100 characters.
 pub fn key_name(name: &str) -> Result<&str, String> {
     let name = name.trim();
-    if name.is_empty() || name.chars().count() > 100 {
+    if name.is_empty() || name.chars().count() > crate::domain::text::KEY_NAME_CHARS {
         return Err("a key's name has 1 to 100 characters".into());
     }
     Ok(name)

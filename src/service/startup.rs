@@ -199,11 +199,6 @@ async fn serve(
 async fn retention_sweep(state: AppState, mut stop: watch::Receiver<bool>) {
     let (days, artifact_days) = (state.settings.upload_retention_days, state.settings.artifact_retention_days);
     loop {
-        match state.store.remove_orphan_uploads().await {
-            Ok(0) => {}
-            Ok(n) => tracing::info!(removed = n, "retention: deleted upload files no inspection names"),
-            Err(e) => tracing::warn!(error = %e, "orphan upload sweep failed"),
-        }
         if days > 0.0 {
             let cutoff = now_ms() - (days * 86_400_000.0) as i64;
             match state.store.purge_uploads(cutoff).await {
@@ -223,6 +218,12 @@ async fn retention_sweep(state: AppState, mut stop: watch::Receiver<bool>) {
         tokio::select! {
             _ = tokio::time::sleep(Duration::from_secs(3600)) => {}
             _ = stop.changed() => return,
+        }
+        // After the wait: `Application::build` removed them at start-up just before.
+        match state.store.remove_orphan_uploads().await {
+            Ok(0) => {}
+            Ok(n) => tracing::info!(removed = n, "retention: deleted upload files no inspection names"),
+            Err(e) => tracing::warn!(error = %e, "orphan upload sweep failed"),
         }
     }
 }

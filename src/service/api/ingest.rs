@@ -85,7 +85,6 @@ struct Upload {
     /// Received bytes at which the free space is looked at next.
     next_space_check: u64,
     rules: UploadRules,
-    started: std::time::Instant,
     /// This upload's place in the [`UploadGate`]: its progress is shown there, and the gate may
     /// take the place back from an upload too slow to keep it.
     slot: std::sync::Arc<UploadSlot>,
@@ -174,7 +173,6 @@ impl Upload {
             files: files.clone(),
             next_space_check: SPACE_CHECK_BYTES,
             rules,
-            started: slot.started,
             slot,
         })
     }
@@ -200,7 +198,7 @@ impl Upload {
                 self.received
             )));
         };
-        let elapsed = self.started.elapsed();
+        let elapsed = self.slot.started.elapsed();
         if elapsed > self.rules.rate_grace() {
             let rate = self.received as f64 / elapsed.as_secs_f64();
             if rate < self.rules.min_bytes_per_s {
@@ -216,7 +214,7 @@ impl Upload {
     }
 
     fn evicted_error(&self) -> ApiError {
-        let elapsed = self.started.elapsed().as_secs_f64().max(1e-3);
+        let elapsed = self.slot.started.elapsed().as_secs_f64().max(1e-3);
         too_slow(format!(
             "the upload came at {:.1} KiB/s over {elapsed:.1} s, under the {:.0} KiB/s floor (min_upload_kib_per_s), \
              while every upload place was taken: its place went to an upload that keeps the pace",

@@ -141,14 +141,17 @@ fn idempotency_key(headers: &HeaderMap) -> Result<Option<String>, ApiError> {
 }
 
 fn client_reference(value: Option<String>) -> Result<Option<String>, ApiError> {
-    match value {
-        Some(r) if r.is_empty() || r.chars().count() > 200 || r.chars().any(char::is_control) => Err(ApiError::new(
-            Code::InvalidOption,
-            "client_reference must be 1–200 characters without control characters",
-        )
-        .with_culprit("client_reference")),
-        other => Ok(other),
+    use crate::domain::text::{self, CLIENT_REFERENCE_CHARS};
+    if let Some(r) = &value {
+        text::check(r, CLIENT_REFERENCE_CHARS).map_err(|e| {
+            ApiError::new(
+                Code::InvalidOption,
+                format!("client_reference must be 1–200 characters without control characters: it {e}"),
+            )
+            .with_culprit("client_reference")
+        })?;
     }
+    Ok(value)
 }
 
 /// Deep-merges `patch` into `base`, refusing keys that `base` does not have (typos would

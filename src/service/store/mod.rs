@@ -183,16 +183,22 @@ impl Store {
     }
 
     /// Deletes upload files that no live upload row names: left behind when the transaction that
-    /// placed one failed to commit (a full disk). Each is checked and deleted under the database's
-    /// write lock, which a submission holds while it places its file, so a file being accepted
-    /// right now is never taken.
+    /// placed one failed to commit (a full disk). The live rows are read once; each file without
+    /// one is checked again and deleted under the database's write lock, which a submission holds
+    /// while it places its file, so a file being accepted right now is never taken.
     pub async fn remove_orphan_uploads(&self) -> Result<usize, StoreError> {
         let files = self.files.clone();
-        let candidates = tokio::task::spawn_blocking(move || files.stored_hashes())
+        let stored = tokio::task::spawn_blocking(move || files.stored_hashes())
             .await
             .map_err(|e| StoreError::Io(std::io::Error::other(e)))??;
+        let live: std::collections::HashSet<String> =
+            sqlx::query_scalar("SELECT sha256 FROM uploads WHERE purged_at IS NULL")
+                .fetch_all(&self.pool)
+                .await?
+                .into_iter()
+                .collect();
         let mut removed = 0;
-        for sha in candidates {
+        for sha in stored.into_iter().filter(|sha| !live.contains(sha)) {
             let mut tx = self.pool.begin_with("BEGIN IMMEDIATE").await?;
             let live: Option<(i64,)> = sqlx::query_as("SELECT 1 FROM uploads WHERE sha256 = ? AND purged_at IS NULL")
                 .bind(&sha)
