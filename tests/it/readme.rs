@@ -70,3 +70,22 @@ fn the_reader_takes_both_spellings_and_skips_comments() {
         ]
     );
 }
+
+/// The commit-msg hook CONTRIBUTING.md asks for refuses a 73-character subject and takes 72.
+#[test]
+fn commit_hook_refuses_long_subjects() {
+    let hook = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(".githooks/commit-msg");
+    let dir = tempfile::tempdir().unwrap();
+    let run = |subject: &str| {
+        let file = dir.path().join("MSG");
+        std::fs::write(&file, format!("{subject}\n\nbody line\n# a comment\n")).unwrap();
+        std::process::Command::new("sh").arg(&hook).arg(&file).output().unwrap()
+    };
+    let ok = run(&"a".repeat(72));
+    assert!(ok.status.success(), "{}", String::from_utf8_lossy(&ok.stderr));
+    let long = run(&"a".repeat(73));
+    assert!(!long.status.success());
+    assert!(String::from_utf8_lossy(&long.stderr).contains("73 characters"));
+    let empty = run("");
+    assert!(!empty.status.success());
+}
