@@ -8,11 +8,12 @@ use std::path::PathBuf;
 
 #[derive(clap::Args)]
 pub struct BenchArgs {
-    /// accuracy: the suite the targets are read on (its own seeds); holdout: the defect
-    /// presets again with other seeds.
+    /// accuracy: the suite the targets are read on (its own seeds; thresholds were chosen while
+    /// looking at it); holdout: the defect presets again with seeds that chose nothing; tuning:
+    /// the held-out seeds that chose a setting.
     #[arg(long, value_enum, default_value_t = SuiteArg::Accuracy)]
     suite: SuiteArg,
-    /// Where renderings are cached [default: out/bench for accuracy, out/holdout for holdout].
+    /// Where renderings are cached [default: out/bench for accuracy, out/holdout for holdout and tuning].
     #[arg(long)]
     work: Option<PathBuf>,
     /// Only these cases of the suite (comma-separated): a preset (all its seeds) or
@@ -47,6 +48,8 @@ pub struct BenchArgs {
 enum SuiteArg {
     Accuracy,
     Holdout,
+    /// The held-out seeds that chose a setting.
+    Tuning,
     /// The defect presets at 40 random stations (seeds no setting was chosen on).
     Stations,
     /// The same at the 12 tuning stations settings are chosen on.
@@ -61,6 +64,7 @@ impl From<SuiteArg> for Suite {
         match s {
             SuiteArg::Accuracy => Self::Accuracy,
             SuiteArg::Holdout => Self::Holdout,
+            SuiteArg::Tuning => Self::Tuning,
             SuiteArg::Stations => Self::Stations,
             SuiteArg::StationsTuning => Self::StationsTuning,
             SuiteArg::StationsCheck => Self::StationsCheck,

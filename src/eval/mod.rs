@@ -7,7 +7,7 @@ pub mod suite;
 pub mod table;
 pub mod truth;
 
-pub use suite::{ACCURACY_SUITE, BenchError, Case, CaseResult, HOLDOUT_SUITE, Suite, run_case};
+pub use suite::{ACCURACY_SUITE, BenchError, Case, CaseResult, HOLDOUT_SUITE, Suite, TUNING_SUITE, run_case};
 pub use table::{TargetCheck, table, targets};
 pub use truth::{Accuracy, BlackCrest, RegistrationError, black_crests, compare};
 

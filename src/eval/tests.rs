@@ -3,7 +3,7 @@ use super::*;
 
 #[test]
 fn suites_name_existing_presets_and_share_no_case() {
-    for suite in [Suite::Accuracy, Suite::Holdout] {
+    for suite in [Suite::Accuracy, Suite::Holdout, Suite::Tuning] {
         for case in suite.cases() {
             assert!(crate::sim::preset(case.preset).is_some(), "{}", case.name());
         }
@@ -11,10 +11,14 @@ fn suites_name_existing_presets_and_share_no_case() {
     for a in ACCURACY_SUITE {
         assert!(HOLDOUT_SUITE.iter().all(|h| h.name() != a.name()), "{}", a.name());
     }
-    let mut names: Vec<String> = HOLDOUT_SUITE.iter().map(Case::name).collect();
+    for t in TUNING_SUITE {
+        let name = t.name();
+        assert!(HOLDOUT_SUITE.iter().chain(ACCURACY_SUITE).all(|h| h.name() != name), "{name} tunes and is held out");
+    }
+    let mut names: Vec<String> = HOLDOUT_SUITE.iter().chain(TUNING_SUITE).map(Case::name).collect();
     names.sort();
     names.dedup();
-    assert_eq!(names.len(), HOLDOUT_SUITE.len());
+    assert_eq!(names.len(), HOLDOUT_SUITE.len() + TUNING_SUITE.len());
 }
 
 fn result(preset: &str, height_max_um: f64, inspect_over_decode: f64) -> CaseResult {

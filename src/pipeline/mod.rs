@@ -458,9 +458,8 @@ fn register_views(
                     registration.placed_by_end_face.push(v);
                     continue;
                 }
-                // At coarse stations a corner misread by a pixel or a depth of field moved views
-                // by half a millimetre (station suite, seed 101: 29 → 178 µm RMS axially): a view
-                // with a corner so misread is left as one without a corner.
+                // At coarse stations a corner misread by a pixel or a depth of field would move
+                // the view by as much: a view with a corner so misread is left as one without.
                 registration.end_face_implausible.push(v);
             }
             pose.axial_mm -= end_face.as_ref().map_or(0.0, |e| e.z_offset_mm);

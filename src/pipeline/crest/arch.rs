@@ -10,9 +10,8 @@ use crate::numeric::lsq::levenberg_marquardt;
 pub(super) const ARCH_SPAN_DEG: f64 = 90.0;
 
 /// Runs longer than this are fitted with the oval's harmonics ([`fit_long_arch`]), whose six
-/// terms a shorter run does not hold well: on the rendered runs of 116° the quadratics next to each
-/// end were within 0.2–0.8 mm and the harmonics 0.7–1.3 mm; on those of 155° and 192°, 2.2–3.8 mm
-/// against 0.2–1.2 mm (bc-polished-long seeds 1–3, which chose this). Polished runs on several
+/// terms a shorter run does not hold well (chosen on bc-polished-long seeds 1–3, the tuning suite;
+/// figures: docs/notebook/accuracy.md). Polished runs on several
 /// turns are fitted together with the harmonics once their lengths add up to more than this.
 pub(super) const HARMONIC_ARCH_DEG: f64 = 135.0;
 

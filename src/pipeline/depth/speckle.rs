@@ -7,10 +7,10 @@
 
 use super::DepthMap;
 
-/// The share of a map's trusted pixels in speckles below which none is dropped. On the standard
-/// preset they are 0.2% of its pixels, and dropping them on the round thread took only data (its
-/// worst bin went 21.5 → 46.1 µm; under this rule it is filtered nowhere); at random stations
-/// they were a fifth to a third of the trusted pixels, mostly gross errors.
+/// The share of a map's trusted pixels in speckles below which none is dropped: where speckles
+/// are that rare they are mostly true detail and dropping them takes only data; where they are
+/// common they are mostly gross errors (figures: docs/notebook/accuracy.md, "Figures moved from
+/// code comments").
 pub const MIN_SPECKLE_SHARE: f64 = 0.02;
 
 /// Sets to NaN every 4-connected region of trusted pixels, linked where neighbours' depths differ

@@ -97,8 +97,7 @@ pub(super) fn shared_section(windows: &[&[(f64, f64)]], nominal_c_per_mm: f64) -
 /// with one pass of rejection at 3 MAD about the line. Kept about the level alone instead, within
 /// 3 of its robust scales, a window that is a little tilted (a round crest read off its centre,
 /// the taper) lost samples at one end, and the line through the rest carried the section's misfit
-/// to the centre: held-out round threads had single bins 50 µm off (within 22 µm before), and an
-/// 11° false black arc (docs/notebook/accuracy.md).
+/// to the centre (docs/notebook/accuracy.md).
 pub(super) fn fit_at_centre(samples: &[(f64, f64)], section: Section, half: f64, separation_mm: f64) -> Option<f64> {
     let (lo, hi) = samples.iter().fold((f64::MAX, f64::MIN), |(l, h), s| (l.min(s.0), h.max(s.0)));
     if lo > -0.5 * half || hi < 0.5 * half || samples.len() < 6 {
@@ -305,7 +304,7 @@ pub(super) fn measure_threads_every(
             // A root whose window reaches past the end face is not on the part (or is the chamfer):
             // there is no adjacent root to measure from. Nor is one whose window reaches into the
             // map's first cell on the part: that cell holds the end face's edge, whose silhouette
-            // pulls the fused radius off the root (round thread 1's first bins read 25–50 µm high).
+            // pulls the fused radius off the root, and the first bins would read high.
             let root_on_part = w.crest_z_mm + before - root_half > g.dz_mm;
             let height = match (crest_r, rb, ra) {
                 (Some(c), Some(b), Some(a)) if root_on_part => Some(over_roots(c, b, a, before, after)),

@@ -82,7 +82,7 @@ pub struct ProfileOptions {
     /// Each 1° bin's reported height is the trimmed mean of the 2h + 1 bins centred on it along
     /// the helix (a quarter of them, rounded down, dropped at each end: the middle 7 of 11), h
     /// being this half width (fewer at the ends of a measured run). One bin's own fit scatters by
-    /// 4–13 µm RMS (its depth is noisy and the fit spans a few dozen samples); the thread's true
+    /// several µm (its depth is noisy and the fit spans a few dozen samples); the thread's true
     /// height changes slowly along the helix (taper, run-out, the mill surface meeting the cone at
     /// a shallow angle), so averaging over a few degrees lowers the scatter, and the trimming
     /// keeps a spike out. The price is resolution: a dent of a degree or two is trimmed away and
@@ -92,9 +92,8 @@ pub struct ProfileOptions {
     /// ([`pitch::correct_heights`]; needs ONNX Runtime): `on`, `off`, or `auto`: where the
     /// station's object pixel exceeds `correction_min_pixel_mm`.
     pub correction: Correction,
-    /// The object pixel, mm, above which `auto` corrects. On held-out random stations the MLP
-    /// halved the heights' error at coarser pixels and added 5–45 µm where the classical fits
-    /// were already within 15 µm, all of those at finer pixels (docs/models.md).
+    /// The object pixel, mm, above which `auto` corrects: the MLP helps where the classical fits
+    /// are coarse and adds error where they are already close (measured: docs/models.md).
     pub correction_min_pixel_mm: f64,
     /// The correction model by name: a shipped one or one installed in the models folder
     /// (docs/models.md); none: the shipped model.

@@ -286,9 +286,8 @@ pub fn register(
     // A lens-radius error moves all of a view's points along its optical axis, which is radial
     // only at the view's centre: a point φ off it moves δ·sin φ along the arc. In an overlap, half
     // the views' spacing to either side of their centres, that adds (δ_a + δ_b)·sin(spacing/2)
-    // to the measured arc shift (±0.05 mm lens errors: up to 7 µm, 2.6 µm RMS on the held-out
-    // pairs against 1.6 µm for the rest of their error). The radial solve knows the δs to a
-    // micrometre or two, so that part is taken out before the angle is solved.
+    // to the measured arc shift. The radial solve knows the δs far better than that shift, so
+    // that part is taken out before the angle is solved (figures: docs/notebook/accuracy.md).
     for p in pairs.iter_mut() {
         p.shift_angle_deg -= lens_radius_arc_shift_deg(&poses[p.a], &poses[p.b], radial[p.a], radial[p.b], lattice);
     }

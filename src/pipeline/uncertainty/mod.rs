@@ -154,10 +154,10 @@ pub struct Scales<'a> {
 
 /// Whether the measurement cannot vouch for its own uncertainty: the quality checks say it failed
 /// (too little was measured, the helix does not fit the surface, or depth from focus trusted too
-/// few pixels), a learned model corrected the heights (at the standard station the MLP's own
-/// error, about 10 µm, left the classical budget covering 30% of the errors: docs/models.md), or
-/// the station's optics lie outside the envelope the method's uncertainty was measured in (its Type B term is known only there: on the random stations' optics heights were
-/// off by tens to hundreds of µm that no local scatter shows). Such a result's heights carry the
+/// few pixels), a learned model corrected the heights (the model's own error is not in the
+/// classical budget: docs/models.md), or the station's optics lie outside the envelope the
+/// method's uncertainty was measured in (its Type B term is known only there: docs/benchmark.md).
+/// Such a result's heights carry the
 /// dispersion along the helix besides their local scatter, and no decision is made on it.
 pub fn measurement_failed(quality: &Quality, station: &Station) -> bool {
     quality.status == QualityStatus::Insufficient
