@@ -195,47 +195,7 @@ fn run_stages(
         &assessment,
         &quality::SurfaceFit::of(&helix, part, depth_coverage, &phase),
     );
-    if let Some(m) = &depth_model {
-        quality.flag(
-            quality::QualityStatus::Degraded,
-            quality::QualityCode::DepthLearned,
-            format!(
-                "Depth came from a learned model whose accuracy crestscan has not measured, so no decision is made. \
-                 The {} model {} (sha256 {}) made the depth; the method's uncertainty was measured for the \
-                 classical depth, so each height's U includes the heights' dispersion along the helix and their \
-                 thread's distance from nominal, and no decision is made (docs/models.md)",
-                m.role.as_str(),
-                m.name,
-                m.sha256
-            ),
-        );
-    }
-    for m in &learned.used {
-        quality.flag(
-            quality::QualityStatus::Degraded,
-            quality::QualityCode::ProfileCorrected,
-            format!(
-                "The heights were corrected by a learned model whose accuracy crestscan has not measured, so no \
-                 decision is made. They were read off pitches corrected by the {} model {} (sha256 {}); the method's uncertainty \
-                 was measured for the classical heights, so each height's U includes the heights' dispersion along \
-                 the helix and their thread's distance from nominal, and no decision is made (docs/models.md)",
-                m.role.as_str(),
-                m.name,
-                m.sha256
-            ),
-        );
-    }
-    if let Some(e) = &learned.unavailable {
-        quality.flag(
-            quality::QualityStatus::Degraded,
-            quality::QualityCode::ProfileCorrectionUnavailable,
-            format!(
-                "The heights could not be corrected as this station needs, so they may be about twice as far off. \
-                 This station's object pixel called for the profile-correction MLP (profile.correction auto) and it \
-                 could not run: the heights are the classical fits (docs/models.md). {e}"
-            ),
-        );
-    }
+    quality.flag_learned(depth_model.as_ref(), &learned.used, learned.unavailable.as_ref());
     let (uncertainty, thread_mean_u) = uncertainty::heights(
         &mut threads,
         &uncertainty::Scales {

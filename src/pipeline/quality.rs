@@ -79,6 +79,57 @@ pub struct Quality {
 }
 
 impl Quality {
+    /// Flags what a learned model did to this measurement: made the depth, corrected the heights,
+    /// or could not run where the station needed it. Each says why no decision is made.
+    pub fn flag_learned(
+        &mut self,
+        depth_model: Option<&crate::learned::ModelUse>,
+        used: &[crate::learned::ModelUse],
+        unavailable: Option<&crate::learned::LearnedError>,
+    ) {
+        if let Some(m) = depth_model {
+            self.flag(
+                QualityStatus::Degraded,
+                QualityCode::DepthLearned,
+                format!(
+                    "Depth came from a learned model whose accuracy crestscan has not measured, so no decision is made. \
+                     The {} model {} (sha256 {}) made the depth; the method's uncertainty was measured for the \
+                     classical depth, so each height's U includes the heights' dispersion along the helix and their \
+                     thread's distance from nominal, and no decision is made (docs/models.md)",
+                    m.role.as_str(),
+                    m.name,
+                    m.sha256
+                ),
+            );
+        }
+        for m in used {
+            self.flag(
+                QualityStatus::Degraded,
+                QualityCode::ProfileCorrected,
+                format!(
+                    "The heights were corrected by a learned model whose accuracy crestscan has not measured, so no \
+                     decision is made. They were read off pitches corrected by the {} model {} (sha256 {}); the method's uncertainty \
+                     was measured for the classical heights, so each height's U includes the heights' dispersion along \
+                     the helix and their thread's distance from nominal, and no decision is made (docs/models.md)",
+                    m.role.as_str(),
+                    m.name,
+                    m.sha256
+                ),
+            );
+        }
+        if let Some(e) = unavailable {
+            self.flag(
+                QualityStatus::Degraded,
+                QualityCode::ProfileCorrectionUnavailable,
+                format!(
+                    "The heights could not be corrected as this station needs, so they may be about twice as far off. \
+                     This station's object pixel called for the profile-correction MLP (profile.correction auto) and it \
+                     could not run: the heights are the classical fits (docs/models.md). {e}"
+                ),
+            );
+        }
+    }
+
     /// Adds a reason of at least `at`.
     pub fn flag(&mut self, at: QualityStatus, code: QualityCode, message: String) {
         self.status = self.status.max(at);
