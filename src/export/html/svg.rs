@@ -374,9 +374,27 @@ pub fn cmm_plots(points: &[(f64, f64)], bias_mm: Option<f64>, limits_mm: Option<
     for &(cmm, ours) in points {
         let _ = writeln!(s, r##"<circle cx="{:.1}" cy="{:.1}" r="2.5" fill="#08519c"/>"##, sx(cmm), sy(ours));
     }
+    let height_ticks = nice_ticks(lo, hi, 4);
+    let decimals = tick_decimals(&height_ticks);
+    for &t in &height_ticks {
+        let _ = writeln!(
+            s,
+            r##"<line x1="{0:.1}" x2="{0:.1}" y1="{1:.1}" y2="{2:.1}" stroke="#888"/><text x="{0:.1}" y="{3:.1}" text-anchor="middle" class="tick">{4:.5$}</text><line x1="{6:.1}" x2="{M}" y1="{7:.1}" y2="{7:.1}" stroke="#888"/><text x="{8:.1}" y="{9:.1}" text-anchor="end" class="tick">{4:.5$}</text>"##,
+            sx(t),
+            8.0 + S,
+            8.0 + S + 4.0,
+            8.0 + S + 15.0,
+            t,
+            decimals,
+            M - 4.0,
+            sy(t),
+            M - 6.0,
+            sy(t) + 3.5
+        );
+    }
     let _ = writeln!(
         s,
-        r##"<text x="{:.1}" y="{:.1}" text-anchor="middle" class="axis">CMM height, mm ({lo:.3}–{hi:.3})</text><text x="12" y="{:.1}" transform="rotate(-90 12 {:.1})" text-anchor="middle" class="axis">crestscan, mm</text></svg>"##,
+        r##"<text x="{:.1}" y="{:.1}" text-anchor="middle" class="axis">CMM height, mm</text><text x="12" y="{:.1}" transform="rotate(-90 12 {:.1})" text-anchor="middle" class="axis">crestscan, mm</text></svg>"##,
         M + S / 2.0,
         S + 40.0,
         8.0 + S / 2.0,
@@ -421,20 +439,89 @@ pub fn cmm_plots(points: &[(f64, f64)], bias_mm: Option<f64>, limits_mm: Option<
     for &(mean, d) in &diffs {
         let _ = writeln!(s, r##"<circle cx="{:.1}" cy="{:.1}" r="2.5" fill="#08519c"/>"##, sx(mean), by(d));
     }
+    for &t in &height_ticks {
+        let _ = writeln!(
+            s,
+            r##"<line x1="{0:.1}" x2="{0:.1}" y1="{1:.1}" y2="{2:.1}" stroke="#888"/><text x="{0:.1}" y="{3:.1}" text-anchor="middle" class="tick">{4:.5$}</text>"##,
+            sx(t),
+            8.0 + S,
+            8.0 + S + 4.0,
+            8.0 + S + 15.0,
+            t,
+            decimals
+        );
+    }
+    let diff_ticks_um = nice_ticks(-1e3 * dmax, 1e3 * dmax, 4);
+    let diff_decimals = tick_decimals(&diff_ticks_um);
+    for &t in &diff_ticks_um {
+        let _ = writeln!(
+            s,
+            r##"<line x1="{0:.1}" x2="{M}" y1="{1:.1}" y2="{1:.1}" stroke="#888"/><text x="{2:.1}" y="{3:.1}" text-anchor="end" class="tick">{4:+.5$}</text>"##,
+            M - 4.0,
+            by(t / 1e3),
+            M - 6.0,
+            by(t / 1e3) + 3.5,
+            t,
+            diff_decimals
+        );
+    }
     let _ = writeln!(
         s,
-        r##"<text x="{:.1}" y="{:.1}" text-anchor="middle" class="axis">mean of the two, mm</text><text x="12" y="{:.1}" transform="rotate(-90 12 {:.1})" text-anchor="middle" class="axis">crestscan − CMM (±{:.0} µm)</text></svg>"##,
+        r##"<text x="{:.1}" y="{:.1}" text-anchor="middle" class="axis">mean of the two, mm</text><text x="10" y="{:.1}" transform="rotate(-90 10 {:.1})" text-anchor="middle" class="axis">crestscan − CMM, µm</text></svg>"##,
         M + S / 2.0,
         S + 40.0,
         8.0 + S / 2.0,
-        8.0 + S / 2.0,
-        1e3 * dmax
+        8.0 + S / 2.0
     );
     s
 }
 
+/// Round tick values (1, 2 or 5 × 10ⁿ apart) inside [lo, hi], about `target` of them.
+fn nice_ticks(lo: f64, hi: f64, target: usize) -> Vec<f64> {
+    if !(hi > lo) || !lo.is_finite() || !hi.is_finite() {
+        return Vec::new();
+    }
+    let rough = (hi - lo) / target.max(1) as f64;
+    let magnitude = 10f64.powf(rough.log10().floor());
+    let step = [1.0, 2.0, 5.0, 10.0].iter().map(|m| m * magnitude).find(|&st| st >= rough).unwrap_or(10.0 * magnitude);
+    let first = (lo / step).ceil() as i64;
+    let last = (hi / step).floor() as i64;
+    (first..=last).map(|k| k as f64 * step).collect()
+}
+
+/// Decimals enough to tell the ticks apart.
+fn tick_decimals(ticks: &[f64]) -> usize {
+    match ticks {
+        [a, b, ..] => (-(b - a).abs().log10().floor()).max(0.0) as usize,
+        _ => 3,
+    }
+}
+
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn ticks_are_round_and_inside_the_range() {
+        let ticks = nice_ticks(1.55, 1.62, 4);
+        assert_eq!(ticks.len(), 4, "{ticks:?}");
+        for (t, want) in ticks.iter().zip([1.56, 1.58, 1.60, 1.62]) {
+            assert!((t - want).abs() < 1e-9, "{ticks:?}");
+        }
+        assert_eq!(tick_decimals(&ticks), 2);
+        assert_eq!(nice_ticks(-23.0, 23.0, 4), vec![-20.0, 0.0, 20.0]);
+        assert_eq!(nice_ticks(-23.0, 23.0, 5), vec![-20.0, -10.0, 0.0, 10.0, 20.0]);
+        assert_eq!(tick_decimals(&[-20.0, -10.0]), 0);
+        assert!(nice_ticks(1.0, 1.0, 4).is_empty());
+    }
+
+    #[test]
+    fn the_cmm_plots_carry_numeric_ticks_on_both_axes() {
+        let points = [(1.57, 1.575), (1.58, 1.578), (1.59, 1.596)];
+        let svg = cmm_plots(&points, Some(0.003), Some([-0.004, 0.01]));
+        assert!(svg.contains(">1.58</text>"), "{svg}");
+        assert!(svg.contains(">+0</text>") || svg.contains(">+5</text>"), "{svg}");
+        assert!(svg.contains("crestscan − CMM, µm"));
+    }
+
     use super::*;
 
     #[test]

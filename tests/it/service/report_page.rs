@@ -144,6 +144,22 @@ async fn the_dashboard_and_the_report_page_work_in_a_real_browser() {
     let requests = quiet_and_local(&log, &net_log, &base);
     assert!(requests.iter().any(|u| u.contains("/v1/inspections?")), "{requests:?}");
 
+    // Followed from the dashboard, the finished line shows the decision and the opening sentence
+    // of the first reason for review, as the report lists them.
+    let report: Value =
+        client.get(format!("{base}/v1/inspections/{id}/report")).send().await.unwrap().json().await.unwrap();
+    let first = report["quality"]["reasons"][0]["message"]
+        .as_str()
+        .or(report["decision_finding"]["reasons"][0].as_str())
+        .expect("the ci bundle's result asks for review");
+    let sentence = first.split(". ").next().unwrap();
+    let (dom, log, net_log) = browse(&format!("{base}/#inspection={id}")).await;
+    let line = dom.split("id=\"submit-status\"").nth(1).expect("the status line").split("</p>").next().unwrap();
+    let decision = done["decision"].as_str().unwrap().replace('_', " ");
+    assert!(line.contains(&format!("decision {decision}")), "{line}");
+    assert!(line.contains("Why review: ") && line.contains(&html_escape(sentence)), "{sentence:?} not in {line}");
+    quiet_and_local(&log, &net_log, &base);
+
     // The API browser (Swagger UI, compiled in) runs under its own policy: it lists the
     // operations from the binary's OpenAPI document, with nothing refused and nothing fetched
     // from elsewhere.
@@ -151,4 +167,9 @@ async fn the_dashboard_and_the_report_page_work_in_a_real_browser() {
     assert!(dom.contains("opblock") && dom.contains("get_report"), "the operations are not listed");
     let requests = quiet_and_local(&log, &net_log, &base);
     assert!(requests.iter().any(|u| u.ends_with("/openapi.json")), "{requests:?}");
+}
+
+/// Text as the DOM dump writes it inside an element.
+fn html_escape(text: &str) -> String {
+    text.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;")
 }

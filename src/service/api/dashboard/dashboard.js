@@ -114,6 +114,16 @@
   });
   drop.addEventListener('drop', function (e) { choose(e.dataTransfer.files[0]); });
 
+  // The report's review reasons in the order its page lists them (quality, then the decision's).
+  function firstReason(report) {
+    var quality = ((report.quality && report.quality.reasons) || []).map(function (q) { return q.message; });
+    var decision = (report.decision_finding && report.decision_finding.reasons) || [];
+    var first = quality.concat(decision)[0];
+    if (!first) return null;
+    var end = first.indexOf('. ');
+    return end > 0 ? first.slice(0, end + 1) : first;
+  }
+
   function follow(id) {
     fetch('/v1/inspections/' + encodeURIComponent(id) + '?wait=30s', { headers: { Accept: 'application/json' } })
       .then(function (r) { return r.json(); })
@@ -128,12 +138,25 @@
         bar.hidden = true;
         status.textContent = '';
         status.appendChild(document.createTextNode(item.status + (item.verdict ? ': ' + item.verdict : '') +
+          (item.decision ? ', decision ' + item.decision.replace(/_/g, ' ') : '') +
           (item.review_required ? ', review required' : '') + ' '));
         if (item.status === 'succeeded') {
           var a = document.createElement('a');
           a.href = '/v1/inspections/' + encodeURIComponent(id) + '/report?format=html';
           a.textContent = 'open the report';
           status.appendChild(a);
+          // The first reason for review, its opening sentence: what a quality engineer reads first.
+          fetch('/v1/inspections/' + encodeURIComponent(id) + '/report', { headers: { Accept: 'application/json' } })
+            .then(function (r) { return r.ok ? r.json() : null; })
+            .then(function (report) {
+              var reason = report && firstReason(report);
+              if (reason) {
+                var why = document.createElement('span');
+                why.className = 'why';
+                why.textContent = ' Why review: ' + reason;
+                status.appendChild(why);
+              }
+            });
         } else if (item.error) {
           status.appendChild(document.createTextNode(item.error.detail || item.error.title || ''));
         }
@@ -209,4 +232,10 @@
   });
 
   load(false);
+  // `/#inspection=ID` follows that inspection to its end, as after an upload from this page.
+  var followed = /^#inspection=([0-9a-fA-F-]{36})$/.exec(location.hash);
+  if (followed) {
+    status.textContent = 'Following ' + followed[1] + '…';
+    follow(followed[1]);
+  }
 })();
