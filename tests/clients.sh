@@ -25,7 +25,7 @@ start() {
 }
 
 start curl
-tests/curl/smoke.sh "$base" "$work/ci.tar"
+tests/curl/smoke.sh "$base" "$work/ci.tar" "$(jq -r .verdict "$work/ci/truth/truth.json")"
 kill "$server"; wait "$server" || true
 
 openapi-python-client generate --path openapi/openapi.json --config tests/sdk/generator.yaml --output-path "$work/sdk/crestscan_client" --meta none >/dev/null 2>"$work/generate.log" \

@@ -25,6 +25,10 @@ pub const PRESETS: &[PresetInfo] = &[
         description: "LC 5-1/2 through a 0.2× telecentric lens, 3 views of 320×160, 16-bit gray; full crests within Lc (accept)",
     },
     PresetInfo {
+        name: "ci-reject",
+        description: "LC 4-1/2 round thread, eccentric pipe, 3 views of 384×160 RGB over its low side: a black crest within Lc (reject)",
+    },
+    PresetInfo {
         name: "standard",
         description: "BC 4-1/2 pin end, whole circumference (45 views × 20 frames, 864×320 RGB), z 0–35 mm; black crests only beyond Lc (accept)",
     },
@@ -263,6 +267,20 @@ pub fn preset(name: &str) -> Option<SimSpec> {
                 frame_step_mm: 0.25,
             };
             spec(name, pm, part, standard_optics(), layout, 33.8, sensor)
+        }
+        "ci-reject" => {
+            // lc-round-black's pipe, seen only over its low side, where the crests stay black.
+            let (pm, part) = connection_part("LC 4-1/2", eccentric(0.109, 0.3, 200.0), 1.1);
+            let layout = Layout {
+                width: 384,
+                height: 160,
+                first_angle_deg: 195.0,
+                angle_step_deg: 5.0,
+                angles: 3,
+                axials_mm: vec![42.0],
+                frame_step_mm: 0.25,
+            };
+            spec(name, pm, part, standard_optics(), layout, 50.0, sensor)
         }
         "ci-telecentric" => {
             let (pm, part) = connection_part("LC 5-1/2", |_| {}, 2.0);

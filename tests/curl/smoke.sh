@@ -2,10 +2,11 @@
 # The service from a CI script's point of view, with curl and jq only:
 # submit a bundle, poll, fetch the report, the threads CSV and the mesh, upload CMM data and read
 # the comparison, and check one error's problem+json.
-#   tests/curl/smoke.sh BASE_URL BUNDLE.tar
+#   tests/curl/smoke.sh BASE_URL BUNDLE.tar TRUE_VERDICT   (accept or reject: the bundle's truth)
 set -euo pipefail
 base=${1:?base URL, e.g. http://127.0.0.1:8080}
 bundle=${2:?bundle archive (.tar or .zip)}
+want_verdict=${3:?the true verdict of the bundle, accept or reject}
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
 fail() { echo "smoke: FAIL: $*" >&2; exit 1; }
@@ -28,7 +29,7 @@ grep -q '"status":"running"' "$work/events" || fail "no running state in the eve
 
 # Report.
 verdict=$(curl -sS -f "$base$location/report" | jq -r .verdict)
-case $verdict in accept|reject) ;; *) fail "verdict $verdict" ;; esac
+[ "$verdict" = "$want_verdict" ] || fail "verdict $verdict, truth $want_verdict"
 decision=$(curl -sS -f "$base$location/report" | jq -r .decision)
 case $decision in conforms|does_not_conform|indeterminate) ;; *) fail "decision $decision" ;; esac
 echo "smoke: verdict $verdict, decision $decision"

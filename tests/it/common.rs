@@ -11,12 +11,14 @@ pub fn ci_bundle() -> &'static Path {
 
 static CI: OnceLock<PathBuf> = OnceLock::new();
 static TELECENTRIC: OnceLock<PathBuf> = OnceLock::new();
+static REJECT: OnceLock<PathBuf> = OnceLock::new();
 
 /// A `ci*` preset rendered once per test run (seed 7), removed when the test process exits.
 pub fn rendered(preset: &'static str) -> &'static Path {
     let cell = match preset {
         "ci" => &CI,
         "ci-telecentric" => &TELECENTRIC,
+        "ci-reject" => &REJECT,
         other => panic!("tests render only the ci presets, not {other}"),
     };
     cell.get_or_init(|| {
@@ -32,7 +34,7 @@ pub fn rendered(preset: &'static str) -> &'static Path {
 /// deleted by a C `atexit` hook instead, which runs when the test harness returns from `main`.
 fn remove_renders_at_exit() {
     extern "C" fn remove_renders() {
-        for dir in [&CI, &TELECENTRIC].into_iter().filter_map(|cell| cell.get()) {
+        for dir in [&CI, &TELECENTRIC, &REJECT].into_iter().filter_map(|cell| cell.get()) {
             let _ = std::fs::remove_dir_all(dir);
         }
     }

@@ -82,10 +82,11 @@ fn depth_from_focus_recovers_truth_depth() {
         // 17% of them) is left out: ci measures 0.826, the telecentric bundle 0.908.
         assert!(coverage > 0.8, "{preset}: {coverage}");
         assert!(smooth.len() > 1000, "{preset}: {} smooth pixels", smooth.len());
-        // Frames are 150–250 µm apart; the peak is found to a tenth of a step. The bias on ci is
-        // 10 µm (the flank-adjacent pixels of the small frames pull it), so the bound is 15 µm.
-        assert!(median_abs(&smooth) < 25.0, "{preset}: {}", median_abs(&smooth));
-        assert!(bias.abs() < 15.0, "{preset}: bias {bias}");
+        // Frames are 150–250 µm apart; the peak is found to a tenth of a step. Measured at seed 7
+        // (2026-12-04): median 8.7 and 8.6 µm, bias 7.1 and 1.6 µm (the flank-adjacent pixels of
+        // ci's small frames pull it); the limits are the larger plus about 40%.
+        assert!(median_abs(&smooth) < 12.0, "{preset}: {}", median_abs(&smooth));
+        assert!(bias.abs() < 10.0, "{preset}: bias {bias}");
     }
 }
 

@@ -30,8 +30,9 @@ fn inspection_of_the_ci_bundle_matches_truth() {
     eprintln!("ci: {accuracy:?}");
     assert!(accuracy.verdict_agrees);
     assert!(accuracy.bins_compared >= 10, "{}", accuracy.bins_compared);
-    assert!(accuracy.height_rms_um < 15.0, "{}", accuracy.height_rms_um);
-    assert!(accuracy.height_max_um < 40.0, "{}", accuracy.height_max_um);
+    // Measured at seed 7 (2026-12-04): 2.8 µm RMS, at most 10.3 µm; the limits are those plus half.
+    assert!(accuracy.height_rms_um < 4.2, "{}", accuracy.height_rms_um);
+    assert!(accuracy.height_max_um < 15.5, "{}", accuracy.height_max_um);
     // Three views over 13° near Lc: the report says which crests within Lc they showed, after the
     // verdict's reason, and black crests are measured against truth over those crests.
     let seen_crests = inspection.report.assessment.seen_crest_arcs.clone().expect("crests within Lc not seen");
@@ -126,6 +127,32 @@ fn frames_smaller_than_the_focus_window_give_no_depth() {
     }
 }
 
+/// A part whose truth is reject, end to end: the verdict assertions elsewhere meet accepts only, and
+/// a pipeline that always accepted would pass them. Measured at seeds 7–9 (2026-12-04): heights
+/// 9.1–10.3 µm RMS, at most 23.9–32.1 µm; the black crest's length within 0.9–1.1 mm of its seen
+/// truth.
+#[test]
+fn a_round_thread_black_within_lc_is_rejected() {
+    let dir = rendered("ci-reject");
+    let truth = truth(dir);
+    assert_eq!(truth.verdict, crestscan::domain::rules::Verdict::Reject, "the preset's truth");
+    let bundle = Bundle::open(dir, &ConnectionTable::api5b(), OpenOptions::default()).unwrap();
+    let inspection =
+        pipeline::inspect(&bundle, &PipelineOptions::default(), &|_, _| {}, &AtomicBool::new(false)).unwrap().unwrap();
+    let report = &inspection.report;
+    let accuracy = eval::compare(report, &truth);
+    eprintln!("ci-reject: {accuracy:?}");
+    assert_eq!(report.verdict, crestscan::domain::rules::Verdict::Reject, "{:?}", report.reasons);
+    assert_ne!(report.decision, crestscan::pipeline::uncertainty::Decision::Conforms);
+    let black: Vec<_> = report.threads.iter().filter(|t| !t.black_crest_arcs_deg.is_empty()).map(|t| t.index).collect();
+    assert_eq!(black, vec![15], "the black crest is on thread 15 within Lc");
+    assert!(report.reasons[0].contains("thread 15 black-crested within Lc"), "{:?}", report.reasons);
+    // Limits: the measured figures above plus a third.
+    assert!(accuracy.height_rms_um < 14.0, "{}", accuracy.height_rms_um);
+    assert!(accuracy.height_max_um < 43.0, "{}", accuracy.height_max_um);
+    assert!(accuracy.black_crest_length_max_error_mm < 1.5, "{}", accuracy.black_crest_length_max_error_mm);
+}
+
 #[test]
 fn telecentric_round_thread_inspection() {
     let dir = rendered("ci-telecentric");
@@ -136,7 +163,9 @@ fn telecentric_round_thread_inspection() {
     eprintln!("ci-telecentric: {accuracy:?}");
     assert!(accuracy.verdict_agrees);
     assert!(accuracy.bins_compared >= 5, "{}", accuracy.bins_compared);
-    assert!(accuracy.height_rms_um < 25.0, "{}", accuracy.height_rms_um);
+    // Measured at seed 7 (2026-12-04): 10.9 µm RMS, at most 21.9 µm; the limits are those plus a third.
+    assert!(accuracy.height_rms_um < 14.5, "{}", accuracy.height_rms_um);
+    assert!(accuracy.height_max_um < 29.0, "{}", accuracy.height_max_um);
 }
 
 #[test]
@@ -291,7 +320,11 @@ fn registration_that_fails_on_weak_texture_is_reported_and_needs_review() {
         look.albedo_variation = 0.0;
     }
     let dir = tempfile::tempdir().unwrap();
-    crestscan::sim::simulate(&spec, crate::common::CI_SEED, dir.path()).unwrap();
+    // A seed first rendered after the registration thresholds were chosen (2026-12-04), not the
+    // ci seed they were looked at on. Of 12041–12044 every one met the assertions on refusals and
+    // radii; 12041 and 12044 drew encoders only 8 and 12 µm off radially, where the last check
+    // (the encoders alone were off) has no power, so 12042 is used.
+    crestscan::sim::simulate(&spec, 12042, dir.path()).unwrap();
     let bare = inspect(dir.path());
     let registration = &bare.registration;
     assert_eq!(registration.pairs_expected, textured.registration.pairs_expected);
@@ -349,7 +382,7 @@ fn registration_that_fails_on_weak_texture_is_reported_and_needs_review() {
             1e3 * (registration.corrections[c.b].lens_radius_mm - registration.corrections[c.a].lens_radius_mm);
         encoders_off_um = encoders_off_um.max((relative_um - correction_um).abs());
     }
-    // The encoders alone were further off (56 µm on this seed's pair 1–2).
+    // The encoders alone were further off: the correction was needed.
     assert!(encoders_off_um > 30.0, "{encoders_off_um}");
 }
 
