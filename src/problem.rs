@@ -69,6 +69,13 @@ codes! {
     UnknownDesignation = ("unknown_designation", 404, "Unknown connection designation"),
     UnknownModel = ("unknown_model", 422, "Unknown model"),
     CallbackNotAllowed = ("callback_not_allowed", 422, "Callback destination not allowed"),
+    // Stations and their qualification.
+    UnknownStation = ("unknown_station", 422, "Unknown station"),
+    StationNotFound = ("station_not_found", 404, "No such station"),
+    StationExists = ("station_exists", 409, "Station already exists"),
+    MasterExists = ("master_exists", 409, "Master already uploaded"),
+    InvalidCertificate = ("invalid_certificate", 422, "Invalid certificate"),
+    StudyRefused = ("study_refused", 422, "Study cannot be run"),
     // Bundle validation (the bundle reader's codes).
     UnsupportedFormatVersion = ("unsupported_format_version", 422, "Unsupported bundle format"),
     InvalidManifest = ("invalid_manifest", 422, "Invalid manifest"),

@@ -11,7 +11,7 @@ pub const FORMAT_V1: &str = "crestscan.focal-stack/1";
 /// The fields this reader knows, by their place in manifest.json (`views[].pose`; `[]` stands for
 /// every item of a list). A test holds the table to the published JSON Schema.
 pub const KNOWN_FIELDS: &[(&str, &[&str])] = &[
-    ("", &["format", "part", "optics", "views"]),
+    ("", &["format", "part", "optics", "views", "station"]),
     ("part", &["serial", "connection", "thread"]),
     (
         "part.thread",
@@ -105,6 +105,12 @@ pub struct Manifest {
     pub optics: Optics,
     /// The views, each a focal stack at one pose; at least one.
     pub views: Vec<ViewManifest>,
+    /// The station the bundle was recorded at, by the name it was created with
+    /// (`POST /v1/stations`): an inspection at a qualified station applies its correction and
+    /// uncertainty. Optional; a submission's `station` wins over it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(min_length = 1, max_length = 64, pattern = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")]
+    pub station: Option<String>,
 }
 
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]

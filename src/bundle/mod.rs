@@ -271,6 +271,10 @@ fn check_texts(manifest: &Manifest) -> Result<(), BundleError> {
     if let Some(connection) = &manifest.part.connection {
         text::check(connection, CONNECTION_CHARS).map_err(|e| fail("part.connection".into(), e))?;
     }
+    if let Some(station) = &manifest.station {
+        text::check_station_name(station)
+            .map_err(|message| BundleError::Manifest { field: "station".into(), message })?;
+    }
     for (i, view) in manifest.views.iter().enumerate() {
         text::check(&view.id, VIEW_ID_CHARS).map_err(|e| fail(format!("views[{i}].id"), e))?;
         for (j, frame) in view.frames.iter().enumerate() {

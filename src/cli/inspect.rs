@@ -34,6 +34,10 @@ pub struct InspectArgs {
     /// `pipeline`; keys it leaves out keep their defaults), written over the flags above.
     #[arg(long)]
     options: Option<PathBuf>,
+    /// Inspect at a qualified station: apply this qualification (what `crestscan qualify`
+    /// writes) where the bundle matches its fingerprint and form; the report says which.
+    #[arg(long)]
+    qualification: Option<PathBuf>,
     #[command(flatten)]
     depth: DepthArgs,
     #[command(flatten)]
@@ -54,8 +58,32 @@ enum ArcRuleArg {
 
 impl InspectArgs {
     pub fn run(self) -> Result<()> {
-        let Self { bundle, out, json, arc_rule, height_window_half_bins, options: options_file, depth, learned, quiet } =
-            self;
+        let Self {
+            bundle,
+            out,
+            json,
+            arc_rule,
+            height_window_half_bins,
+            options: options_file,
+            qualification,
+            depth,
+            learned,
+            quiet,
+        } = self;
+        let at = match &qualification {
+            None => None,
+            Some(path) => {
+                let bytes = std::fs::read(path).with_context(|| format!("--qualification {}", path.display()))?;
+                let q: crestscan::domain::qualification::Qualification =
+                    serde_json::from_slice(&bytes).with_context(|| {
+                        format!(
+                            "--qualification {}: not a qualification (crestscan qualify writes one)",
+                            path.display()
+                        )
+                    })?;
+                Some(pipeline::qualify::AtStation::Qualified(q))
+            }
+        };
         let b = open_bundle(&bundle, OpenOptions::default())?;
         let options = PipelineOptions {
             arc_rule: match arc_rule {
@@ -81,7 +109,8 @@ impl InspectArgs {
             bar.set_message(stage.as_str());
             bar.set_position((1000.0 * (start + share * fraction.clamp(0.0, 1.0))) as u64);
         };
-        let inspection = pipeline::inspect(&b, &options, &progress, &cancel);
+        let inspection =
+            pipeline::inspect_at(&b, &options, crestscan::learned::models(), &progress, &cancel, at.as_ref());
         bar.finish_and_clear();
         let inspection = inspection?.context("cancelled")?;
         if let Some(dir) = &out {

@@ -7,6 +7,7 @@ mod inspect;
 mod keys;
 mod pairs;
 mod progress;
+mod qualify;
 mod serve;
 mod simulate;
 mod validate;
@@ -33,6 +34,9 @@ enum Command {
     Simulate(simulate::SimulateArgs),
     /// Inspect a bundle (directory, .zip or .tar): thread heights, black crests, the 5B verdict.
     Inspect(inspect::InspectArgs),
+    /// Qualify a station (ISO 15530-3): masters' repeat runs against their certificates → the
+    /// station's correction, uncertainty and gauge figures, as JSON `inspect --qualification` takes.
+    Qualify(qualify::QualifyArgs),
     /// Run a benchmark suite: render its cases (cached in --work), inspect, compare with truth.
     Bench(bench::BenchArgs),
     /// Compare an inspection report with a simulated bundle's truth/truth.json.
@@ -212,6 +216,7 @@ pub fn main() -> Result<()> {
         Command::Simulate(args) => args.run(),
         Command::Inspect(args) => args.run(),
         Command::Bench(args) => args.run(),
+        Command::Qualify(args) => args.run(),
         Command::Compare(args) => args.run(),
         Command::Pairs(args) => args.run(),
         Command::Validate(args) => args.run(),

@@ -37,6 +37,17 @@ pub struct SimulateArgs {
     /// Render this specification (JSON, as --print-spec writes it) instead of a preset's.
     #[arg(long, conflicts_with = "preset")]
     spec: Option<PathBuf>,
+    /// Place the same part again: the encoders' errors and the sensor's noise drawn by this seed,
+    /// the part and its texture by --seed (a master's repeat runs in a qualification study).
+    #[arg(long)]
+    placement_seed: Option<u64>,
+    /// Also write the part's calibration certificate here (CMM JSON: every thread's height per 1°
+    /// bin from the truth, with noise of the stated uncertainty), as a master's certificate.
+    #[arg(long)]
+    certificate: Option<PathBuf>,
+    /// The certificate's expanded uncertainty (k = 2), µm: stated in it and drawn as its noise.
+    #[arg(long, default_value_t = 2.0)]
+    certificate_uncertainty_um: f64,
     /// No progress bar (it is drawn only on a terminal in any case).
     #[arg(long)]
     quiet: bool,
@@ -55,8 +66,15 @@ impl SimulateArgs {
             station_seed,
             print_spec,
             spec: spec_file,
+            placement_seed,
+            certificate,
+            certificate_uncertainty_um,
             quiet,
         } = self;
+        if !(certificate_uncertainty_um > 0.0 && certificate_uncertainty_um <= 100.0) {
+            bail!("--certificate-uncertainty-um: {certificate_uncertainty_um} is not within (0, 100] µm");
+        }
+        let placement = placement_seed.unwrap_or(seed);
         if list {
             for p in sim::PRESETS {
                 println!("{}\t{}", p.name, p.description);
@@ -102,18 +120,24 @@ impl SimulateArgs {
             return Ok(());
         }
         let Some(out) = out else { bail!("--out is required") };
+        if let Some(path) = &certificate {
+            let cert = sim::certificate(&spec.truth_placed(seed, placement), 1e-3 * certificate_uncertainty_um, seed);
+            std::fs::write(path, serde_json::to_vec_pretty(&cert)?)
+                .with_context(|| format!("--certificate: writing {}", path.display()))?;
+        }
         if truth_only {
-            let truth = sim::write_truth(&spec, seed, &out)?;
+            let truth = sim::write_truth_placed(&spec, seed, placement, &out)?;
             println!("{}: {}", truth.verdict.as_str(), truth.reasons.join(" | "));
             return Ok(());
         }
         let bar = super::progress::bar((spec.views.len() * spec.offsets_mm.len()) as u64, "simulate", quiet);
         bar.set_message("frames");
-        let summary = sim::simulate_with_progress(&spec, seed, &out, &|_done| bar.inc(1));
+        let summary = sim::simulate_placed(&spec, seed, placement, &out, &|_done| bar.inc(1));
         bar.finish_and_clear();
         let summary = summary.with_context(|| format!("simulating {name}"))?;
         println!(
-            "{name} seed {seed}: {} frames, {} files, {:.1} MB in {:.1} s → {}; truth verdict {}",
+            "{name} seed {seed}{}: {} frames, {} files, {:.1} MB in {:.1} s → {}; truth verdict {}",
+            placement_seed.map(|p| format!(" placement {p}")).unwrap_or_default(),
             summary.frames,
             summary.files,
             summary.bytes as f64 / 1e6,

@@ -5,6 +5,7 @@ pub mod arcs;
 pub mod frame;
 pub mod optics;
 pub mod part;
+pub mod qualification;
 pub mod rules;
 pub mod station;
 pub mod text;

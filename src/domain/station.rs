@@ -45,6 +45,11 @@ pub struct Station {
     /// each class's ranges); None outside every class, or in reports stored before classes were.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub class: Option<StationClass>,
+    /// The study that qualified this station for this inspection (ISO 15530-3): its correction
+    /// was applied and its uncertainty stands in for the method's. None at a station no
+    /// qualification applied to.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub qualified_by: Option<String>,
 }
 
 /// The classes of the declared envelope. `standard` is where the accuracy targets were met (the
@@ -181,6 +186,7 @@ impl Station {
             view_spacing_deg,
             frame_noise_percent: None,
             class: None,
+            qualified_by: None,
         }
         .with_frame_noise(None)
     }
@@ -383,6 +389,7 @@ mod tests {
                 overlap_deg: Some(overlap_deg),
                 frame_noise_percent: None,
                 class: None,
+                qualified_by: None,
             }
             .with_frame_noise(Some(noise))
             .class

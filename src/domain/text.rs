@@ -21,6 +21,8 @@ pub const TIMESTAMP_CHARS: usize = 64;
 pub const KEY_NAME_CHARS: usize = 100;
 /// A learned model's name.
 pub const MODEL_NAME_CHARS: usize = 64;
+/// A station's name, and a master's serial (a part's serial).
+pub const STATION_NAME_CHARS: usize = 64;
 
 /// How a capped text failed: too long, or holding a control character.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
@@ -47,6 +49,22 @@ pub fn check(value: &str, max_chars: usize) -> Result<(), TextError> {
         return Err(TextError::Control(c as u32));
     }
     Ok(())
+}
+
+/// A station's name: what bundles and submissions name it by and its URL segment, so 1–64 of
+/// `A–Z a–z 0–9 . _ -`, starting with a letter or digit.
+pub fn check_station_name(value: &str) -> Result<(), String> {
+    check(value, STATION_NAME_CHARS).map_err(|e| e.to_string())?;
+    let ok = value.chars().next().is_some_and(|c| c.is_ascii_alphanumeric())
+        && value.chars().all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-'));
+    if ok {
+        Ok(())
+    } else {
+        Err(format!(
+            "{:?} is not a station name: 1–64 of A–Z a–z 0–9 . _ -, starting with a letter or digit",
+            preview(value)
+        ))
+    }
 }
 
 /// A value as an error message may quote it: its first 40 characters, an ellipsis after.

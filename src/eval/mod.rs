@@ -3,6 +3,7 @@
 
 pub mod cmm;
 pub mod pairs;
+pub mod qualify;
 pub mod suite;
 pub mod table;
 pub mod truth;

@@ -202,6 +202,7 @@ fn the_station_table_reads_each_coverage_on_its_independent_bins() {
             overlap_deg: Some(4.0),
             frame_noise_percent: None,
             class: None,
+            qualified_by: None,
         });
         r.accuracy.uncertainty_coverage = Some(coverage);
         r.accuracy.uncertainty_ratio_p95 = Some(0.8);

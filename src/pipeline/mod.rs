@@ -39,6 +39,7 @@ pub mod crest;
 
 pub mod uncertainty;
 
+pub mod qualify;
 pub mod quality;
 
 pub mod report;
@@ -144,6 +145,30 @@ pub fn inspect(
     inspect_with(recording, options, crate::learned::models(), progress, cancel)
 }
 
+/// [`inspect_with`] at a named station: where `at` is a qualification the bundle matches, the
+/// station's correction is applied to the classical heights (the profile MLP is not run: the
+/// station's correction takes its place) and its uncertainty stands in for the method's; where
+/// it is not, the quality says why and no decision is made.
+pub fn inspect_at(
+    recording: &dyn Recording,
+    options: &PipelineOptions,
+    models: &crate::learned::Models,
+    progress: &(dyn Fn(Stage, f64) + Sync),
+    cancel: &AtomicBool,
+    at: Option<&qualify::AtStation>,
+) -> Result<Option<Inspection>, PipelineError> {
+    options.check_ranges()?;
+    let mut options = options.clone();
+    if matches!(at, Some(qualify::AtStation::Qualified(_))) {
+        options.profile.correction = profile::Correction::Off;
+    }
+    match run_stages(recording, &options, models, Run::new(progress, cancel), at) {
+        Ok(inspection) => Ok(Some(inspection)),
+        Err(Halt::Cancelled) => Ok(None),
+        Err(Halt::Failed(e)) => Err(e),
+    }
+}
+
 /// [`inspect`] with the learned models of `models` (the service's: its own models folder).
 pub fn inspect_with(
     recording: &dyn Recording,
@@ -155,7 +180,7 @@ pub fn inspect_with(
     // Every caller (the service checks at submission too) meets the same bounds: an option outside
     // them can multiply a stage's memory or work without limit.
     options.check_ranges()?;
-    match run_stages(recording, options, models, Run::new(progress, cancel)) {
+    match run_stages(recording, options, models, Run::new(progress, cancel), None) {
         Ok(inspection) => Ok(Some(inspection)),
         Err(Halt::Cancelled) => Ok(None),
         Err(Halt::Failed(e)) => Err(e),
@@ -169,13 +194,14 @@ fn run_stages(
     options: &PipelineOptions,
     models: &crate::learned::Models,
     mut run: Run,
+    at: Option<&qualify::AtStation>,
 ) -> Step<Inspection> {
     let (depth_maps, depth_coverage, depth_model) = measure_depth(recording, options, models, &mut run)?;
     let registered = register_views(recording, options, &depth_maps, &mut run)?;
     let (map, map_implausible_share) =
         fuse_views(recording, options, &depth_maps, &registered.poses, &registered.encoder_z_ranges_mm, &mut run)?;
     let part = recording.part();
-    let station = domain::station::Station::of(recording.optics(), recording.views(), part.pipe_od_mm / 2.0)
+    let mut station = domain::station::Station::of(recording.optics(), recording.views(), part.pipe_od_mm / 2.0)
         .with_frame_noise(crate::numeric::stats::median(
             &mut depth_maps.iter().filter_map(|d| d.frame_noise).map(|n| 100.0 * n).collect::<Vec<_>>(),
         ));
@@ -188,14 +214,25 @@ fn run_stages(
     let measured_threads = learned.classical.clone().unwrap_or_else(|| threads.clone());
     let (assessment, crest, rule_input) = crest_and_rules(recording, options, &helix, &threads, &mut run);
     let phase = helix.phase_uncertainty(&part.form, sector_deg);
+    let qualification = at.map(|at| qualify::apply(at, &mut station, part.connection.as_deref(), &mut threads));
     let mut quality = quality::assess(
         &station,
         &registered.registration,
         recording.views(),
         &assessment,
-        &quality::SurfaceFit::of(&helix, part, depth_coverage, &phase),
+        &quality::SurfaceFit {
+            qualified_helix_fit_rms_um: qualification.as_ref().and_then(|q| q.helix_fit_rms_max_um),
+            ..quality::SurfaceFit::of(&helix, part, depth_coverage, &phase)
+        },
     );
     quality.flag_learned(depth_model.as_ref(), &learned.used, learned.unavailable.as_ref());
+    if let Some(reason) = qualification.as_ref().and_then(|q| q.refused.as_ref()) {
+        quality.flag(
+            quality::QualityStatus::Degraded,
+            quality::QualityCode::StationNotQualified,
+            format!("The station's qualification could not be applied, so no decision is made. {reason}."),
+        );
+    }
     let (uncertainty, thread_mean_u) = uncertainty::heights(
         &mut threads,
         &uncertainty::Scales {
@@ -208,6 +245,11 @@ fn run_stages(
             end_face: registered.end_face.as_ref(),
             crests: &rule_input.threads,
             height_window_half_bins: options.profile.height_window_half_bins,
+            station_u_mm: qualification.as_ref().and_then(|q| q.uncertainty.as_ref()).map(|u| 1e-3 * u.combined_um),
+            station_noise_mm: qualification
+                .as_ref()
+                .filter(|q| q.applied)
+                .map(|q| 1e-3 * q.noise_median_um.unwrap_or(0.0)),
         },
         crest.cone.as_ref().map(|c| c.scatter_um),
         &quality,
@@ -250,6 +292,7 @@ fn run_stages(
         map_implausible_share,
         models: depth_model.into_iter().chain(learned.used).collect(),
         timings: run.into_timings(),
+        qualification,
     });
     Ok(Inspection { report, map, depth_maps, poses: registered.poses, mesh, threads: measured_threads })
 }

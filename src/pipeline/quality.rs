@@ -41,6 +41,9 @@ pub enum QualityCode {
     PartialCoverage,
     /// The station lies outside the envelope the accuracy figures were measured in.
     StationUnmeasured,
+    /// The inspection named a station whose qualification could not be applied: another
+    /// fingerprint, a part the study did not cover, a suspended or expired station.
+    StationNotQualified,
     /// The helix (nominal form at the measured phase and taper) fits the surface poorly.
     HelixResidualLarge,
     /// Depth from focus trusted few of the pixels that saw the part.
@@ -169,7 +172,13 @@ pub struct SurfaceFit {
     /// within the pitch ([`Helix::phase_uncertainty`]).
     pub phase_sectors: usize,
     pub phase_unknown: bool,
+    /// At a qualified station, the largest helix residual its study's runs had, µm: a residual
+    /// the study measured the station's heights with is the station's, not this part's failure.
+    pub qualified_helix_fit_rms_um: Option<f64>,
 }
+
+/// How far above its study's largest helix residual a qualified station's may go.
+pub const QUALIFIED_HELIX_MARGIN: f64 = 1.25;
 
 impl SurfaceFit {
     /// `phase`: the helix phase's uncertainty ([`Helix::phase_uncertainty`]).
@@ -180,6 +189,7 @@ impl SurfaceFit {
             depth_coverage,
             phase_sectors: phase.sectors,
             phase_unknown: phase.unknown,
+            qualified_helix_fit_rms_um: None,
         }
     }
 }
@@ -197,7 +207,8 @@ pub fn assess(
         status = status.max(at);
         reasons.push(QualityReason { code, message });
     };
-    let outside = station.outside(&station::MEASURED);
+    // A qualified station's uncertainty was measured on the station itself.
+    let outside = if station.qualified_by.is_some() { Vec::new() } else { station.outside(&station::MEASURED) };
     if !outside.is_empty() {
         flag(
             QualityStatus::Degraded,
@@ -218,8 +229,19 @@ pub fn assess(
         );
     }
     let height_um = 1e3 * surface.thread_height_mm;
-    if surface.helix_fit_rms_um > HELIX_RESIDUAL_OF_HEIGHT * height_um {
-        flag(
+    let limit_um = HELIX_RESIDUAL_OF_HEIGHT * height_um;
+    match surface.qualified_helix_fit_rms_um {
+        Some(study_um) if surface.helix_fit_rms_um > limit_um.max(QUALIFIED_HELIX_MARGIN * study_um) => flag(
+            QualityStatus::Degraded,
+            QualityCode::HelixResidualLarge,
+            format!(
+                "The thread's helix fits the surface worse than at the station's qualification, so heights may have \
+                 been read off the crests and roots. The helix fits with a residual of {:.0} µm RMS, over {:.2} times \
+                 the {:.0} µm the study's runs reached",
+                surface.helix_fit_rms_um, QUALIFIED_HELIX_MARGIN, study_um
+            ),
+        ),
+        None if surface.helix_fit_rms_um > limit_um => flag(
             QualityStatus::Degraded,
             QualityCode::HelixResidualLarge,
             format!(
@@ -229,7 +251,8 @@ pub fn assess(
                 100.0 * HELIX_RESIDUAL_OF_HEIGHT,
                 height_um
             ),
-        );
+        ),
+        _ => {}
     }
     if surface.phase_unknown {
         flag(
@@ -428,6 +451,7 @@ mod tests {
             overlap_deg: Some(5.09),
             frame_noise_percent: Some(0.84),
             class: None,
+            qualified_by: None,
         }
     }
 
@@ -439,7 +463,20 @@ mod tests {
             depth_coverage: 0.9,
             phase_sectors: 12,
             phase_unknown: false,
+            qualified_helix_fit_rms_um: None,
         }
+    }
+
+    #[test]
+    fn a_qualified_station_judges_the_helix_fit_against_its_study() {
+        use PairStatus::*;
+        let all = registration(&[(0, 1, Measured), (1, 2, Measured), (2, 3, Measured)], 4);
+        let as_studied = SurfaceFit { helix_fit_rms_um: 300.0, qualified_helix_fit_rms_um: Some(290.0), ..fit() };
+        assert!(assess(&standard(), &all, &views(4), &covered(), &as_studied).reasons.is_empty());
+        let worse = SurfaceFit { helix_fit_rms_um: 400.0, ..as_studied };
+        let q = assess(&standard(), &all, &views(4), &covered(), &worse);
+        assert_eq!(q.reasons[0].code, QualityCode::HelixResidualLarge);
+        assert!(q.reasons[0].message.contains("290 µm the study's runs reached"), "{}", q.reasons[0].message);
     }
 
     #[test]

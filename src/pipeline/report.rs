@@ -135,6 +135,11 @@ pub struct Report {
     /// stored before it was recorded).
     #[serde(default)]
     pub station: Option<Station>,
+    /// The named station's qualification (ISO 15530-3): the study applied, its correction per
+    /// thread with the heights before and after it, the station's uncertainty; or why it was
+    /// not applied. Absent where the inspection named no qualified station.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub qualification: Option<crate::pipeline::qualify::QualificationUse>,
     /// What made this report: the software, the settings, and (in the service) the inspection and
     /// its bundle (absent in reports stored before it was recorded).
     #[serde(default)]
@@ -331,6 +336,7 @@ pub struct Findings<'a> {
     pub map_implausible_share: f64,
     pub models: Vec<crate::learned::ModelUse>,
     pub timings: Vec<StageTiming>,
+    pub qualification: Option<crate::pipeline::qualify::QualificationUse>,
 }
 
 impl Report {
@@ -389,6 +395,7 @@ impl Report {
             decision_finding: Some(f.decision),
             uncertainty: Some(f.uncertainty),
             station: Some(station),
+            qualification: f.qualification,
             provenance: Some(Provenance {
                 software_version: env!("CARGO_PKG_VERSION").into(),
                 settings: f.options.clone(),

@@ -73,6 +73,8 @@ pub struct Inspection {
     pub serial: Option<String>,
     pub connection: Option<String>,
     pub client_reference: Option<String>,
+    /// The station the bundle was recorded at, as the manifest or the submission named it.
+    pub station: Option<String>,
     pub created_at: String,
     pub updated_at: String,
     pub started_at: Option<String>,
@@ -114,6 +116,7 @@ impl From<InspectionRow> for Inspection {
             serial: r.serial,
             connection: r.connection,
             client_reference: r.client_reference,
+            station: r.station,
             created_at: rfc3339(r.created_at),
             updated_at: rfc3339(r.updated_at),
             started_at: r.started_at.map(rfc3339),

@@ -81,6 +81,10 @@ pub struct Truth {
     // Extras.
     pub preset: String,
     pub seed: u64,
+    /// The seed of the placement (poses and sensor noise) where it is not `seed`: a repeat run of
+    /// the same part (same texture) placed again.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub placement_seed: Option<u64>,
     pub helix_z_h_mm: f64,
     pub taper_on_diameter: f64,
     pub height_tolerance_mm: f64,
@@ -130,6 +134,7 @@ impl SimSpec {
 
     pub fn manifest(&self) -> Manifest {
         Manifest {
+            station: None,
             format: FORMAT_V1.to_string(),
             part: self.part_manifest.clone(),
             optics: self.optics.clone(),
@@ -148,9 +153,15 @@ impl SimSpec {
     }
 
     pub fn truth(&self, seed: u64) -> Truth {
+        self.truth_placed(seed, seed)
+    }
+
+    /// The truth of the part `seed` renders, placed on the station as `placement` draws it (the
+    /// encoders' errors): a repeat run of the same part has another placement.
+    pub fn truth_placed(&self, seed: u64, placement: u64) -> Truth {
         let (threads, input) = self.part.thread_truth(self.truth_z_end_mm);
         let assessment = rules::assess(&input, ArcRule::PerThread);
-        let poses = self.true_poses(seed);
+        let poses = self.true_poses(placement);
         let dof = self.optics.depth_of_field_mm(1.0);
         Truth {
             connection: self.part_manifest.connection.clone(),
@@ -165,6 +176,7 @@ impl SimSpec {
             reasons: assessment.messages(),
             preset: self.name.clone(),
             seed,
+            placement_seed: (placement != seed).then_some(placement),
             helix_z_h_mm: self.part.helix_z_h_mm,
             taper_on_diameter: self.part.form.taper_on_diameter,
             height_tolerance_mm: self.part.form.height_tolerance_mm,
@@ -216,7 +228,12 @@ fn mix(seed: u64, a: u64, b: u64) -> u64 {
 
 /// Writes truth/truth.json only (no rendering): for designing presets and for quick checks.
 pub fn write_truth(spec: &SimSpec, seed: u64, out: &Path) -> Result<Truth, SimError> {
-    let truth = spec.truth(seed);
+    write_truth_placed(spec, seed, seed, out)
+}
+
+/// [`write_truth`] for the part `seed` renders at the placement `placement` draws.
+pub fn write_truth_placed(spec: &SimSpec, seed: u64, placement: u64, out: &Path) -> Result<Truth, SimError> {
+    let truth = spec.truth_placed(seed, placement);
     let dir = out.join("truth");
     std::fs::create_dir_all(&dir).map_err(io(&dir))?;
     let path = dir.join("truth.json");
@@ -238,16 +255,29 @@ pub fn simulate_with_progress(
     out: &Path,
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<SimSummary, SimError> {
+    simulate_placed(spec, seed, seed, out, progress)
+}
+
+/// [`simulate_with_progress`] of the part `seed` renders (its texture), placed as `placement`
+/// draws it: the encoders' errors and the sensor's noise. The same `seed` with another
+/// `placement` is the same part measured again after being repositioned.
+pub fn simulate_placed(
+    spec: &SimSpec,
+    seed: u64,
+    placement: u64,
+    out: &Path,
+    progress: &(dyn Fn(usize) + Sync),
+) -> Result<SimSummary, SimError> {
     let started = Instant::now();
     let written = std::sync::atomic::AtomicUsize::new(0);
     std::fs::create_dir_all(out).map_err(io(out))?;
-    let truth = write_truth(spec, seed, out)?;
+    let truth = write_truth_placed(spec, seed, placement, out)?;
     let manifest_path = out.join("manifest.json");
     let manifest = serde_json::to_vec_pretty(&spec.manifest()).expect("manifest serialises");
     std::fs::write(&manifest_path, manifest).map_err(io(&manifest_path))?;
 
     let tracer = Tracer::new(&spec.part);
-    let poses = spec.true_poses(seed);
+    let poses = spec.true_poses(placement);
     // Truth depth per view.
     let cameras: Vec<Camera> = poses
         .par_iter()
@@ -286,7 +316,7 @@ pub fn simulate_with_progress(
             &spec.sensor,
             spec.offsets_mm[k],
             texture_seed,
-            mix(seed, v as u64 + 1, k as u64 + 1),
+            mix(placement, v as u64 + 1, k as u64 + 1),
         );
         let path = out.join(frame_path(&spec.views[v].id, k));
         write_png(&path, spec.width, spec.height, &spec.sensor, &samples)?;
@@ -336,4 +366,31 @@ fn dir_size(dir: &Path) -> std::io::Result<(usize, u64)> {
         }
     }
     Ok((files, bytes))
+}
+
+/// A master's calibration certificate written from its truth, in the CMM JSON format
+/// (docs/bundle.md, "CMM measurements"): every thread's height at every 1° bin the truth holds,
+/// each with seeded normal noise of standard deviation `expanded_uncertainty_mm / 2` (k = 2), the
+/// stated uncertainty, an instrument and a calibration date.
+pub fn certificate(truth: &Truth, expanded_uncertainty_mm: f64, seed: u64) -> serde_json::Value {
+    use rand_distr::{Distribution, StandardNormal};
+    let mut rng = ChaCha8Rng::seed_from_u64(mix(seed, 0xCE27_1F1C, 0));
+    let sigma_mm = expanded_uncertainty_mm / 2.0;
+    let mut points = Vec::new();
+    for t in &truth.threads {
+        for (angle, value) in t.height_mm.angles_deg.iter().zip(&t.height_mm.values) {
+            if let Some(h) = value {
+                let noise: f64 = StandardNormal.sample(&mut rng);
+                // Rounded as a CMM's report is: 0.1 µm.
+                let height = ((h + sigma_mm * noise) * 1e4).round() / 1e4;
+                points.push(serde_json::json!({ "thread": t.index, "angle_deg": angle, "height_mm": height }));
+            }
+        }
+    }
+    serde_json::json!({
+        "instrument": format!("simulated CMM (crestscan simulate, {} seed {seed})", truth.preset),
+        "measured_at": "2026-01-05T08:00:00Z",
+        "uncertainty_mm": expanded_uncertainty_mm,
+        "points": points,
+    })
 }

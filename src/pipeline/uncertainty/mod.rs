@@ -150,6 +150,12 @@ pub struct Scales<'a> {
     /// Half width, in bins, of the profile's trimmed mean along the helix: a black crest lowers
     /// the reported heights this far beyond its own bins.
     pub height_window_half_bins: usize,
+    /// A qualified station's combined standard uncertainty of a corrected height (ISO 15530-3),
+    /// mm: it stands in for the method's Type B term.
+    pub station_u_mm: Option<f64>,
+    /// The qualification study's median local scatter of a height, mm: at a qualified station a
+    /// bin's own scatter counts only beyond it (the station's repeatability holds the rest).
+    pub station_noise_mm: Option<f64>,
 }
 
 /// Whether the measurement cannot vouch for its own uncertainty: the quality checks say it failed
@@ -169,9 +175,10 @@ pub fn measurement_failed(quality: &Quality, station: &Station) -> bool {
                     | QualityCode::DepthCoverageLow
                     | QualityCode::ProfileCorrected
                     | QualityCode::DepthLearned
+                    | QualityCode::StationNotQualified
             )
         })
-        || station.optics_outside(&crate::domain::station::MEASURED)
+        || (station.qualified_by.is_none() && station.optics_outside(&crate::domain::station::MEASURED))
 }
 
 /// Sets every bin's `uncertainty_mm` and returns the budget with each thread's mean's expanded
@@ -188,7 +195,7 @@ pub fn heights(
     let bin_arc_mm = scales.pipe_radius_mm.to_radians();
     // A focus window spans (2r + 1) pixels along the arc: bins within it share depth errors.
     let correlation = ((2 * scales.focus_window_radius_px + 1) as f64 * pixel_mm / bin_arc_mm).max(1.0);
-    let method_mm = options.method_px * pixel_mm;
+    let method_mm = scales.station_u_mm.unwrap_or(options.method_px * pixel_mm);
     // Where the measurement failed its checks, its errors vary along the helix on scales the local
     // scatter does not see (a view's depth bias, a misplaced view): a machined thread's height is
     // constant along the helix to within its tolerance, so the heights' departure from their
@@ -253,6 +260,11 @@ pub fn heights(
         for b in &mut t.bins {
             let s = noise[i].or(part_noise);
             i += 1;
+            // At a qualified station u_p holds the scatter its study saw; a bin adds what is beyond.
+            let s = match scales.station_noise_mm {
+                Some(study) => s.map(|s| (s * s - study * study).max(0.0).sqrt()),
+                None => s,
+            };
             b.uncertainty_mm = match (b.height_mm, s) {
                 (Some(_), Some(s)) => {
                     thread_noise.push(s);

@@ -152,6 +152,7 @@ fn station(object_pixel_mm: f64) -> Station {
         overlap_deg: Some(5.0),
         frame_noise_percent: Some(0.84),
         class: None,
+        qualified_by: None,
     }
 }
 
@@ -214,6 +215,8 @@ static BUTTRESS: std::sync::LazyLock<(ThreadForm, PhaseUncertainty)> = std::sync
 /// A buttress part's scales (5-pixel focus window, 5-bin height window, no end face).
 fn scales_of<'a>(st: &'a Station, registration: &'a Registration, crests: &'a [ThreadObservation]) -> Scales<'a> {
     Scales {
+        station_u_mm: None,
+        station_noise_mm: None,
         station: st,
         focus_window_radius_px: 5,
         pipe_radius_mm: 57.15,

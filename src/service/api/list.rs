@@ -23,6 +23,8 @@ pub struct ListQuery {
     pub serial: Option<String>,
     pub connection: Option<String>,
     pub client_reference: Option<String>,
+    /// Only inspections recorded at this station.
+    pub station: Option<String>,
     /// RFC 3339; only inspections created after it.
     #[param(value_type = Option<String>, format = DateTime)]
     pub created_after: Option<String>,
@@ -112,6 +114,7 @@ pub async fn list_inspections(
         serial: q.serial,
         connection: q.connection,
         client_reference: q.client_reference,
+        station: q.station,
         created_after_ms: time("created_after", &q.created_after)?,
         created_before_ms: time("created_before", &q.created_before)?,
         finished_after_ms: time("finished_after", &q.finished_after)?,

@@ -36,6 +36,12 @@ pub struct SubmitOptions {
     #[param(max_length = 2048)]
     #[schema(max_length = 2048)]
     pub callback_url: Option<String>,
+    /// The station the bundle was recorded at (`POST /v1/stations`), over the manifest's
+    /// `station`: at a qualified station its correction and uncertainty are applied. An unknown
+    /// station is refused (422 `unknown_station`).
+    #[param(min_length = 1, max_length = 64, pattern = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")]
+    #[schema(min_length = 1, max_length = 64, pattern = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")]
+    pub station: Option<String>,
     /// Pipeline options to override (JSON object, same shape as the inspection's `options.pipeline`).
     /// Only in the multipart `options` part.
     #[serde(default)]
@@ -179,7 +185,7 @@ pub fn resolve_options(
     query: SubmitOptions,
     part: Option<&[u8]>,
     settings: &crate::service::config::Settings,
-) -> Result<(Option<String>, JobOptions), ApiError> {
+) -> Result<(Option<String>, Option<String>, JobOptions), ApiError> {
     let part: SubmitOptions = match part {
         Some(bytes) => {
             let de = &mut serde_json::Deserializer::from_slice(bytes);
@@ -191,6 +197,11 @@ pub fn resolve_options(
         None => SubmitOptions::default(),
     };
     let reference = client_reference(part.client_reference.or(query.client_reference))?;
+    let station = part.station.or(query.station);
+    if let Some(name) = &station {
+        crate::domain::text::check_station_name(name)
+            .map_err(|e| ApiError::new(Code::InvalidOption, format!("station: {e}")).with_culprit("station"))?;
+    }
     let mut pipeline = serde_json::to_value(PipelineOptions::default()).expect("options serialise");
     if let Some(patch) = part.pipeline.as_ref() {
         if !patch.is_object() {
@@ -215,7 +226,7 @@ pub fn resolve_options(
         crate::service::webhooks::callback_allowed(settings, url)
             .map_err(|e| ApiError::new(Code::CallbackNotAllowed, e).with_culprit("callback_url"))?;
     }
-    Ok((reference, JobOptions { pipeline, callback_url }))
+    Ok((reference, station, JobOptions { pipeline, callback_url }))
 }
 
 fn accepted(row: InspectionRow, replayed: bool) -> Response {
@@ -300,7 +311,8 @@ pub async fn create_inspection(
         ingest::receive(request, &state.store.files, ingest::UploadRules::of(&state.settings), pass.slot()).await;
     drop(pass);
     let received = received?;
-    let (reference, options) = resolve_options(query, received.options_part.as_deref(), &state.settings)?;
+    let (reference, submitted_station, options) =
+        resolve_options(query, received.options_part.as_deref(), &state.settings)?;
     // A learned part that cannot run is refused now, not found out by the worker (loading ONNX
     // Runtime the first time reads a 29 MB library: off the async threads).
     let (models, pipeline) = (state.models.clone(), options.pipeline.clone());
@@ -324,8 +336,16 @@ pub async fn create_inspection(
             }
         })?;
     let options_json = serde_json::to_string(&options).expect("options serialise");
-    let request_sha256 =
-        sha256_hex(format!("{}\n{}\n{}", received.sha256, options_json, reference.as_deref().unwrap_or("")).as_bytes());
+    let request_sha256 = sha256_hex(
+        format!(
+            "{}\n{}\n{}{}",
+            received.sha256,
+            options_json,
+            reference.as_deref().unwrap_or(""),
+            submitted_station.as_deref().map(|s| format!("\nstation {s}")).unwrap_or_default()
+        )
+        .as_bytes(),
+    );
     if let Some(key) = &key
         && let Some(existing) = state.store.by_idempotency_key(key).await?
     {
@@ -347,7 +367,7 @@ pub async fn create_inspection(
     let ingest::Received { file, sha256, size_bytes, .. } = received;
     let settings = state.settings.clone();
     let pipeline_options = options.pipeline.clone();
-    let (upload, serial, connection, file) = tokio::task::spawn_blocking(move || {
+    let (upload, serial, connection, manifest_station, file) = tokio::task::spawn_blocking(move || {
         let bundle = Bundle::open(
             file.path(),
             &table,
@@ -359,6 +379,7 @@ pub async fn create_inspection(
         }
         let serial = bundle.manifest.part.serial.clone();
         let connection = bundle.manifest.part.connection.clone();
+        let manifest_station = bundle.manifest.station.clone();
         let summary = crate::service::store::UploadInfo {
             sha256: sha256.clone(),
             size_bytes,
@@ -368,13 +389,24 @@ pub async fn create_inspection(
         drop(bundle);
         // Durable now; placed under its hash inside the database transaction.
         files.prepare(&file).map_err(|e| ingest::write_failed(&e))?;
-        Ok::<_, ApiError>((summary, serial, connection, file))
+        Ok::<_, ApiError>((summary, serial, connection, manifest_station, file))
     })
     .await
     .map_err(ApiError::internal)??;
 
+    let station = submitted_station.or(manifest_station);
+    if let Some(name) = &station
+        && state.store.station(name).await.is_err()
+    {
+        return Err(ApiError::new(
+            Code::UnknownStation,
+            format!("station {name:?} does not exist: create it first (POST /v1/stations)"),
+        )
+        .with_culprit("station"));
+    }
     let new = NewInspection {
         id: uuid::Uuid::now_v7().to_string(),
+        station,
         upload,
         serial,
         connection,

@@ -29,6 +29,8 @@ pub struct InspectionRow {
     pub cancel_requested: bool,
     pub error_json: Option<String>,
     pub request_sha256: String,
+    /// The station the bundle was recorded at, as the manifest or the submission named it.
+    pub station: Option<String>,
     pub size_bytes: i64,
     pub views: i64,
     pub frames: i64,
@@ -43,7 +45,7 @@ impl InspectionRow {
 pub(super) const SELECT_INSPECTION: &str = "SELECT i.id, i.status, i.upload_sha256, i.serial, i.connection, i.client_reference, \
      i.options_json, i.verdict, i.review_required, i.decision, i.created_at, i.updated_at, i.started_at, i.finished_at, i.progress_stage, \
      i.progress_fraction, i.attempts, i.max_attempts, i.cancel_requested, i.error_json, i.request_sha256, \
-     u.size_bytes, u.views, u.frames FROM inspections i JOIN uploads u ON u.sha256 = i.upload_sha256";
+     i.station, u.size_bytes, u.views, u.frames FROM inspections i JOIN uploads u ON u.sha256 = i.upload_sha256";
 
 #[derive(Clone, Debug)]
 pub struct UploadInfo {
@@ -61,6 +63,7 @@ pub struct NewInspection {
     pub connection: Option<String>,
     pub client_reference: Option<String>,
     pub options_json: String,
+    pub station: Option<String>,
     pub idempotency_key: Option<String>,
     /// Hash of the upload and the options: what "the same request" means for Idempotency-Key.
     pub request_sha256: String,
@@ -81,6 +84,7 @@ pub struct ListFilter {
     pub serial: Option<String>,
     pub connection: Option<String>,
     pub client_reference: Option<String>,
+    pub station: Option<String>,
     pub created_after_ms: Option<i64>,
     pub created_before_ms: Option<i64>,
     /// Only inspections that finished (succeeded, failed or were canceled) after this time.
@@ -151,8 +155,8 @@ impl Store {
             .map_err(|e| StoreError::Io(std::io::Error::other(e)))??;
         sqlx::query(
             "INSERT INTO inspections (id, status, upload_sha256, serial, connection, client_reference, options_json, \
-             created_at, updated_at, max_attempts, available_at, idempotency_key, request_sha256) \
-             VALUES (?, 'queued', ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+             created_at, updated_at, max_attempts, available_at, idempotency_key, request_sha256, station) \
+             VALUES (?, 'queued', ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
         )
         .bind(&new.id)
         .bind(&new.upload.sha256)
@@ -166,6 +170,7 @@ impl Store {
         .bind(now)
         .bind(&new.idempotency_key)
         .bind(&new.request_sha256)
+        .bind(&new.station)
         .execute(&mut *tx)
         .await?;
         // Read inside the transaction: after the commit a worker may already have claimed it, and
@@ -198,6 +203,9 @@ impl Store {
         }
         if let Some(v) = &filter.client_reference {
             q.push(" AND i.client_reference = ").push_bind(v.clone());
+        }
+        if let Some(v) = &filter.station {
+            q.push(" AND i.station = ").push_bind(v.clone());
         }
         if let Some(t) = filter.created_after_ms {
             q.push(" AND i.created_at > ").push_bind(t);

@@ -8,6 +8,7 @@ mod inspections;
 mod keys;
 mod queue;
 mod results;
+mod stations;
 mod webhooks;
 
 pub use cmm::{CmmRow, CmmVersionRow};
@@ -15,6 +16,7 @@ pub use inspections::{Inserted, InspectionRow, ListFilter, NewInspection, Upload
 pub use keys::{AuditEntry, AuditRow, KeyRow};
 pub use queue::{Claimed, Heartbeat};
 pub use results::{Artifact, HeightRow, JobResults, PITCH_PROFILES, StoredArtifact, ThreadRow};
+pub use stations::{MasterRow, StationRow, StudyRow};
 pub use webhooks::{AttemptOutcome, AttemptRow, DeliveryFilter, DeliveryRow, NewDelivery};
 
 use crate::problem::{Code, ErrorCode, Problem};
