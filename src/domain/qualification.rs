@@ -126,6 +126,7 @@ pub struct ThreadBias {
 /// The correction as applied.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Correction {
+    /// The model the study chose.
     pub model: CorrectionModel,
     /// Per thread; a thread not listed was not measured on any master.
     pub threads: Vec<ThreadBias>,
@@ -182,8 +183,9 @@ pub struct GaugeStudy {
     pub grr_percent_total: Option<f64>,
     /// The number of distinct categories, 1.41 σ_parts / σ_GRR.
     pub ndc: Option<f64>,
-    /// Parts (a master's thread) and repeats the ANOVA used.
+    /// Parts (a master's thread) the ANOVA used.
     pub parts: usize,
+    /// Repeats per part the ANOVA used.
     pub repeats: usize,
 }
 
@@ -191,6 +193,7 @@ pub struct GaugeStudy {
 pub struct ThreadGauge {
     /// The master's serial.
     pub master: String,
+    /// The thread's number.
     pub thread: u32,
     /// The thread's mean height per run minus its certified mean, averaged over the runs, µm.
     pub bias_before_um: f64,
@@ -202,6 +205,7 @@ pub struct ThreadGauge {
     pub cg: Option<f64>,
     /// Cgk = (0.1 T − |bias after|) / (3 s).
     pub cgk: Option<f64>,
+    /// Runs of the master.
     pub runs: usize,
 }
 
@@ -209,12 +213,15 @@ pub struct ThreadGauge {
 /// outside it.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct MasterSummary {
+    /// The master's serial.
     pub serial: String,
     /// The API 5B designation, or null for a custom form.
     pub connection: Option<String>,
+    /// Its runs in the study.
     pub runs: usize,
-    /// The certificate's instrument and date.
+    /// The certificate's instrument.
     pub instrument: String,
+    /// The certificate's date.
     pub calibrated_at: String,
     /// The certificate's expanded uncertainty, µm.
     pub certificate_u_um: f64,
@@ -228,16 +235,22 @@ pub struct Qualification {
     pub station: String,
     /// The study's id (a content hash of its inputs where the CLI made it).
     pub study: String,
+    /// The station as the study bound it.
     pub fingerprint: Fingerprint,
+    /// The masters it measured.
     pub masters: Vec<MasterSummary>,
+    /// The correction applied to the station's heights.
     pub correction: Correction,
+    /// The station's uncertainty components.
     pub uncertainty: StationUncertainty,
+    /// The gauge-study figures.
     pub gauge: GaugeStudy,
     /// The candidates' held-out RMS error, µm, by model, and how they were held out.
     pub selection: ModelSelection,
-    /// Per thread, the heights' RMS error against the certificates before and after the
-    /// correction, µm (the correction estimated without the run it is read on).
+    /// The heights' RMS error against the certificates before the correction, µm (after it: the
+    /// correction estimated without the run or master it is read on).
     pub rms_before_um: f64,
+    /// After the correction (held out), µm.
     pub rms_after_um: f64,
     /// The largest helix residual of the study's runs, µm: an inspection at the station whose
     /// helix fits within 1.25 times this is not failed for its fit.
@@ -256,11 +269,13 @@ pub struct Qualification {
 pub struct ModelSelection {
     /// `leave_one_master_out` with two masters or more, else `leave_one_run_out`.
     pub method: String,
+    /// Each candidate model's held-out error.
     pub candidates: Vec<CandidateScore>,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct CandidateScore {
+    /// The candidate model.
     pub model: CorrectionModel,
     /// RMS of the held-out heights' error after this model's correction, µm.
     pub held_out_rms_um: f64,

@@ -47,6 +47,7 @@ pub struct QualificationUse {
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct ThreadCorrectionUse {
+    /// The thread's number, 1 nearest the pipe end.
     pub thread: u32,
     /// The mean correction subtracted from the thread's heights, µm.
     pub correction_um: f64,

@@ -152,11 +152,21 @@ async fn process(ctx: &WorkerContext, job: Claimed, lease_token: &str, shutdown:
     let lease = Duration::from_secs_f64(ctx.settings.lease_seconds);
     let lease_lost = Arc::new(AtomicBool::new(false));
 
+    // The station's qualification as it stands when the job starts (a later study or suspension
+    // applies to later jobs).
+    let at = match at_station(ctx, &job.id).await {
+        Ok(at) => at,
+        Err(e) => {
+            tracing::error!(inspection = %job.id, error = %e, "reading the inspection's station failed; the job runs as at an unqualified station would not be honest, so it is retried");
+            tokio::time::sleep(Duration::from_secs(1)).await;
+            return;
+        }
+    };
     let task = {
         let (ctx, job, cancel, progress) = (ctx.clone(), job.clone(), cancel.clone(), progress.clone());
         tokio::task::spawn_blocking(move || {
             let pool = ctx.compute.clone();
-            pool.install(|| contain(&job.id, || run_job(&ctx, &job, &cancel, &progress)))
+            pool.install(|| contain(&job.id, || run_job(&ctx, &job, at.as_ref(), &cancel, &progress)))
         })
     };
     tokio::pin!(task);
@@ -264,6 +274,36 @@ async fn process(ctx: &WorkerContext, job: Claimed, lease_token: &str, shutdown:
     }
 }
 
+/// What the inspection's station says for it: nothing at no station or an unqualified one; its
+/// qualification where it is qualified and not expired; why not where it is suspended or expired.
+async fn at_station(
+    ctx: &WorkerContext,
+    id: &str,
+) -> Result<Option<pipeline::qualify::AtStation>, crate::service::store::StoreError> {
+    use pipeline::qualify::AtStation;
+    let Some(name) = ctx.store.inspection(id).await?.station else { return Ok(None) };
+    let station = ctx.store.station(&name).await?;
+    let refused = |reason: String| Ok(Some(AtStation::Refused { station: name.clone(), reason }));
+    match (station.status.as_str(), &station.study_id) {
+        ("qualified", Some(study)) => {
+            let row = ctx.store.study(&name, study).await?;
+            let q: crate::domain::qualification::Qualification = serde_json::from_str(&row.qualification_json)
+                .map_err(|e| crate::service::store::StoreError::Io(std::io::Error::other(e)))?;
+            if let Some(until) = &q.valid_until
+                && crate::service::wire::parse_rfc3339(until).is_ok_and(|t| t < crate::service::store::now_ms())
+            {
+                return refused(format!("Station {name}'s qualification {study} expired at {until}"));
+            }
+            Ok(Some(AtStation::Qualified(q)))
+        }
+        ("suspended", _) => refused(format!(
+            "Station {name} is suspended: {}",
+            station.status_reason.as_deref().unwrap_or("no reason was given")
+        )),
+        _ => Ok(None),
+    }
+}
+
 /// Runs a job's blocking part; a panic becomes that job's permanent failure, not the worker's end.
 fn contain(id: &str, run: impl FnOnce() -> Outcome) -> Outcome {
     std::panic::catch_unwind(AssertUnwindSafe(run)).unwrap_or_else(|panic| {
@@ -284,7 +324,13 @@ fn contain(id: &str, run: impl FnOnce() -> Outcome) -> Outcome {
 }
 
 /// The blocking part: open the stored bundle, run the pipeline, encode the results.
-fn run_job(ctx: &WorkerContext, job: &Claimed, cancel: &AtomicBool, progress: &Mutex<Option<(Stage, f64)>>) -> Outcome {
+fn run_job(
+    ctx: &WorkerContext,
+    job: &Claimed,
+    at: Option<&pipeline::qualify::AtStation>,
+    cancel: &AtomicBool,
+    progress: &Mutex<Option<(Stage, f64)>>,
+) -> Outcome {
     let options: JobOptions = match serde_json::from_str(&job.options_json) {
         Ok(o) => o,
         Err(e) => return Outcome::Fail(problem(Code::InvalidOption, format!("stored options unreadable: {e}"))),
@@ -311,12 +357,12 @@ fn run_job(ctx: &WorkerContext, job: &Claimed, cancel: &AtomicBool, progress: &M
     let report_progress = |stage: Stage, fraction: f64| {
         *progress.lock().expect("progress lock") = Some((stage, fraction));
     };
-    let mut inspection = match pipeline::inspect_with(&bundle, &options.pipeline, &ctx.models, &report_progress, cancel)
-    {
-        Ok(Some(i)) => i,
-        Ok(None) => return Outcome::Canceled,
-        Err(e) => return failure(&e),
-    };
+    let mut inspection =
+        match pipeline::inspect_at(&bundle, &options.pipeline, &ctx.models, &report_progress, cancel, at) {
+            Ok(Some(i)) => i,
+            Ok(None) => return Outcome::Canceled,
+            Err(e) => return failure(&e),
+        };
     if let Some(provenance) = inspection.report.provenance.as_mut() {
         provenance.inspection_id = Some(job.id.clone());
         provenance.bundle_sha256 = Some(job.upload_sha256.clone());

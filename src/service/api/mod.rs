@@ -20,6 +20,7 @@ pub mod origins;
 pub mod problem;
 pub mod results;
 pub mod schemas;
+pub mod stations;
 pub mod submit;
 pub mod webhooks;
 
@@ -52,6 +53,7 @@ use utoipa_swagger_ui::SwaggerUi;
         (name = "inspections", description = "Submit, list, poll and cancel inspections"),
         (name = "results", description = "Reports, per-thread tables, meshes and images of succeeded inspections"),
         (name = "cmm", description = "CMM measurements and the comparison with crestscan"),
+        (name = "stations", description = "Stations, their masters and qualification studies (ISO 15530-3)"),
         (name = "connections", description = "The API 5B connection table"),
         (name = "operations", description = "Health, readiness, metrics, capabilities, the bundle manifest's schema"),
         (name = "admin", description = "API keys, the audit log and webhook deliveries (scope `admin`)"),
@@ -131,6 +133,7 @@ fn api_routes() -> OpenApiRouter<AppState> {
         .merge(keys::router())
         .merge(webhooks::router())
         .merge(schemas::router())
+        .merge(stations::router())
 }
 
 /// The OpenAPI document (what `/openapi.json` serves and `crestscan openapi` prints).

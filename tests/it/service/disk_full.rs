@@ -119,6 +119,7 @@ async fn insert(store: &Store, bytes: &[u8], options_json: String, key: Option<&
         serial: None,
         connection: None,
         client_reference: None,
+        station: None,
         request_sha256: crestscan::service::store::files::sha256_hex(format!("{sha256}{options_json}").as_bytes()),
         options_json,
         idempotency_key: key.map(str::to_string),

@@ -12,6 +12,7 @@ mod openapi;
 mod queue;
 mod report_page;
 mod results;
+mod stations;
 mod traces;
 mod webhooks;
 

@@ -1,0 +1,184 @@
+//! A station qualified over the real server: created, its master's certificate uploaded, ten
+//! repositioned runs of the master inspected and studied, then a part at that station decided with
+//! the station's uncertainty; a bundle of other optics named at it refused, naming the mismatch;
+//! and the refusals a study meets (a master twice, too few runs, unknown threads), each naming its
+//! culprit. The master is the `ci-reject` part (LC 4-1/2, three views), placed anew for each run.
+
+use super::*;
+use crestscan::sim;
+
+/// Renders `preset` (part `seed`, placement `placement`) and returns it as a tar whose manifest
+/// names `serial` and `station`.
+fn run_tar(preset: &str, seed: u64, placement: u64, serial: &str, station: &str) -> (Vec<u8>, Truth) {
+    let dir = tempfile::tempdir().unwrap();
+    let spec = sim::preset(preset).unwrap();
+    sim::simulate_placed(&spec, seed, placement, dir.path(), &|_| {}).unwrap();
+    let path = dir.path().join("manifest.json");
+    let mut manifest: Value = serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
+    manifest["part"]["serial"] = serial.into();
+    manifest["station"] = station.into();
+    std::fs::write(&path, serde_json::to_vec(&manifest).unwrap()).unwrap();
+    let truth: Truth = serde_json::from_slice(&std::fs::read(dir.path().join("truth/truth.json")).unwrap()).unwrap();
+    (bundle_tar(dir.path(), &|_| true), truth)
+}
+
+async fn post_json(app: &TestApp, path: &str, body: Value) -> reqwest::Response {
+    app.client.post(app.url(path)).json(&body).send().await.unwrap()
+}
+
+async fn put_certificate(app: &TestApp, station: &str, serial: &str, certificate: &Value) -> reqwest::Response {
+    app.client
+        .put(app.url(&format!("/v1/stations/{station}/masters/{serial}")))
+        .header("content-type", "application/json")
+        .body(serde_json::to_vec(certificate).unwrap())
+        .send()
+        .await
+        .unwrap()
+}
+
+/// Submits `tar` and waits for it to succeed; its id.
+async fn inspected(app: &TestApp, tar: Vec<u8>, query: &str) -> String {
+    let created = app.submit(tar, query).await;
+    assert_eq!(created.status(), StatusCode::ACCEPTED, "{}", created.text().await.unwrap());
+    let id = created.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+    let done = app.wait(&id, Duration::from_secs(120)).await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    id
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_qualified_station_decides_with_its_own_uncertainty() {
+    let app = spawn_app().await;
+    let created =
+        post_json(&app, "/v1/stations", serde_json::json!({"name": "line-1", "description": "ci optics"})).await;
+    assert_eq!(created.status(), StatusCode::CREATED);
+    assert_eq!(created.headers()["location"], "/v1/stations/line-1");
+    let station: Value = created.json().await.unwrap();
+    assert_eq!(station["status"], "unqualified");
+    problem(
+        post_json(&app, "/v1/stations", serde_json::json!({"name": "line-1"})).await,
+        StatusCode::CONFLICT,
+        "station_exists",
+    )
+    .await;
+    let bad = problem(
+        post_json(&app, "/v1/stations", serde_json::json!({"name": "line 1/a"})).await,
+        StatusCode::UNPROCESSABLE_ENTITY,
+        "invalid_option",
+    )
+    .await;
+    assert_eq!(bad["culprit"], "name");
+
+    // The master's certificate, from its truth with 2 µm (k = 2) of calibration noise.
+    let (first, truth) = run_tar("ci-reject", 7, 101, "M-1", "line-1");
+    let certificate = sim::certificate(&truth, 0.002, 7);
+    assert_eq!(put_certificate(&app, "line-1", "M-1", &certificate).await.status(), StatusCode::CREATED);
+    let twice =
+        problem(put_certificate(&app, "line-1", "M-1", &certificate).await, StatusCode::CONFLICT, "master_exists")
+            .await;
+    assert_eq!(twice["culprit"], "serial");
+    let mut unstated = certificate.clone();
+    unstated.as_object_mut().unwrap().remove("uncertainty_mm");
+    let refused = problem(
+        put_certificate(&app, "line-1", "M-2", &unstated).await,
+        StatusCode::UNPROCESSABLE_ENTITY,
+        "invalid_certificate",
+    )
+    .await;
+    assert_eq!(refused["culprit"], "points[0].uncertainty_mm");
+
+    // Ten runs, each placed anew (encoders and sensor noise), the same part.
+    let mut runs = vec![inspected(&app, first.clone(), "").await];
+    for placement in 102..=110 {
+        runs.push(inspected(&app, run_tar("ci-reject", 7, placement, "M-1", "line-1").0, "").await);
+    }
+    let listed: Value = app.get("/v1/inspections?station=line-1&limit=200").await.json().await.unwrap();
+    assert_eq!(listed["items"].as_array().unwrap().len(), 10);
+
+    let too_few = problem(
+        post_json(&app, "/v1/stations/line-1/studies", serde_json::json!({"inspections": runs[..9]})).await,
+        StatusCode::UNPROCESSABLE_ENTITY,
+        "study_refused",
+    )
+    .await;
+    assert_eq!(too_few["culprit"], "masters.M-1", "{too_few}");
+    assert!(too_few["detail"].as_str().unwrap().contains("9 runs"), "{too_few}");
+
+    let studied = post_json(&app, "/v1/stations/line-1/studies", serde_json::json!({"inspections": runs})).await;
+    assert_eq!(studied.status(), StatusCode::CREATED);
+    let study: Value = studied.json().await.unwrap();
+    let study_id = study["id"].as_str().unwrap().to_string();
+    let q = &study["qualification"];
+    assert_eq!(q["masters"][0]["runs"], 10);
+    assert!(q["uncertainty"]["u_p_um"].as_f64().unwrap() > 0.0, "{q}");
+    assert!(q["gauge"]["cg_min"].as_f64().is_some(), "{q}");
+    let station: Value = app.get("/v1/stations/line-1").await.json().await.unwrap();
+    assert_eq!((station["status"].as_str(), station["study"].as_str()), (Some("qualified"), Some(study_id.as_str())));
+    let fetched: Value = app.get(&format!("/v1/stations/line-1/studies/{study_id}")).await.json().await.unwrap();
+    assert_eq!(fetched["qualification"], study["qualification"]);
+
+    // Another part of the master's design (another texture and placement), named by the
+    // submission: corrected and decided with the station's uncertainty, its report naming both.
+    let (part, part_truth) = run_tar("ci-reject", 8, 208, "P-8", "line-1");
+    let id = inspected(&app, part, "?station=line-1").await;
+    let report: Value = app.get(&format!("/v1/inspections/{id}/report")).await.json().await.unwrap();
+    assert_eq!(report["qualification"]["applied"], true, "{}", report["qualification"]);
+    assert_eq!(report["qualification"]["study"], study_id.as_str());
+    assert_eq!(report["station"]["qualified_by"], study_id.as_str());
+    let combined = q["uncertainty"]["combined_um"].as_f64().unwrap();
+    assert!(
+        (report["uncertainty"]["method_um"].as_f64().unwrap() - combined).abs() < 0.01,
+        "{}",
+        report["uncertainty"]
+    );
+    assert!(report["quality"]["reasons"].as_array().unwrap().iter().all(|r| r["code"] != "station_unmeasured"));
+    assert_eq!(report["verdict"], serde_json::to_value(part_truth.verdict).unwrap());
+    assert_ne!(report["decision"], "conforms", "the truth is reject");
+
+    // Other optics named at this station: refused, naming the object pixel, and not decided.
+    let telecentric = bundle_tar(crate::common::rendered("ci-telecentric"), &|_| true);
+    let id = inspected(&app, telecentric, "?station=line-1").await;
+    let report: Value = app.get(&format!("/v1/inspections/{id}/report")).await.json().await.unwrap();
+    let refusal = report["qualification"]["refused"].as_str().unwrap();
+    assert!(refusal.contains("object pixel"), "{refusal}");
+    assert_eq!(report["decision"], "indeterminate");
+    assert!(report["quality"]["reasons"].as_array().unwrap().iter().any(|r| r["code"] == "station_not_qualified"));
+    // An unknown station is refused at submission.
+    let unknown =
+        problem(app.submit(ci_tar(), "?station=line-9").await, StatusCode::UNPROCESSABLE_ENTITY, "unknown_station")
+            .await;
+    assert_eq!(unknown["culprit"], "station");
+
+    // A certificate naming threads the runs do not have: the study names the master.
+    assert_eq!(
+        post_json(&app, "/v1/stations", serde_json::json!({"name": "line-2"})).await.status(),
+        StatusCode::CREATED
+    );
+    let mut with_55 = certificate.clone();
+    with_55["points"]
+        .as_array_mut()
+        .unwrap()
+        .push(serde_json::json!({"thread": 55, "angle_deg": 0.5, "height_mm": 1.8}));
+    assert_eq!(put_certificate(&app, "line-2", "M-1", &with_55).await.status(), StatusCode::CREATED);
+    let mut at_two = Vec::new();
+    for placement in 101..=110 {
+        at_two.push(inspected(&app, run_tar("ci-reject", 7, placement, "M-1", "line-2").0, "").await);
+    }
+    let unknown_threads = problem(
+        post_json(&app, "/v1/stations/line-2/studies", serde_json::json!({"inspections": at_two})).await,
+        StatusCode::UNPROCESSABLE_ENTITY,
+        "study_refused",
+    )
+    .await;
+    assert_eq!(unknown_threads["culprit"], "masters.M-1");
+    assert!(unknown_threads["detail"].as_str().unwrap().contains("55"), "{unknown_threads}");
+    // A run recorded at another station is refused, naming it.
+    let elsewhere = problem(
+        post_json(&app, "/v1/stations/line-2/studies", serde_json::json!({"inspections": [runs[0]]})).await,
+        StatusCode::UNPROCESSABLE_ENTITY,
+        "study_refused",
+    )
+    .await;
+    assert_eq!(elsewhere["culprit"], "inspections[0]");
+    app.stop().await;
+}
