@@ -28,6 +28,7 @@ from crestscan_client.api.inspections import (
 )
 from crestscan_client.api.operations import get_capabilities, get_manifest_schema, healthz, metrics, readyz
 from crestscan_client.api.results import get_image, get_mesh, get_report, get_threads
+from crestscan_client.api.stations import create_station, create_study, get_station, get_study, list_stations, put_master
 from crestscan_client.models import (
     ApiKey,
     ApiKeys,
@@ -41,10 +42,15 @@ from crestscan_client.models import (
     DeliveryPage,
     Inspection,
     InspectionPage,
+    Master,
     NewApiKey,
+    NewStation,
+    NewStudy,
     Problem,
     Report,
     Scope,
+    StationList,
+    StationRecord,
     StoredCmm,
     ThreadTable,
 )
@@ -174,6 +180,23 @@ def main(base: str, bundle: str) -> None:
     broken = dict(manifest, views=[dict(manifest["views"][0], pose={"angle_deg": "north"})])
     del broken["optics"]
     assert len(list(validator.iter_errors(broken))) >= 3, "the schema catches a broken manifest"
+
+    # Stations: one created, a master's certificate stored (twice: 409), a study over a run that
+    # is not the master's refused, naming it, and a study that does not exist.
+    station = expect(call(create_station, client=client, body=NewStation(name="sdk-line", description="sdk smoke")), 201, StationRecord)
+    assert station.status == "unqualified", station
+    certified = [CmmPoint(thread=p.thread, angle_deg=p.angle_deg, height_mm=p.height_mm, uncertainty_mm=0.002) for p in points]
+    certificate = CmmMeasurements(points=certified, instrument="sdk CMM", measured_at="2026-01-05T08:00:00Z")
+    expect(call(put_master, "sdk-line", "M-1", client=client, body=certificate), 201, Master)
+    twice = expect(call(put_master, "sdk-line", "M-1", client=client, body=certificate), 409, Problem)
+    assert twice.code == "master_exists", twice
+    listed = expect(call(list_stations, client=client), 200, StationList)
+    assert [s.name for s in listed.items] == ["sdk-line"], listed
+    assert [m.serial for m in expect(call(get_station, "sdk-line", client=client), 200, StationRecord).masters] == ["M-1"]
+    refused = expect(call(create_study, "sdk-line", client=client, body=NewStudy(inspections=[created.id])), 422, Problem)
+    assert refused.code == "study_refused" and refused.culprit == "inspections[0]", refused
+    absent = expect(call(get_study, "sdk-line", "nope", client=client), 404, Problem)
+    assert absent.code == "not_found", absent
 
     missed = every_operation() - called
     assert not missed, f"operations the SDK smoke does not call: {sorted(missed)}"

@@ -47,7 +47,7 @@ pub struct NewStation {
 
 /// A station and where its qualification stands.
 #[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
-pub struct Station {
+pub struct StationRecord {
     pub name: String,
     pub description: Option<String>,
     /// `unqualified` (inspections are decided as at any station), `qualified` (its study's
@@ -86,7 +86,7 @@ pub struct Master {
 
 #[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
 pub struct StationList {
-    pub items: Vec<Station>,
+    pub items: Vec<StationRecord>,
 }
 
 #[derive(Clone, Debug, Deserialize, ToSchema)]
@@ -122,13 +122,13 @@ fn station_not_found(e: StoreError, name: &str) -> ApiError {
     }
 }
 
-async fn station_out(state: &AppState, row: StationRow) -> Result<Station, ApiError> {
+async fn station_out(state: &AppState, row: StationRow) -> Result<StationRecord, ApiError> {
     let masters = state.store.masters(&row.name).await?;
     let qualification = match &row.study_id {
         Some(id) => Some(study_qualification(&state.store.study(&row.name, id).await?)?),
         None => None,
     };
-    Ok(Station {
+    Ok(StationRecord {
         masters: masters
             .into_iter()
             .map(|m| Master {
@@ -165,7 +165,7 @@ fn study_qualification(row: &StudyRow) -> Result<Qualification, ApiError> {
     tag = "stations",
     request_body = NewStation,
     responses(
-        (status = 201, description = "Created", body = Station),
+        (status = 201, description = "Created", body = StationRecord),
         (status = 409, description = "A station of this name exists", body = Problem, content_type = "application/problem+json"),
         (status = 422, description = "Invalid name or description", body = Problem, content_type = "application/problem+json"),
     )
@@ -214,14 +214,14 @@ pub async fn list_stations(State(state): State<AppState>) -> Result<super::commo
     tag = "stations",
     params(("name" = String, Path, description = "Station name")),
     responses(
-        (status = 200, description = "The station", body = Station),
+        (status = 200, description = "The station", body = StationRecord),
         (status = 404, description = "No such station", body = Problem, content_type = "application/problem+json"),
     )
 )]
 pub async fn get_station(
     State(state): State<AppState>,
     Path(name): Path<String>,
-) -> Result<super::common::Rounded<Station>, ApiError> {
+) -> Result<super::common::Rounded<StationRecord>, ApiError> {
     let row = state.store.station(&name).await.map_err(|e| station_not_found(e, &name))?;
     Ok(super::common::Rounded(station_out(&state, row).await?))
 }
