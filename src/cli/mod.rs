@@ -10,6 +10,7 @@ mod progress;
 mod qualify;
 mod serve;
 mod simulate;
+mod station;
 mod validate;
 
 use anyhow::Result;
@@ -34,6 +35,9 @@ enum Command {
     Simulate(simulate::SimulateArgs),
     /// Inspect a bundle (directory, .zip or .tar): thread heights, black crests, the 5B verdict.
     Inspect(inspect::InspectArgs),
+    /// Stations: plan one from a camera and lens for a connection.
+    #[command(subcommand)]
+    Station(station::StationCommand),
     /// Qualify a station (ISO 15530-3): masters' repeat runs against their certificates → the
     /// station's correction, uncertainty and gauge figures, as JSON `inspect --qualification` takes.
     Qualify(qualify::QualifyArgs),
@@ -217,6 +221,7 @@ pub fn main() -> Result<()> {
         Command::Inspect(args) => args.run(),
         Command::Bench(args) => args.run(),
         Command::Qualify(args) => args.run(),
+        Command::Station(command) => command.run(),
         Command::Compare(args) => args.run(),
         Command::Pairs(args) => args.run(),
         Command::Validate(args) => args.run(),

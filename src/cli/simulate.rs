@@ -48,6 +48,10 @@ pub struct SimulateArgs {
     /// The certificate's expanded uncertainty (k = 2), µm: stated in it and drawn as its noise.
     #[arg(long, default_value_t = 2.0)]
     certificate_uncertainty_um: f64,
+    /// Render every frame this much further along the camera's axis than the manifest declares,
+    /// mm: a station refocused after its qualification (for drift checks).
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    focus_drift_mm: f64,
     /// No progress bar (it is drawn only on a terminal in any case).
     #[arg(long)]
     quiet: bool,
@@ -69,8 +73,12 @@ impl SimulateArgs {
             placement_seed,
             certificate,
             certificate_uncertainty_um,
+            focus_drift_mm,
             quiet,
         } = self;
+        if !(focus_drift_mm.abs() <= 5.0) {
+            bail!("--focus-drift-mm: {focus_drift_mm} is not within ±5 mm");
+        }
         if !(certificate_uncertainty_um > 0.0 && certificate_uncertainty_um <= 100.0) {
             bail!("--certificate-uncertainty-um: {certificate_uncertainty_um} is not within (0, 100] µm");
         }
@@ -115,6 +123,7 @@ impl SimulateArgs {
                 spec
             }
         };
+        let spec = sim::SimSpec { focus_drift_mm, ..spec };
         if print_spec {
             println!("{}", serde_json::to_string_pretty(&spec)?);
             return Ok(());

@@ -64,6 +64,14 @@ pub struct SimSpec {
     /// The station the preset was moved to, when it was ([`station::at_station`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub station: Option<station::StationSpec>,
+    /// A refocus the manifest does not know of, mm: every frame is rendered this much further along
+    /// the camera's axis than its declared offset (a station that drifted after its study).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub focus_drift_mm: f64,
+}
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -314,7 +322,7 @@ pub fn simulate_placed(
             &tracer,
             &spec.appearance,
             &spec.sensor,
-            spec.offsets_mm[k],
+            spec.offsets_mm[k] + spec.focus_drift_mm,
             texture_seed,
             mix(placement, v as u64 + 1, k as u64 + 1),
         );

@@ -235,6 +235,7 @@ fn spec_with_jitter(
         appearance: Appearance::default(),
         sensor,
         station: None,
+        focus_drift_mm: 0.0,
     }
 }
 

@@ -10,6 +10,7 @@ mod layers;
 mod learned;
 mod numeric_props;
 mod pipeline;
+mod qualify_cli;
 mod reader_props;
 mod readme;
 mod service;
