@@ -6,6 +6,7 @@
 //! factory network has no CDN, and the page loads nothing from anywhere but, in the service, the
 //! inspection's own mesh.
 
+pub mod station;
 pub mod svg;
 
 use crate::pipeline::report::Report;
@@ -176,6 +177,27 @@ fn header(page: &mut String, r: &Report, inputs: &PageInputs, title: &str) {
         let _ = write!(page, "<dt>{}</dt><dd>{}</dd>", escape(k), escape(&v));
     }
     page.push_str("</dl>\n");
+    if let Some(q) = &r.qualification {
+        // Served by the service, the station's name links to its page.
+        let name = match inputs.inspection_id {
+            Some(_) => format!(
+                "<a href=\"/v1/stations/{}?format=html\">{}</a>",
+                escape(&q.station.replace('%', "%25")),
+                escape(&q.station)
+            ),
+            None => escape(&q.station),
+        };
+        let state = match (&q.study, &q.refused) {
+            (Some(study), None) => format!(
+                "qualified: study {}{}",
+                escape(study),
+                q.uncertainty.as_ref().map(|u| format!(", U = {:.1} µm (k = 2)", u.expanded_um)).unwrap_or_default()
+            ),
+            (_, Some(reason)) => format!("qualification not applied: {}", escape(reason)),
+            _ => "unqualified".into(),
+        };
+        let _ = writeln!(page, r#"<p class="station-link" id="station">Station {name}, {state}</p>"#);
+    }
     page.push_str("<h2>API 5B</h2><ul class=\"reasons\">");
     for reason in &r.assessment.reasons {
         let figures = match (reason.value, reason.limit) {

@@ -206,24 +206,77 @@ pub async fn list_stations(State(state): State<AppState>) -> Result<super::commo
     Ok(super::common::Rounded(StationList { items }))
 }
 
-/// A station: status, the study in force, its fingerprint and U, its masters.
+/// A station: status, the study in force, its fingerprint and U, its masters; or its page.
 #[utoipa::path(
     get,
     path = "/v1/stations/{name}",
     operation_id = "get_station",
     tag = "stations",
-    params(("name" = String, Path, description = "Station name")),
+    params(("name" = String, Path, description = "Station name"), StationFormatQuery),
     responses(
-        (status = 200, description = "The station", body = StationRecord),
+        (status = 200, description = "The station; with `?format=html` or `Accept: text/html`, its page \
+            (fingerprint, uncertainty, the bias per thread before and after the correction, the gauge figures)",
+            content((StationRecord = "application/json"), (String = "text/html"))),
+        (status = 400, description = "Unknown format", body = Problem, content_type = "application/problem+json"),
         (status = 404, description = "No such station", body = Problem, content_type = "application/problem+json"),
     )
 )]
 pub async fn get_station(
     State(state): State<AppState>,
     Path(name): Path<String>,
-) -> Result<super::common::Rounded<StationRecord>, ApiError> {
+    headers: axum::http::HeaderMap,
+    query: Result<axum::extract::Query<StationFormatQuery>, axum::extract::rejection::QueryRejection>,
+) -> Result<Response, ApiError> {
+    let axum::extract::Query(q) = query?;
     let row = state.store.station(&name).await.map_err(|e| station_not_found(e, &name))?;
-    Ok(super::common::Rounded(station_out(&state, row).await?))
+    let accept_html =
+        headers.get(axum::http::header::ACCEPT).and_then(|v| v.to_str().ok()).is_some_and(|a| a.contains("text/html"));
+    let html = match q.format.as_deref() {
+        None => accept_html,
+        Some("html") => true,
+        Some("json") => false,
+        Some(other) => {
+            return Err(ApiError::new(Code::InvalidQuery, format!("format: {other:?} is neither json nor html"))
+                .with_culprit("format"));
+        }
+    };
+    if !html {
+        return Ok(super::common::Rounded(station_out(&state, row).await?).into_response());
+    }
+    let masters = state.store.masters(&row.name).await?;
+    let qualification = match &row.study_id {
+        Some(id) => Some(study_qualification(&state.store.study(&row.name, id).await?)?),
+        None => None,
+    };
+    let page = crate::export::html::station::station_page(&crate::export::html::station::StationPage {
+        name: &row.name,
+        description: row.description.as_deref(),
+        status: &row.status,
+        status_reason: row.status_reason.as_deref(),
+        masters: masters
+            .iter()
+            .map(|m| (m.serial.clone(), m.instrument.clone(), m.calibrated_at.clone(), 1e3 * m.uncertainty_mm))
+            .collect(),
+        qualification: qualification.as_ref(),
+    });
+    Ok((
+        [
+            (axum::http::header::CONTENT_TYPE, "text/html; charset=utf-8"),
+            (axum::http::header::CACHE_CONTROL, "no-cache"),
+            (axum::http::header::CONTENT_SECURITY_POLICY, crate::export::html::content_security_policy()),
+        ],
+        page,
+    )
+        .into_response())
+}
+
+#[derive(Clone, Debug, Default, Deserialize, utoipa::IntoParams)]
+#[serde(deny_unknown_fields)]
+#[into_params(parameter_in = Query)]
+pub struct StationFormatQuery {
+    /// `html` for the station's page (or `Accept: text/html`), `json` (the default).
+    #[param(pattern = "^(json|html)$")]
+    pub format: Option<String>,
 }
 
 /// Upload a master's calibration certificate: its certified thread heights in the CMM formats

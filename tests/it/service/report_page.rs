@@ -13,7 +13,7 @@ fn chromium() -> String {
 
 /// Loads `url` headless and returns the DOM after its scripts ran, the browser's log and its
 /// network log (JSON).
-async fn browse(url: &str) -> (String, String, Value) {
+pub(super) async fn browse(url: &str) -> (String, String, Value) {
     let dir = tempfile::tempdir().unwrap();
     let net_log = dir.path().join("net.json");
     let (profile, log_path, url) = (dir.path().join("profile"), net_log.clone(), url.to_string());
@@ -90,7 +90,7 @@ fn serve_binary() -> Served {
 /// Nothing on the page's console (no script error, no refused load: a refusal by the page's
 /// policy is a console error too), and every request the page made went to `origin`; returns
 /// those requests (the caller checks the one it expects is among them, so that they were seen).
-fn quiet_and_local(log: &str, net_log: &Value, origin: &str) -> Vec<String> {
+pub(super) fn quiet_and_local(log: &str, net_log: &Value, origin: &str) -> Vec<String> {
     let console: Vec<&str> = log.lines().filter(|l| l.contains(":CONSOLE")).collect();
     assert!(console.is_empty(), "console: {console:#?}");
     let host = origin.trim_start_matches("http://").split(':').next().unwrap();

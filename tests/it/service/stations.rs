@@ -135,6 +135,28 @@ async fn a_qualified_station_decides_with_its_own_uncertainty() {
     assert_eq!(report["verdict"], serde_json::to_value(part_truth.verdict).unwrap());
     assert_ne!(report["decision"], "conforms", "the truth is reject");
 
+    // The station's page, in a real browser: its sections drawn, nothing refused, nothing fetched
+    // from elsewhere; the part's report page links to it, and so does the dashboard's row.
+    let (dom, log, net_log) = super::report_page::browse(&app.url("/v1/stations/line-1?format=html")).await;
+    for section in ["summary", "masters", "fingerprint", "uncertainty", "gauge", "bias-plot", "thread-gauge"] {
+        assert!(dom.contains(&format!("id=\"{section}\"")), "section {section} missing");
+    }
+    assert!(dom.contains(&study_id), "the page names the study");
+    super::report_page::quiet_and_local(&log, &net_log, &app.base);
+    let report_page = app
+        .client
+        .get(app.url(&format!("/v1/inspections/{id}/report?format=html")))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    assert!(report_page.contains("href=\"/v1/stations/line-1?format=html\""), "the report links its station");
+    let (dom, _, _) = super::report_page::browse(&app.url("/")).await;
+    let row = dom.split(&format!("data-id=\"{id}\"")).nth(1).expect("the part listed").split("</tr>").next().unwrap();
+    assert!(row.contains("href=\"/v1/stations/line-1?format=html\""), "{row}");
+
     // Other optics named at this station: refused, naming the object pixel, and not decided.
     let telecentric = bundle_tar(crate::common::rendered("ci-telecentric"), &|_| true);
     let id = inspected(&app, telecentric, "?station=line-1").await;

@@ -48,6 +48,14 @@
     tr.appendChild(text('td', item.serial));
     tr.appendChild(text('td', item.connection));
     tr.appendChild(text('td', item.client_reference));
+    var station = document.createElement('td');
+    if (item.station) {
+      var link = document.createElement('a');
+      link.href = '/v1/stations/' + encodeURIComponent(item.station) + '?format=html';
+      link.textContent = item.station;
+      station.appendChild(link);
+    }
+    tr.appendChild(station);
     var cell = document.createElement('td');
     if (item.status === 'succeeded') {
       var a = document.createElement('a');
