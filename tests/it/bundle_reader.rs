@@ -411,9 +411,9 @@ fn a_misspelt_key_is_named_with_the_key_meant() {
     });
     expect_error(open(s.path()), "invalid_manifest", &["fromat", "did you mean `format`"]);
     let s = Scratch::new();
-    s.edit(|m| m["station"] = json!({"line": 3}));
+    s.edit(|m| m["fixture"] = json!({"line": 3}));
     let bundle = open(s.path()).unwrap();
-    assert_eq!(bundle.unread_fields, ["station"]);
+    assert_eq!(bundle.unread_fields, ["fixture"]);
 }
 
 #[test]

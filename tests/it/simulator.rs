@@ -28,11 +28,11 @@ fn same_preset_and_seed_give_byte_identical_files() {
 
 #[test]
 fn ci_presets_are_under_ten_megabytes() {
-    for name in ["ci", "ci-telecentric"] {
+    for name in ["ci", "ci-telecentric", "ci-reject"] {
         let bytes: u64 = walk(rendered(name)).iter().map(|p| std::fs::metadata(p).unwrap().len()).sum();
         assert!(bytes < 10_000_000, "{name}: {bytes} bytes");
     }
-    assert_eq!(sim::PRESETS.iter().filter(|p| p.name.starts_with("ci")).count(), 2);
+    assert_eq!(sim::PRESETS.iter().filter(|p| p.name.starts_with("ci")).count(), 3);
 }
 
 #[test]

@@ -11,7 +11,13 @@ async fn operations(app: &TestApp, id: &str) -> Vec<(Method, String)> {
     let doc: Value = app.get("/openapi.json").await.json().await.unwrap();
     let mut out = Vec::new();
     for (path, item) in doc["paths"].as_object().unwrap() {
-        let path = path.replace("{id}", id).replace("{designation}", "BC%207").replace("{kind}", "height-map");
+        let path = path
+            .replace("{id}", id)
+            .replace("{designation}", "BC%207")
+            .replace("{kind}", "height-map")
+            .replace("{name}", "line-x")
+            .replace("{serial}", "M-1")
+            .replace("{study}", "s-1");
         assert!(!path.contains('{'), "a path parameter this test does not fill: {path}");
         for method in item.as_object().unwrap().keys() {
             out.push((Method::from_bytes(method.to_uppercase().as_bytes()).unwrap(), path.clone()));
