@@ -33,7 +33,20 @@ impl Certificate {
     /// instrument, its date (`measured_at`) and an uncertainty for every point.
     pub fn parse(bytes: &[u8]) -> Result<Self, CmmError> {
         let json = bytes.iter().find(|b| !b.is_ascii_whitespace()) == Some(&b'{');
-        let points = if json { CmmMeasurements::from_json(bytes)? } else { CmmMeasurements::from_csv(bytes)? };
+        if json { Self::from_json(bytes) } else { Self::from_csv(bytes) }
+    }
+
+    /// A certificate from CMM JSON.
+    pub fn from_json(bytes: &[u8]) -> Result<Self, CmmError> {
+        Self::of(CmmMeasurements::from_json(bytes)?)
+    }
+
+    /// A certificate from CMM CSV.
+    pub fn from_csv(bytes: &[u8]) -> Result<Self, CmmError> {
+        Self::of(CmmMeasurements::from_csv(bytes)?)
+    }
+
+    fn of(points: CmmMeasurements) -> Result<Self, CmmError> {
         let missing =
             |field: &str, what: &str| CmmError { field: field.into(), message: format!("a certificate states {what}") };
         let instrument =

@@ -80,19 +80,9 @@ pub async fn put_cmm(
             ApiError::new(Code::BadRequest, format!("reading the body: {e}"))
         }
     })?;
-    let content_type =
-        headers.get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_ascii_lowercase();
-    let essence = content_type.split(';').next().unwrap_or("").trim();
-    let parsed = match essence {
-        "application/json" => CmmMeasurements::from_json(&body),
-        "text/csv" => CmmMeasurements::from_csv(&body),
-        other => {
-            return Err(ApiError::new(
-                Code::UnsupportedMediaType,
-                format!("Content-Type {other:?}: send application/json or text/csv"),
-            )
-            .with_culprit("Content-Type"));
-        }
+    let parsed = match super::common::json_or_csv(&headers)? {
+        super::common::JsonOrCsv::Json => CmmMeasurements::from_json(&body),
+        super::common::JsonOrCsv::Csv => CmmMeasurements::from_csv(&body),
     }
     .map_err(|e| ApiError::new(Code::InvalidCmm, e.to_string()).with_culprit(e.field.clone()))?;
     let (json, _) = state.store.report(&id.0).await?;

@@ -149,3 +149,25 @@ pub async fn stored_artifact(
         other => Ok(other?),
     }
 }
+
+/// A body in the CMM formats: JSON or CSV.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum JsonOrCsv {
+    Json,
+    Csv,
+}
+
+/// The body's format by its `Content-Type` (parameters ignored), or 415 naming the header.
+pub fn json_or_csv(headers: &axum::http::HeaderMap) -> Result<JsonOrCsv, ApiError> {
+    let content_type =
+        headers.get(axum::http::header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_ascii_lowercase();
+    match content_type.split(';').next().unwrap_or("").trim() {
+        "application/json" => Ok(JsonOrCsv::Json),
+        "text/csv" => Ok(JsonOrCsv::Csv),
+        other => Err(ApiError::new(
+            Code::UnsupportedMediaType,
+            format!("Content-Type {other:?}: send application/json or text/csv"),
+        )
+        .with_culprit("Content-Type")),
+    }
+}

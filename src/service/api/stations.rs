@@ -316,24 +316,11 @@ pub async fn put_master(
     let body: Bytes = axum::body::to_bytes(body, MAX_CERTIFICATE_BYTES)
         .await
         .map_err(|e| ApiError::new(Code::BodyTooLarge, format!("certificates are limited to 16 MiB ({e})")))?;
-    let essence = headers
-        .get(axum::http::header::CONTENT_TYPE)
-        .and_then(|v| v.to_str().ok())
-        .unwrap_or("")
-        .split(';')
-        .next()
-        .unwrap_or("")
-        .trim()
-        .to_ascii_lowercase();
-    if essence != "application/json" && essence != "text/csv" {
-        return Err(ApiError::new(
-            Code::UnsupportedMediaType,
-            format!("Content-Type {essence:?}: send application/json or text/csv"),
-        )
-        .with_culprit("Content-Type"));
+    let certificate = match super::common::json_or_csv(&headers)? {
+        super::common::JsonOrCsv::Json => Certificate::from_json(&body),
+        super::common::JsonOrCsv::Csv => Certificate::from_csv(&body),
     }
-    let certificate = Certificate::parse(&body)
-        .map_err(|e| ApiError::new(Code::InvalidCertificate, e.to_string()).with_culprit(e.field.clone()))?;
+    .map_err(|e| ApiError::new(Code::InvalidCertificate, e.to_string()).with_culprit(e.field.clone()))?;
     let points = serde_json::to_string(&certificate.points.points).expect("points serialise");
     let stored = state
         .store
