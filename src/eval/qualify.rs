@@ -393,6 +393,15 @@ fn gauge_study(masters: &[MasterRuns], samples: &[Sample], model: CorrectionMode
     for s in samples {
         per.entry((s.master, s.thread)).or_default().entry(s.run).or_default().push(s.error_mm);
     }
+    // The correction without each run, fitted once per run (every thread of it reads the same).
+    let mut without: BTreeMap<(usize, usize), Correction> = BTreeMap::new();
+    for s in samples {
+        without.entry((s.master, s.run)).or_insert_with(|| {
+            let train: Vec<Sample> =
+                samples.iter().copied().filter(|x| !(x.master == s.master && x.run == s.run)).collect();
+            fit(model, &train)
+        });
+    }
     let mut threads = Vec::new();
     // The ANOVA's parts: (master, thread) with their runs' mean errors (the certified height is
     // constant per part, so errors and readings have the same variances).
@@ -407,8 +416,7 @@ fn gauge_study(masters: &[MasterRuns], samples: &[Sample], model: CorrectionMode
         let after: Vec<f64> = runs
             .keys()
             .map(|&r| {
-                let train: Vec<Sample> = samples.iter().copied().filter(|x| !(x.master == m && x.run == r)).collect();
-                let c = fit(model, &train).at_mm(thread).unwrap_or(0.0);
+                let c = without[&(m, r)].at_mm(thread).unwrap_or(0.0);
                 runs[&r].iter().sum::<f64>() / runs[&r].len() as f64 - c
             })
             .collect();
