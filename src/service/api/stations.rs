@@ -122,12 +122,21 @@ fn station_not_found(e: StoreError, name: &str) -> ApiError {
     }
 }
 
-async fn station_out(state: &AppState, row: StationRow) -> Result<StationRecord, ApiError> {
+/// A station's masters and the qualification of the study in force (none before the first).
+async fn masters_and_study(
+    state: &AppState,
+    row: &StationRow,
+) -> Result<(Vec<crate::service::store::MasterRow>, Option<Qualification>), ApiError> {
     let masters = state.store.masters(&row.name).await?;
     let qualification = match &row.study_id {
         Some(id) => Some(study_qualification(&state.store.study(&row.name, id).await?)?),
         None => None,
     };
+    Ok((masters, qualification))
+}
+
+async fn station_out(state: &AppState, row: StationRow) -> Result<StationRecord, ApiError> {
+    let (masters, qualification) = masters_and_study(state, &row).await?;
     Ok(StationRecord {
         masters: masters
             .into_iter()
@@ -217,8 +226,8 @@ pub async fn list_stations(State(state): State<AppState>) -> Result<super::commo
         (status = 200, description = "The station; with `?format=html` or `Accept: text/html`, its page \
             (fingerprint, uncertainty, the bias per thread before and after the correction, the gauge figures)",
             content((StationRecord = "application/json"), (String = "text/html"))),
-        (status = 400, description = "Unknown format", body = Problem, content_type = "application/problem+json"),
         (status = 404, description = "No such station", body = Problem, content_type = "application/problem+json"),
+        (status = 406, description = "Neither JSON nor HTML acceptable (`format` or `Accept`)", body = Problem, content_type = "application/problem+json"),
     )
 )]
 pub async fn get_station(
@@ -229,25 +238,11 @@ pub async fn get_station(
 ) -> Result<Response, ApiError> {
     let axum::extract::Query(q) = query?;
     let row = state.store.station(&name).await.map_err(|e| station_not_found(e, &name))?;
-    let accept_html =
-        headers.get(axum::http::header::ACCEPT).and_then(|v| v.to_str().ok()).is_some_and(|a| a.contains("text/html"));
-    let html = match q.format.as_deref() {
-        None => accept_html,
-        Some("html") => true,
-        Some("json") => false,
-        Some(other) => {
-            return Err(ApiError::new(Code::InvalidQuery, format!("format: {other:?} is neither json nor html"))
-                .with_culprit("format"));
-        }
-    };
-    if !html {
+    let (format, _) = super::http::negotiate(&headers, q.format.as_deref(), &STATION_FORMATS)?;
+    if format == "json" {
         return Ok(super::common::Rounded(station_out(&state, row).await?).into_response());
     }
-    let masters = state.store.masters(&row.name).await?;
-    let qualification = match &row.study_id {
-        Some(id) => Some(study_qualification(&state.store.study(&row.name, id).await?)?),
-        None => None,
-    };
+    let (masters, qualification) = masters_and_study(&state, &row).await?;
     let page = crate::export::html::station::station_page(&crate::export::html::station::StationPage {
         name: &row.name,
         description: row.description.as_deref(),
@@ -263,6 +258,7 @@ pub async fn get_station(
         [
             (axum::http::header::CONTENT_TYPE, "text/html; charset=utf-8"),
             (axum::http::header::CACHE_CONTROL, "no-cache"),
+            (axum::http::header::VARY, "Accept"),
             (axum::http::header::CONTENT_SECURITY_POLICY, crate::export::html::content_security_policy()),
         ],
         page,
@@ -274,9 +270,14 @@ pub async fn get_station(
 #[serde(deny_unknown_fields)]
 #[into_params(parameter_in = Query)]
 pub struct StationFormatQuery {
-    /// `html` for the station's page (or `Accept: text/html`), `json` (the default).
-    #[param(pattern = "^(json|html)$")]
+    #[param(schema_with = station_formats)]
     pub format: Option<String>,
+}
+
+const STATION_FORMATS: [(&str, &str); 2] = [("json", "application/json"), ("html", "text/html")];
+
+fn station_formats() -> utoipa::openapi::schema::Object {
+    super::common::one_of(STATION_FORMATS.map(|f| f.0), "`html` for the station's page; overrides `Accept`.")
 }
 
 /// Upload a master's calibration certificate: its certified thread heights in the CMM formats

@@ -142,6 +142,9 @@ async fn a_qualified_station_decides_with_its_own_uncertainty() {
         assert!(dom.contains(&format!("id=\"{section}\"")), "section {section} missing");
     }
     assert!(dom.contains(&study_id), "the page names the study");
+    let unknown_format =
+        problem(app.get("/v1/stations/line-1?format=xml").await, StatusCode::NOT_ACCEPTABLE, "not_acceptable").await;
+    assert_eq!(unknown_format["culprit"], "format");
     super::report_page::quiet_and_local(&log, &net_log, &app.base);
     let report_page = app
         .client
