@@ -83,7 +83,8 @@ impl QualifyArgs {
             let mut runs = Vec::new();
             for run in runs_of(dir)? {
                 let bundle = open_bundle(&run, OpenOptions::default())?;
-                hash.update(std::fs::read(run.join("manifest.json")).unwrap_or_default());
+                // The manifest as read (a folder's or an archive's), so the id covers every run.
+                hash.update(serde_json::to_vec(&bundle.manifest)?);
                 let inspection = pipeline::inspect(&bundle, &options, &|_, _| {}, &AtomicBool::new(false))
                     .with_context(|| format!("inspecting {}", run.display()))?
                     .context("cancelled")?;
