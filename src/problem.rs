@@ -76,6 +76,8 @@ codes! {
     MasterExists = ("master_exists", 409, "Master already uploaded"),
     InvalidCertificate = ("invalid_certificate", 422, "Invalid certificate"),
     StudyRefused = ("study_refused", 422, "Study cannot be run"),
+    CheckRefused = ("check_refused", 422, "Check cannot be charted"),
+    CheckExists = ("check_exists", 409, "Inspection already charted"),
     // Bundle validation (the bundle reader's codes).
     UnsupportedFormatVersion = ("unsupported_format_version", 422, "Unsupported bundle format"),
     InvalidManifest = ("invalid_manifest", 422, "Invalid manifest"),

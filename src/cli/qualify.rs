@@ -53,6 +53,136 @@ fn runs_of(dir: &Path) -> Result<Vec<PathBuf>> {
     Ok(runs)
 }
 
+/// The heights a study or a check reads: the classical ones, no learned correction.
+fn classical() -> PipelineOptions {
+    PipelineOptions {
+        profile: crestscan::pipeline::profile::ProfileOptions { correction: Correction::Off, ..Default::default() },
+        ..Default::default()
+    }
+}
+
+#[derive(clap::Args)]
+pub struct CheckArgs {
+    /// The station's qualification (what `crestscan qualify` writes).
+    #[arg(long)]
+    qualification: PathBuf,
+    /// The master's calibration certificate.
+    #[arg(long)]
+    certificate: PathBuf,
+    /// The master's serial as the qualification names it [default: the bundles' `part.serial`,
+    /// else the qualification's only master].
+    #[arg(long)]
+    master: Option<String>,
+    /// The chart so far (what an earlier --chart wrote), continued by these runs.
+    #[arg(long)]
+    history: Option<PathBuf>,
+    /// Write the chart, these runs appended, here (JSON).
+    #[arg(long)]
+    chart: Option<PathBuf>,
+    /// The master's check runs, in the order they were made: bundles (folders or archives), or
+    /// folders of them.
+    #[arg(required = true)]
+    runs: Vec<PathBuf>,
+}
+
+/// A chart as `station check` keeps it between calls.
+#[derive(serde::Serialize, serde::Deserialize, Default)]
+struct Chart {
+    study: String,
+    checks: Vec<ChartedRun>,
+}
+
+#[derive(serde::Serialize, serde::Deserialize)]
+struct ChartedRun {
+    run: String,
+    master: String,
+    points: Vec<crestscan::domain::control::ChartPoint>,
+    violation: Option<crestscan::domain::control::Violation>,
+}
+
+impl CheckArgs {
+    /// Charts each run; an error (exit 1) for runs that cannot be charted, exit 3 when one breaks
+    /// a rule.
+    pub fn run(self) -> Result<()> {
+        use crestscan::domain::control::{CheckStatistic, judge};
+        let read = |p: &Path, flag: &str| std::fs::read(p).with_context(|| format!("--{flag} {}", p.display()));
+        let q: crestscan::domain::qualification::Qualification =
+            serde_json::from_slice(&read(&self.qualification, "qualification")?)
+                .with_context(|| format!("--qualification {}: not a qualification", self.qualification.display()))?;
+        let certificate = Certificate::parse(&read(&self.certificate, "certificate")?)
+            .map_err(|e| anyhow::anyhow!("--certificate {}: {e}", self.certificate.display()))?;
+        let mut chart = match &self.history {
+            Some(p) => serde_json::from_slice::<Chart>(&read(p, "history")?)
+                .with_context(|| format!("--history {}: not a chart `--chart` wrote", p.display()))?,
+            None => Chart { study: q.study.clone(), checks: Vec::new() },
+        };
+        if chart.study != q.study {
+            bail!(
+                "--history is the chart of study {}, not of {}: a new study starts a new chart",
+                chart.study,
+                q.study
+            );
+        }
+        let mut broke = false;
+        for dir in &self.runs {
+            for run in runs_of(dir)? {
+                let bundle = open_bundle(&run, OpenOptions::default())?;
+                let named = |s: &String| q.masters.iter().any(|m| &m.serial == s);
+                let serial = match (&self.master, &bundle.part.serial) {
+                    (Some(s), _) => s.clone(),
+                    (None, Some(s)) if named(s) => s.clone(),
+                    _ if q.masters.len() == 1 => q.masters[0].serial.clone(),
+                    _ => bail!(
+                        "{}: its part.serial names none of the study's masters ({}): say which with --master",
+                        run.display(),
+                        q.masters.iter().map(|m| m.serial.as_str()).collect::<Vec<_>>().join(", ")
+                    ),
+                };
+                let inspection = pipeline::inspect(&bundle, &classical(), &|_, _| {}, &AtomicBool::new(false))
+                    .with_context(|| format!("inspecting {}", run.display()))?
+                    .context("cancelled")?;
+                let name = run.display().to_string();
+                let points = qualify::check(&q, &serial, &certificate, &name, &inspection.report)
+                    .map_err(|e| anyhow::anyhow!("{}: {e}", run.display()))?;
+                let mut history: Vec<(CheckStatistic, Vec<f64>)> = Vec::new();
+                for c in chart.checks.iter().filter(|c| c.master == serial) {
+                    for p in &c.points {
+                        match history.iter_mut().find(|(s, _)| *s == p.statistic) {
+                            Some((_, z)) => z.push(p.z),
+                            None => history.push((p.statistic, vec![p.z])),
+                        }
+                    }
+                }
+                let violation = judge(&q.control, &serial, &history, &points);
+                let readings: Vec<String> = points
+                    .iter()
+                    .map(|p| format!("{} {:.1} µm ({:+.2}σ)", p.statistic.describe(), p.value_um, p.z))
+                    .collect();
+                println!(
+                    "check {} {}: {}; {}",
+                    chart.checks.len() + 1,
+                    name,
+                    readings.join(", "),
+                    violation.as_ref().map_or("in control".into(), |v| format!("BROKE {}", v.description))
+                );
+                broke |= violation.is_some();
+                chart.checks.push(ChartedRun { run: name, master: serial, points, violation });
+            }
+        }
+        if let Some(out) = &self.chart {
+            std::fs::write(out, serde_json::to_vec_pretty(&chart)?)
+                .with_context(|| format!("--chart {}", out.display()))?;
+        }
+        if broke {
+            eprintln!("station {}: a check broke a rule; suspend it until it is requalified", q.station);
+            use std::io::Write;
+            let _ = std::io::stdout().flush();
+            std::process::exit(3);
+        }
+        Ok(())
+    }
+}
+
 impl QualifyArgs {
     pub fn run(self) -> Result<()> {
         let Self { station, master, certificate, valid_until, out } = self;
@@ -65,10 +195,7 @@ impl QualifyArgs {
         }
         use crestscan::domain::text;
         text::check(&station, text::STATION_NAME_CHARS).map_err(|e| anyhow::anyhow!("--station {e}"))?;
-        let options = PipelineOptions {
-            profile: crestscan::pipeline::profile::ProfileOptions { correction: Correction::Off, ..Default::default() },
-            ..Default::default()
-        };
+        let options = classical();
         let mut hash = sha2::Sha256::new();
         let mut certificates = Vec::new();
         for path in &certificate {

@@ -11,6 +11,10 @@ use crestscan::domain::thread::ConnectionTable;
 pub enum StationCommand {
     /// Plan a station for a connection from its camera and lens.
     Plan(PlanArgs),
+    /// Chart a master's check runs against a qualification's control limits (Western Electric
+    /// rules): each run's height bias and crest-cone radius in σ; exits 3 when one breaks a rule
+    /// (the station has drifted: suspend it until requalified).
+    Check(super::qualify::CheckArgs),
 }
 
 #[derive(clap::Args)]
@@ -48,6 +52,7 @@ impl StationCommand {
     pub fn run(self) -> Result<()> {
         match self {
             StationCommand::Plan(args) => args.run(),
+            StationCommand::Check(args) => args.run(),
         }
     }
 }

@@ -2,6 +2,7 @@
 //! bundle arrives or how the pipeline measures.
 
 pub mod arcs;
+pub mod control;
 pub mod frame;
 pub mod optics;
 pub mod part;

@@ -260,6 +260,10 @@ pub struct Qualification {
     /// only the scatter beyond it.
     #[serde(default)]
     pub noise_median_um: Option<f64>,
+    /// The control charts' limits, per master and statistic, that check runs are judged against
+    /// (empty in studies made before checks were charted).
+    #[serde(default)]
+    pub control: Vec<crate::domain::control::ControlLimits>,
     /// The last moment the qualification holds (RFC 3339); null: until requalified.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub valid_until: Option<String>,

@@ -4,6 +4,7 @@
 //! figures (type-1 Cg/Cgk per thread, %GRR and ndc by ANOVA). Pure: reports and certificates in,
 //! a [`Qualification`] out.
 
+use crate::domain::control::{ChartPoint, CheckStatistic, ControlLimits};
 use crate::domain::qualification::{
     CandidateScore, Correction, CorrectionModel, Fingerprint, GaugeStudy, MasterSummary, ModelSelection, Qualification,
     StationUncertainty, ThreadBias, ThreadGauge,
@@ -97,17 +98,29 @@ pub enum StudyError {
     UnknownThreads { serial: String, unknown: String, known: String },
     #[error("master {serial}: no certified height falls on a measured one")]
     NoOverlap { serial: String },
+    #[error(
+        "master {serial}: study {study} set no control limits for it (not one of its masters, or made before checks were charted): requalify with it"
+    )]
+    NoLimits { serial: String, study: String },
+    #[error("run {run}: it does not measure the {statistic} its chart needs")]
+    Unmeasured { run: String, statistic: String },
 }
 
 impl StudyError {
     /// The field or input the error is about, for a problem's culprit.
     pub fn culprit(&self) -> String {
         match self {
-            Self::TooFewRuns { serial, .. } | Self::UnknownThreads { serial, .. } | Self::NoOverlap { serial } => {
+            Self::TooFewRuns { serial, .. }
+            | Self::UnknownThreads { serial, .. }
+            | Self::NoOverlap { serial }
+            | Self::NoLimits { serial, .. } => {
                 format!("masters.{serial}")
             }
             Self::NoMasters => "masters".into(),
-            Self::OtherStation { run, .. } | Self::LearnedHeights { run } | Self::OtherPart { run, .. } => {
+            Self::OtherStation { run, .. }
+            | Self::LearnedHeights { run }
+            | Self::OtherPart { run, .. }
+            | Self::Unmeasured { run, .. } => {
                 format!("runs.{run}")
             }
         }
@@ -155,38 +168,11 @@ pub fn study(
         let certified = certified_heights(master.certificate);
         let mut measured_threads = std::collections::BTreeSet::new();
         for (r, (run, report)) in master.runs.iter().enumerate() {
-            let station = report.station.as_ref().ok_or_else(|| StudyError::OtherStation {
-                run: run.clone(),
-                detail: "the report states no station".into(),
-            })?;
-            let mismatches = fingerprint.mismatches(station);
-            if !mismatches.is_empty() {
-                return Err(StudyError::OtherStation { run: run.clone(), detail: mismatches.join("; ") });
-            }
-            if report
-                .provenance
-                .iter()
-                .flat_map(|p| &p.models)
-                .any(|m| m.role == crate::learned::ModelRole::ProfileCorrection)
-            {
-                return Err(StudyError::LearnedHeights { run: run.clone() });
-            }
-            if report.connection != connection {
-                let name = |c: &Option<String>| c.clone().unwrap_or_else(|| "a custom form".into());
-                return Err(StudyError::OtherPart {
-                    run: run.clone(),
-                    serial: master.serial.clone(),
-                    found: name(&report.connection),
-                    expected: name(&connection),
-                });
-            }
+            admit(&fingerprint, &master.serial, connection.as_deref(), run, report)?;
             tolerance_mm = tolerance_mm.max(report.height_tolerance_mm);
-            for t in &report.threads {
-                measured_threads.insert(t.index);
-                for (bin, (angle, value)) in t.height_mm.angles_deg.iter().zip(&t.height_mm.values).enumerate() {
-                    let (Some(h), Some(c)) = (value, certified.get(&(t.index, bin_of(*angle)))) else { continue };
-                    samples.push(Sample { master: m, run: r, thread: t.index, bin, error_mm: h - c });
-                }
+            measured_threads.extend(report.threads.iter().map(|t| t.index));
+            for (thread, bin, error_mm) in errors_against(report, &certified) {
+                samples.push(Sample { master: m, run: r, thread, bin, error_mm });
             }
         }
         let unknown: Vec<String> =
@@ -304,7 +290,9 @@ pub fn study(
         coverage_factor,
         expanded_um: 1e3 * coverage_factor * combined_mm,
     };
-    let gauge = gauge_study(masters, &samples, chosen, 2.0 * tolerance_mm);
+    let without = refits_without_each_run(chosen, &samples);
+    let gauge = gauge_study(masters, &samples, &without, 2.0 * tolerance_mm);
+    let control = control_limits(&fingerprint, masters, &samples, &without);
     Ok(Qualification {
         station: station.to_string(),
         study: study_id.to_string(),
@@ -329,6 +317,7 @@ pub fn study(
                 .flat_map(|m| m.runs.iter().filter_map(|(_, r)| r.uncertainty.as_ref()?.noise_median_um))
                 .collect::<Vec<_>>(),
         ),
+        control,
         valid_until,
     })
 }
@@ -340,6 +329,151 @@ fn certified_heights(certificate: &Certificate) -> BTreeMap<(u32, i64), f64> {
 }
 
 /// The 1° bin an angle falls in.
+/// Whether `report` may be a run of master `serial` at the station `fingerprint` binds: recorded
+/// there, its heights classical, of the master's form.
+fn admit(
+    fingerprint: &Fingerprint,
+    serial: &str,
+    connection: Option<&str>,
+    run: &str,
+    report: &Report,
+) -> Result<(), StudyError> {
+    let station = report
+        .station
+        .as_ref()
+        .ok_or_else(|| StudyError::OtherStation { run: run.into(), detail: "the report states no station".into() })?;
+    let mismatches = fingerprint.mismatches(station);
+    if !mismatches.is_empty() {
+        return Err(StudyError::OtherStation { run: run.into(), detail: mismatches.join("; ") });
+    }
+    if report.provenance.iter().flat_map(|p| &p.models).any(|m| m.role == crate::learned::ModelRole::ProfileCorrection)
+    {
+        return Err(StudyError::LearnedHeights { run: run.into() });
+    }
+    if report.connection.as_deref() != connection {
+        let name = |c: Option<&str>| c.map_or_else(|| "a custom form".into(), str::to_string);
+        return Err(StudyError::OtherPart {
+            run: run.into(),
+            serial: serial.into(),
+            found: name(report.connection.as_deref()),
+            expected: name(connection),
+        });
+    }
+    Ok(())
+}
+
+/// A report's heights against a certificate, as (thread, bin, error in mm), each height as the
+/// station measured it: before any station correction the inspection applied, so that a study or
+/// a check reads the station's own error whichever qualification was in force when the run was
+/// inspected (the per-thread correction is one value per thread, which the report states).
+fn errors_against(report: &Report, certified: &BTreeMap<(u32, i64), f64>) -> Vec<(u32, usize, f64)> {
+    let applied = report.qualification.as_ref().filter(|q| q.applied);
+    let mut out = Vec::new();
+    for t in &report.threads {
+        let undo_mm = applied
+            .and_then(|q| q.threads.iter().find(|u| u.thread == t.index))
+            .map_or(0.0, |u| 1e-3 * u.correction_um);
+        for (bin, (angle, value)) in t.height_mm.angles_deg.iter().zip(&t.height_mm.values).enumerate() {
+            let (Some(h), Some(c)) = (value, certified.get(&(t.index, bin_of(*angle)))) else { continue };
+            out.push((t.index, bin, h + undo_mm - c));
+        }
+    }
+    out
+}
+
+/// A check run of master `serial` charted against the study `q`: each statistic's value and its
+/// distance from the centre line in σ.
+pub fn check(
+    q: &Qualification,
+    serial: &str,
+    certificate: &Certificate,
+    run: &str,
+    report: &Report,
+) -> Result<Vec<ChartPoint>, StudyError> {
+    let limits: Vec<&ControlLimits> = q.control.iter().filter(|l| l.master == serial).collect();
+    let master = q.masters.iter().find(|m| m.serial == serial);
+    let (Some(master), false) = (master, limits.is_empty()) else {
+        return Err(StudyError::NoLimits { serial: serial.into(), study: q.study.clone() });
+    };
+    admit(&q.fingerprint, serial, master.connection.as_deref(), run, report)?;
+    let errors = errors_against(report, &certified_heights(certificate));
+    let corrected: Vec<f64> =
+        errors.iter().filter_map(|&(thread, _, e)| Some(1e3 * (e - q.correction.at_mm(thread)?))).collect();
+    let mut points = Vec::new();
+    for l in limits {
+        let value_um = match l.statistic {
+            CheckStatistic::HeightBias if !corrected.is_empty() => {
+                Some(corrected.iter().sum::<f64>() / corrected.len() as f64)
+            }
+            CheckStatistic::HeightBias => None,
+            CheckStatistic::CrestConeRadius => report.crest_cone.as_ref().map(|c| 1e3 * c.radius_at_end_mm),
+        };
+        let Some(value_um) = value_um else {
+            return Err(StudyError::Unmeasured { run: run.into(), statistic: l.statistic.describe().into() });
+        };
+        points.push(ChartPoint { statistic: l.statistic, value_um, z: l.z(value_um) });
+    }
+    Ok(points)
+}
+
+/// Each master's control limits: its runs' height bias (read with the correction fitted without
+/// the run, as a later check run meets the correction) and, where every run found it, the crest
+/// cone's radius.
+fn control_limits(
+    fingerprint: &Fingerprint,
+    masters: &[MasterRuns],
+    samples: &[Sample],
+    without: &BTreeMap<(usize, usize), Correction>,
+) -> Vec<ControlLimits> {
+    let mut out = Vec::new();
+    for (m, master) in masters.iter().enumerate() {
+        let mut bias_um = Vec::new();
+        for r in 0..master.runs.len() {
+            let errors: Vec<f64> = samples
+                .iter()
+                .filter(|s| s.master == m && s.run == r)
+                .filter_map(|s| Some(s.error_mm - without.get(&(m, r))?.at_mm(s.thread)?))
+                .collect();
+            if !errors.is_empty() {
+                bias_um.push(1e3 * errors.iter().sum::<f64>() / errors.len() as f64);
+            }
+        }
+        out.extend(ControlLimits::of(&master.serial, CheckStatistic::HeightBias, &bias_um));
+        let radii_um: Option<Vec<f64>> =
+            master.runs.iter().map(|(_, r)| r.crest_cone.as_ref().map(|c| 1e3 * c.radius_at_end_mm)).collect();
+        if let Some(mut limits) =
+            radii_um.and_then(|r| ControlLimits::of(&master.serial, CheckStatistic::CrestConeRadius, &r))
+        {
+            // A refocus moves the surface the station sees by as much: to be worth judging, the
+            // radius must show a refocus of one frame step at 3σ.
+            let step_um = 1e3 * fingerprint.frame_step_mm;
+            if 3.0 * limits.sigma_um > step_um {
+                limits.charted = false;
+                limits.not_charted_because = Some(format!(
+                    "its runs scatter by {:.0} µm (σ): a refocus of one frame step ({step_um:.0} µm) would not stand out at 3σ",
+                    limits.sigma_um
+                ));
+            }
+            out.push(limits);
+        }
+    }
+    out
+}
+
+/// The correction fitted without each run, by (master, run): fitted once per run (every thread
+/// of it reads the same).
+fn refits_without_each_run(model: CorrectionModel, samples: &[Sample]) -> BTreeMap<(usize, usize), Correction> {
+    let mut without = BTreeMap::new();
+    for s in samples {
+        without.entry((s.master, s.run)).or_insert_with(|| {
+            let train: Vec<Sample> =
+                samples.iter().copied().filter(|x| !(x.master == s.master && x.run == s.run)).collect();
+            fit(model, &train)
+        });
+    }
+    without
+}
+
 fn bin_of(angle_deg: f64) -> i64 {
     angle_deg.rem_euclid(360.0).floor() as i64
 }
@@ -388,19 +522,15 @@ fn fit(model: CorrectionModel, samples: &[Sample]) -> Correction {
 /// Type-1 per thread of each master (the thread's mean height per run against its certified
 /// mean), and the gauge R&R by one-way ANOVA with the masters' threads as parts and the runs as
 /// repeats.
-fn gauge_study(masters: &[MasterRuns], samples: &[Sample], model: CorrectionModel, tolerance_mm: f64) -> GaugeStudy {
+fn gauge_study(
+    masters: &[MasterRuns],
+    samples: &[Sample],
+    without: &BTreeMap<(usize, usize), Correction>,
+    tolerance_mm: f64,
+) -> GaugeStudy {
     let mut per: BTreeMap<(usize, u32), BTreeMap<usize, Vec<f64>>> = BTreeMap::new();
     for s in samples {
         per.entry((s.master, s.thread)).or_default().entry(s.run).or_default().push(s.error_mm);
-    }
-    // The correction without each run, fitted once per run (every thread of it reads the same).
-    let mut without: BTreeMap<(usize, usize), Correction> = BTreeMap::new();
-    for s in samples {
-        without.entry((s.master, s.run)).or_insert_with(|| {
-            let train: Vec<Sample> =
-                samples.iter().copied().filter(|x| !(x.master == s.master && x.run == s.run)).collect();
-            fit(model, &train)
-        });
     }
     let mut threads = Vec::new();
     // The ANOVA's parts: (master, thread) with their runs' mean errors (the certified height is

@@ -7,7 +7,8 @@ use base64::engine::general_purpose::STANDARD as BASE64;
 use hmac::{Hmac, Mac};
 use serde::{Deserialize, Serialize};
 
-/// The events an endpoint can ask for: an inspection's terminal states.
+/// The events an endpoint can ask for: an inspection's terminal states, and a station suspended
+/// by its drift control.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
 pub enum EventType {
     #[serde(rename = "inspection.succeeded")]
@@ -16,16 +17,20 @@ pub enum EventType {
     Failed,
     #[serde(rename = "inspection.canceled")]
     Canceled,
+    #[serde(rename = "station.suspended")]
+    StationSuspended,
 }
 
 impl EventType {
-    pub const ALL: [EventType; 3] = [EventType::Succeeded, EventType::Failed, EventType::Canceled];
+    pub const ALL: [EventType; 4] =
+        [EventType::Succeeded, EventType::Failed, EventType::Canceled, EventType::StationSuspended];
 
     pub fn as_str(self) -> &'static str {
         match self {
             EventType::Succeeded => "inspection.succeeded",
             EventType::Failed => "inspection.failed",
             EventType::Canceled => "inspection.canceled",
+            EventType::StationSuspended => "station.suspended",
         }
     }
 
@@ -44,7 +49,8 @@ impl EventType {
     }
 }
 
-/// An endpoint told of inspections' terminal states (a `[[webhooks]]` table of the config file).
+/// An endpoint told of inspections' terminal states and stations' suspensions (a `[[webhooks]]`
+/// table of the config file).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct EndpointSettings {
@@ -55,7 +61,7 @@ pub struct EndpointSettings {
     /// Signing secrets (`whsec_` and base64 of 24–64 random bytes; `crestscan webhook-secret`
     /// makes one). Each signs every delivery: add the new one, move the receiver, drop the old.
     pub secrets: Vec<String>,
-    /// The events it wants [default: all three].
+    /// The events it wants [default: all four].
     #[serde(default = "all_events")]
     pub events: Vec<EventType>,
 }

@@ -81,6 +81,35 @@ fn deliveries_for(settings: &Settings, row: InspectionRow) -> Vec<NewDelivery> {
         .collect()
 }
 
+/// The `station.suspended` deliveries under `settings`: to every endpoint that wants the event
+/// (a submission's `callback_url` is about its own inspection, and is not told). `data` is what
+/// the event says of the station and the check that suspended it.
+pub fn station_deliveries(settings: &Settings, data: &impl Serialize) -> Vec<NewDelivery> {
+    #[derive(Serialize)]
+    struct StationEvent<'a, T: Serialize> {
+        #[serde(rename = "type")]
+        type_: &'a str,
+        timestamp: String,
+        data: &'a T,
+    }
+    let event = EventType::StationSuspended;
+    let body = StationEvent { type_: event.as_str(), timestamp: crate::service::wire::rfc3339(now_ms()), data };
+    let payload_json =
+        String::from_utf8(crate::export::json::to_vec(&body).expect("an event serialises")).expect("JSON is UTF-8");
+    settings
+        .webhooks
+        .iter()
+        .filter(|e| e.events.contains(&event))
+        .map(|e| NewDelivery {
+            id: format!("msg_{}", uuid::Uuid::now_v7().simple()),
+            endpoint: e.name.clone(),
+            url: e.url.clone(),
+            event_type: event.as_str().into(),
+            payload_json: payload_json.clone(),
+        })
+        .collect()
+}
+
 /// Where a delivery goes now and what signs it, under the current settings (an endpoint may have
 /// moved or rotated its secrets since the delivery was written); the reason when it may not go.
 fn destination(settings: &Settings, delivery: &DeliveryRow) -> Result<(String, Vec<Secret>), String> {

@@ -15,6 +15,19 @@ pub fn rfc3339(ms: i64) -> String {
         .unwrap_or_default()
 }
 
+/// Why station `name`'s qualification `q` no longer holds at `now_ms` (its `valid_until` has
+/// passed); None while it holds. The worker refuses it then, and the station reads `suspended`.
+pub fn qualification_expired(
+    name: &str,
+    q: &crate::domain::qualification::Qualification,
+    now_ms: i64,
+) -> Option<String> {
+    let until = q.valid_until.as_deref()?;
+    parse_rfc3339(until)
+        .is_ok_and(|t| t < now_ms)
+        .then(|| format!("Station {name}'s qualification {} expired at {until}: requalify it", q.study))
+}
+
 pub fn parse_rfc3339(s: &str) -> Result<i64, String> {
     time::OffsetDateTime::parse(s, &time::format_description::well_known::Rfc3339)
         .map(|t| (t.unix_timestamp_nanos() / 1_000_000) as i64)

@@ -289,10 +289,10 @@ async fn at_station(
             let row = ctx.store.study(&name, study).await?;
             let q: crate::domain::qualification::Qualification = serde_json::from_str(&row.qualification_json)
                 .map_err(|e| crate::service::store::StoreError::Io(std::io::Error::other(e)))?;
-            if let Some(until) = &q.valid_until
-                && crate::service::wire::parse_rfc3339(until).is_ok_and(|t| t < crate::service::store::now_ms())
+            if let Some(reason) =
+                crate::service::wire::qualification_expired(&name, &q, crate::service::store::now_ms())
             {
-                return refused(format!("Station {name}'s qualification {study} expired at {until}"));
+                return refused(reason);
             }
             Ok(Some(AtStation::Qualified(q)))
         }

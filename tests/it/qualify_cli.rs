@@ -1,6 +1,7 @@
-//! The station tools without the service: `crestscan station plan` for a camera and lens, and
+//! The station tools without the service: `crestscan station plan` for a camera and lens,
 //! `crestscan qualify` over a master's repositioned runs, whose result `inspect --qualification`
-//! applies where the bundle matches and refuses, naming the mismatch, where it does not.
+//! applies where the bundle matches and refuses, naming the mismatch, where it does not, and
+//! `crestscan station check`, which charts later runs of the master and finds a refocus.
 
 use serde_json::Value;
 use std::path::Path;
@@ -136,4 +137,53 @@ fn qualify_writes_what_inspect_applies_at_that_station_only() {
     let refused = report["qualification"]["refused"].as_str().unwrap();
     assert!(refused.contains("covered LC 4-1/2 only") && refused.contains("BC 4-1/2"), "{refused}");
     assert_eq!(report["decision"], "indeterminate");
+
+    // Drift control: the height bias is judged (rule 1 alone from 10 runs); the crest-cone radius,
+    // which three views on one side place within a millimetre only, is shown but not judged.
+    let limits = q["control"].as_array().unwrap();
+    let bias = limits.iter().find(|l| l["statistic"] == "height_bias").unwrap();
+    assert_eq!((bias["charted"].as_bool(), bias["rules"].clone()), (Some(true), serde_json::json!([1])), "{bias}");
+    let radius = limits.iter().find(|l| l["statistic"] == "crest_cone_radius").unwrap();
+    assert_eq!(radius["charted"], false, "{radius}");
+    let render = |name: &str, placement: &str, drift: &str| {
+        let run = dir.path().join(name);
+        let out = crestscan(&[
+            "simulate",
+            "--preset",
+            "ci-reject",
+            "--seed",
+            "7",
+            "--placement-seed",
+            placement,
+            "--focus-drift-mm",
+            drift,
+            "--out",
+            &path(&run),
+            "--quiet",
+        ]);
+        assert!(out.status.success(), "{}", text(&out));
+        path(&run)
+    };
+    let (clean, drifted) = (render("check-111", "111", "0"), render("check-121", "121", "0.2"));
+    let chart = path(&dir.path().join("chart.json"));
+    let (qualification_path, certificate_path) = (path(&qualification), path(&certificate));
+    let check = |extra: &[&str]| {
+        let mut args =
+            vec!["station", "check", "--qualification", &qualification_path, "--certificate", &certificate_path];
+        args.extend_from_slice(extra);
+        crestscan(&args)
+    };
+    let out = check(&["--chart", &chart, &clean]);
+    assert!(out.status.success(), "{}", text(&out));
+    assert!(text(&out).contains("check 1 ") && text(&out).contains("in control"), "{}", text(&out));
+    let out = check(&["--history", &chart, &drifted]);
+    assert_eq!(out.status.code(), Some(3), "{}", text(&out));
+    assert!(text(&out).contains("check 2 ") && text(&out).contains("BROKE Western Electric rule 1"), "{}", text(&out));
+    // Another study's chart is not continued.
+    let mut other: Value = serde_json::from_slice(&std::fs::read(&chart).unwrap()).unwrap();
+    other["study"] = "study-000000000000".into();
+    std::fs::write(&chart, serde_json::to_vec(&other).unwrap()).unwrap();
+    let out = check(&["--history", &chart, &clean]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(text(&out).contains("a new study starts a new chart"), "{}", text(&out));
 }

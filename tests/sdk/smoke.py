@@ -28,7 +28,16 @@ from crestscan_client.api.inspections import (
 )
 from crestscan_client.api.operations import get_capabilities, get_manifest_schema, healthz, metrics, readyz
 from crestscan_client.api.results import get_image, get_mesh, get_report, get_threads
-from crestscan_client.api.stations import create_station, create_study, get_station, get_study, list_stations, put_master
+from crestscan_client.api.stations import (
+    create_check,
+    create_station,
+    create_study,
+    get_station,
+    get_study,
+    list_checks,
+    list_stations,
+    put_master,
+)
 from crestscan_client.models import (
     ApiKey,
     ApiKeys,
@@ -44,6 +53,8 @@ from crestscan_client.models import (
     InspectionPage,
     Master,
     NewApiKey,
+    ControlChart,
+    NewCheck,
     NewStation,
     NewStudy,
     Problem,
@@ -197,6 +208,11 @@ def main(base: str, bundle: str) -> None:
     assert refused.code == "study_refused" and refused.culprit == "inspections[0]", refused
     absent = expect(call(get_study, "sdk-line", "nope", client=client), 404, Problem)
     assert absent.code == "not_found", absent
+    # Drift control before any study: an empty chart, and a check refused, naming the station.
+    chart = expect(call(list_checks, "sdk-line", client=client), 200, ControlChart)
+    assert chart.study is None and chart.items == [] and chart.limits == [], chart
+    unjudged = expect(call(create_check, "sdk-line", client=client, body=NewCheck(inspection=created.id)), 422, Problem)
+    assert unjudged.code == "check_refused" and unjudged.culprit == "station", unjudged
 
     missed = every_operation() - called
     assert not missed, f"operations the SDK smoke does not call: {sorted(missed)}"

@@ -3,6 +3,7 @@
 //! correction, repeatability, Cg/Cgk, %GRR, ndc), for the quality engineer who releases it.
 
 use super::{STYLE, escape};
+use crate::domain::control::{ChartPoint, ControlLimits, Violation};
 use crate::domain::qualification::Qualification;
 use std::fmt::Write;
 
@@ -15,6 +16,17 @@ pub struct StationPage<'a> {
     /// (serial, instrument, calibrated at, certificate U in µm).
     pub masters: Vec<(String, String, String, f64)>,
     pub qualification: Option<&'a Qualification>,
+    /// The check runs charted under the study in force, oldest first.
+    pub checks: Vec<CheckLine<'a>>,
+}
+
+/// One check run on the page's control chart.
+pub struct CheckLine<'a> {
+    pub seq: i64,
+    pub master: &'a str,
+    pub inspection: &'a str,
+    pub points: &'a [ChartPoint],
+    pub violation: Option<&'a Violation>,
 }
 
 fn opt(v: Option<f64>, decimals: usize) -> String {
@@ -66,6 +78,137 @@ fn bias_plot(q: &Qualification) -> String {
         );
     }
     s.push_str("</svg>\n");
+    s
+}
+
+/// One chart (a master's statistic): its checks' z against the centre line and the 1σ, 2σ and 3σ
+/// lines; a check that broke a rule drawn red. z beyond ±4.5 is drawn at the edge.
+fn control_plot(limits: &ControlLimits, checks: &[CheckLine]) -> String {
+    let (w, h, left, right, top) = (640.0, 180.0, 48.0, 12.0, 10.0);
+    let zmax = 4.5;
+    let y = |z: f64| top + (h - 2.0 * top) / 2.0 * (1.0 - z.clamp(-zmax, zmax) / zmax);
+    let mine: Vec<(&CheckLine, &ChartPoint)> = checks
+        .iter()
+        .filter(|c| c.master == limits.master)
+        .filter_map(|c| Some((c, c.points.iter().find(|p| p.statistic == limits.statistic)?)))
+        .collect();
+    let slot = (w - left - right) / (mine.len().max(10) as f64);
+    let x = |i: usize| left + slot * (i as f64 + 0.5);
+    let mut s = format!(
+        r##"<svg class="plot control-plot" data-master="{}" data-statistic="{}" viewBox="0 0 {w} {h}" width="{w}" height="{h}" role="img" aria-label="control chart of master {}'s {}">"##,
+        escape(&limits.master),
+        limits.statistic.describe(),
+        escape(&limits.master),
+        limits.statistic.describe()
+    );
+    for (z, colour, dash) in [
+        (0.0, "#555", ""),
+        (1.0, "#bbb", " stroke-dasharray=\"2 3\""),
+        (-1.0, "#bbb", " stroke-dasharray=\"2 3\""),
+        (2.0, "#999", " stroke-dasharray=\"5 3\""),
+        (-2.0, "#999", " stroke-dasharray=\"5 3\""),
+        (3.0, "#b2182b", ""),
+        (-3.0, "#b2182b", ""),
+    ] {
+        let _ = write!(
+            s,
+            r##"<line x1="{left}" x2="{x2:.1}" y1="{yz:.1}" y2="{yz:.1}" stroke="{colour}"{dash}/><text x="{tx:.1}" y="{ty:.1}" text-anchor="end" class="tick">{z:+.0}σ</text>"##,
+            x2 = w - right,
+            yz = y(z),
+            tx = left - 4.0,
+            ty = y(z) + 3.5
+        );
+    }
+    let path: Vec<String> = mine.iter().enumerate().map(|(i, (_, p))| format!("{:.1},{:.1}", x(i), y(p.z))).collect();
+    if path.len() >= 2 {
+        let _ = write!(s, r##"<polyline fill="none" stroke="#08519c" points="{}"/>"##, path.join(" "));
+    }
+    for (i, (c, p)) in mine.iter().enumerate() {
+        let broke = c.violation.is_some_and(|v| v.statistic == limits.statistic);
+        let _ = write!(
+            s,
+            r##"<circle class="check{}" cx="{:.1}" cy="{:.1}" r="4" fill="{}"><title>check {}: {:.1} µm, {:+.2}σ{}</title></circle>"##,
+            if broke { " violation" } else { "" },
+            x(i),
+            y(p.z),
+            if broke { "#b2182b" } else { "#08519c" },
+            c.seq,
+            p.value_um,
+            p.z,
+            if broke { " (broke a rule)" } else { "" }
+        );
+    }
+    s.push_str("</svg>\n");
+    s
+}
+
+/// Which rules a chart is judged by, or why it is not.
+fn judged_by(l: &ControlLimits) -> String {
+    if !l.charted {
+        return format!("shown only: {}", escape(l.not_charted_because.as_deref().unwrap_or("not charted")));
+    }
+    match l.rules.as_slice() {
+        [1] => format!(
+            "Western Electric rule 1 (limits from {} runs; rules 2–4 from {})",
+            l.runs,
+            crate::domain::control::SENSITIZING_MIN_RUNS
+        ),
+        rules => format!("Western Electric rules {}", rules.iter().map(u8::to_string).collect::<Vec<_>>().join(", ")),
+    }
+}
+
+/// The control charts and the checks' table.
+fn control_section(q: &Qualification, checks: &[CheckLine], station: &str) -> String {
+    let mut s = String::from("<section id=\"control-chart\"><h2>Drift control</h2>\n");
+    if q.control.is_empty() {
+        s.push_str("<p>This study set no control limits (it was made before checks were charted): requalify to chart checks.</p></section>\n");
+        return s;
+    }
+    s.push_str("<table id=\"control-limits\"><thead><tr><th>master</th><th>statistic</th><th>centre line</th><th>σ</th><th>runs</th><th>judged by</th></tr></thead><tbody>");
+    for l in &q.control {
+        let _ = write!(
+            s,
+            "<tr><td>{}</td><td>{}</td><td>{:.1} µm</td><td>{:.2} µm</td><td>{}</td><td>{}</td></tr>",
+            escape(&l.master),
+            l.statistic.describe(),
+            l.center_um,
+            l.sigma_um,
+            l.runs,
+            judged_by(l)
+        );
+    }
+    s.push_str("</tbody></table>\n");
+    if checks.is_empty() {
+        let _ = writeln!(
+            s,
+            "<p id=\"no-checks\">No check runs yet: <code>POST /v1/stations/{}/checks</code> charts an inspection of a master.</p></section>",
+            escape(station)
+        );
+        return s;
+    }
+    for l in &q.control {
+        let _ = write!(s, "<h3>{} · {}</h3>\n", escape(&l.master), l.statistic.describe());
+        s.push_str(&control_plot(l, checks));
+    }
+    s.push_str("<table id=\"checks\"><thead><tr><th>check</th><th>master</th><th>inspection</th><th>readings</th><th>rule broken</th></tr></thead><tbody>");
+    for c in checks {
+        let readings: Vec<String> = c
+            .points
+            .iter()
+            .map(|p| format!("{} {:.1} µm ({:+.2}σ)", p.statistic.describe(), p.value_um, p.z))
+            .collect();
+        let _ = write!(
+            s,
+            "<tr{class}><td>{seq}</td><td>{master}</td><td><a href=\"/v1/inspections/{id}/report?format=html\">{id}</a></td><td>{readings}</td><td>{rule}</td></tr>",
+            class = if c.violation.is_some() { " class=\"violation\"" } else { "" },
+            seq = c.seq,
+            master = escape(c.master),
+            id = escape(c.inspection),
+            readings = escape(&readings.join("; ")),
+            rule = c.violation.map_or("–".into(), |v| escape(&v.description))
+        );
+    }
+    s.push_str("</tbody></table></section>\n");
     s
 }
 
@@ -158,6 +301,8 @@ pub fn station_page(p: &StationPage) -> String {
             opt(t.cgk, 2)
         );
     }
-    page.push_str("</tbody></table></section>\n</main>\n</body>\n</html>\n");
+    page.push_str("</tbody></table></section>\n");
+    page.push_str(&control_section(q, &p.checks, p.name));
+    page.push_str("</main>\n</body>\n</html>\n");
     page
 }

@@ -4,6 +4,7 @@
 
 pub mod browser;
 pub mod capabilities;
+pub mod checks;
 pub mod cmm;
 pub mod common;
 pub mod connections;
@@ -134,6 +135,7 @@ fn api_routes() -> OpenApiRouter<AppState> {
         .merge(webhooks::router())
         .merge(schemas::router())
         .merge(stations::router())
+        .merge(checks::router())
 }
 
 /// The OpenAPI document (what `/openapi.json` serves and `crestscan openapi` prints).

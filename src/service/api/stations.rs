@@ -51,7 +51,8 @@ pub struct StationRecord {
     pub name: String,
     pub description: Option<String>,
     /// `unqualified` (inspections are decided as at any station), `qualified` (its study's
-    /// correction and uncertainty are applied), `suspended` (no decision until requalified).
+    /// correction and uncertainty are applied), `suspended` (a check broke its control chart, or
+    /// the qualification expired: no decision until requalified).
     #[schema(pattern = "^(unqualified|qualified|suspended)$")]
     pub status: String,
     /// Why it is suspended.
@@ -113,7 +114,7 @@ pub struct Study {
     pub qualification: Qualification,
 }
 
-fn station_not_found(e: StoreError, name: &str) -> ApiError {
+pub(super) fn station_not_found(e: StoreError, name: &str) -> ApiError {
     match e {
         StoreError::NotFound => {
             ApiError::new(Code::StationNotFound, format!("no station {name:?} (POST /v1/stations creates one)"))
@@ -135,8 +136,21 @@ async fn masters_and_study(
     Ok((masters, qualification))
 }
 
+/// The station's status and reason as they stand now: a qualification past its `valid_until`
+/// reads `suspended` (the worker refuses it) though nothing was written.
+fn status_now(row: &StationRow, qualification: Option<&Qualification>) -> (String, Option<String>) {
+    if row.status == "qualified"
+        && let Some(reason) =
+            qualification.and_then(|q| crate::service::wire::qualification_expired(&row.name, q, now_ms()))
+    {
+        return ("suspended".into(), Some(reason));
+    }
+    (row.status.clone(), row.status_reason.clone())
+}
+
 async fn station_out(state: &AppState, row: StationRow) -> Result<StationRecord, ApiError> {
     let (masters, qualification) = masters_and_study(state, &row).await?;
+    let (status, status_reason) = status_now(&row, qualification.as_ref());
     Ok(StationRecord {
         masters: masters
             .into_iter()
@@ -154,15 +168,15 @@ async fn station_out(state: &AppState, row: StationRow) -> Result<StationRecord,
         qualified_until: qualification.and_then(|q| q.valid_until),
         name: row.name,
         description: row.description,
-        status: row.status,
-        status_reason: row.status_reason,
+        status,
+        status_reason,
         study: row.study_id,
         created_at: rfc3339(row.created_at),
         updated_at: rfc3339(row.updated_at),
     })
 }
 
-fn study_qualification(row: &StudyRow) -> Result<Qualification, ApiError> {
+pub(super) fn study_qualification(row: &StudyRow) -> Result<Qualification, ApiError> {
     serde_json::from_str(&row.qualification_json).map_err(ApiError::internal)
 }
 
@@ -224,7 +238,8 @@ pub async fn list_stations(State(state): State<AppState>) -> Result<super::commo
     params(("name" = String, Path, description = "Station name"), StationFormatQuery),
     responses(
         (status = 200, description = "The station; with `?format=html` or `Accept: text/html`, its page \
-            (fingerprint, uncertainty, the bias per thread before and after the correction, the gauge figures)",
+            (fingerprint, uncertainty, the bias per thread before and after the correction, the gauge figures, \
+            the control charts of its check runs)",
             content((StationRecord = "application/json"), (String = "text/html"))),
         (status = 404, description = "No such station", body = Problem, content_type = "application/problem+json"),
         (status = 406, description = "Neither JSON nor HTML acceptable (`format` or `Accept`)", body = Problem, content_type = "application/problem+json"),
@@ -243,16 +258,28 @@ pub async fn get_station(
         return Ok(super::common::Rounded(station_out(&state, row).await?).into_response());
     }
     let (masters, qualification) = masters_and_study(&state, &row).await?;
+    let (_, checks) = super::checks::chart(&state, &row).await?;
+    let (status, status_reason) = status_now(&row, qualification.as_ref());
     let page = crate::export::html::station::station_page(&crate::export::html::station::StationPage {
         name: &row.name,
         description: row.description.as_deref(),
-        status: &row.status,
-        status_reason: row.status_reason.as_deref(),
+        status: &status,
+        status_reason: status_reason.as_deref(),
         masters: masters
             .iter()
             .map(|m| (m.serial.clone(), m.instrument.clone(), m.calibrated_at.clone(), 1e3 * m.uncertainty_mm))
             .collect(),
         qualification: qualification.as_ref(),
+        checks: checks
+            .iter()
+            .map(|c| crate::export::html::station::CheckLine {
+                seq: c.seq,
+                master: &c.master,
+                inspection: &c.inspection,
+                points: &c.points,
+                violation: c.violation.as_ref(),
+            })
+            .collect(),
     });
     Ok((
         [
@@ -387,8 +414,12 @@ pub async fn create_study(
         .with_culprit("inspections"));
     }
     if let Some(until) = &new.valid_until {
-        crate::service::wire::parse_rfc3339(until)
+        let t = crate::service::wire::parse_rfc3339(until)
             .map_err(|e| ApiError::new(Code::StudyRefused, format!("valid_until: {e}")).with_culprit("valid_until"))?;
+        if t <= now_ms() {
+            return Err(ApiError::new(Code::StudyRefused, format!("valid_until: {until} has passed"))
+                .with_culprit("valid_until"));
+        }
     }
     let refuse = |i: usize, message: String| {
         ApiError::new(Code::StudyRefused, message).with_culprit(format!("inspections[{i}]"))

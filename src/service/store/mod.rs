@@ -16,7 +16,7 @@ pub use inspections::{Inserted, InspectionRow, ListFilter, NewInspection, Upload
 pub use keys::{AuditEntry, AuditRow, KeyRow};
 pub use queue::{Claimed, Heartbeat};
 pub use results::{Artifact, HeightRow, JobResults, PITCH_PROFILES, StoredArtifact, ThreadRow};
-pub use stations::{MasterRow, StationRow, StudyRow};
+pub use stations::{CheckJudgement, CheckRecorded, CheckRow, MasterRow, StationRow, StudyRow};
 pub use webhooks::{AttemptOutcome, AttemptRow, DeliveryFilter, DeliveryRow, NewDelivery};
 
 use crate::problem::{Code, ErrorCode, Problem};

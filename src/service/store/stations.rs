@@ -33,6 +33,41 @@ pub struct StudyRow {
     pub created_at: i64,
 }
 
+/// A check run as charted.
+#[derive(Clone, Debug, sqlx::FromRow)]
+pub struct CheckRow {
+    pub station: String,
+    pub study_id: String,
+    pub seq: i64,
+    pub inspection_id: String,
+    pub master: String,
+    pub points_json: String,
+    pub violation_json: Option<String>,
+    pub created_at: i64,
+}
+
+/// What recording a check came to.
+#[derive(Clone, Debug)]
+pub enum CheckRecorded {
+    /// Charted; `suspended` when its violation suspended the station.
+    Charted { row: CheckRow, suspended: bool },
+    /// This inspection is charted under this study already.
+    Exists,
+    /// The station's study in force is no longer the one the check was judged against.
+    StudyChanged,
+}
+
+/// What the caller judges a new check with, inside the transaction that records it: the earlier
+/// checks under the same study, oldest first.
+pub struct CheckJudgement {
+    pub points_json: String,
+    /// The violation (JSON) and the suspension reason, if the check broke a rule.
+    pub violation: Option<(String, String)>,
+}
+
+const SELECT_CHECK: &str =
+    "SELECT station, study_id, seq, inspection_id, master, points_json, violation_json, created_at FROM checks";
+
 const SELECT_STATION: &str =
     "SELECT name, description, status, status_reason, study_id, created_at, updated_at FROM stations";
 
@@ -156,5 +191,108 @@ impl Store {
             .execute(&self.pool)
             .await?;
         Ok(())
+    }
+
+    /// The checks charted under `study`, oldest first.
+    pub async fn checks(&self, station: &str, study: &str) -> Result<Vec<CheckRow>, StoreError> {
+        Ok(sqlx::query_as(&format!("{SELECT_CHECK} WHERE station = ? AND study_id = ? ORDER BY seq"))
+            .bind(station)
+            .bind(study)
+            .fetch_all(&self.pool)
+            .await?)
+    }
+
+    /// Records a check under `study` in one write transaction: `judge` sees the study's earlier
+    /// checks and says what the new one reads and whether it broke a rule; a violation suspends
+    /// the station (if still qualified under `study`) and writes `deliveries(reason)` to the
+    /// webhook outbox under the check's inspection, all or nothing.
+    pub async fn add_check(
+        &self,
+        station: &str,
+        study: &str,
+        inspection_id: &str,
+        master: &str,
+        judge: impl FnOnce(&[CheckRow]) -> CheckJudgement,
+        deliveries: impl FnOnce(&str) -> Vec<super::NewDelivery>,
+    ) -> Result<CheckRecorded, StoreError> {
+        let now = now_ms();
+        let mut tx = self.pool.begin_with("BEGIN IMMEDIATE").await?;
+        let in_force: Option<(Option<String>,)> = sqlx::query_as("SELECT study_id FROM stations WHERE name = ?")
+            .bind(station)
+            .fetch_optional(&mut *tx)
+            .await?;
+        if in_force.and_then(|r| r.0).as_deref() != Some(study) {
+            return Ok(CheckRecorded::StudyChanged);
+        }
+        let earlier: Vec<CheckRow> =
+            sqlx::query_as(&format!("{SELECT_CHECK} WHERE station = ? AND study_id = ? ORDER BY seq"))
+                .bind(station)
+                .bind(study)
+                .fetch_all(&mut *tx)
+                .await?;
+        if earlier.iter().any(|c| c.inspection_id == inspection_id) {
+            return Ok(CheckRecorded::Exists);
+        }
+        let judgement = judge(&earlier);
+        let row = CheckRow {
+            station: station.into(),
+            study_id: study.into(),
+            seq: earlier.last().map_or(1, |c| c.seq + 1),
+            inspection_id: inspection_id.into(),
+            master: master.into(),
+            points_json: judgement.points_json,
+            violation_json: judgement.violation.as_ref().map(|v| v.0.clone()),
+            created_at: now,
+        };
+        sqlx::query(
+            "INSERT INTO checks (station, study_id, seq, inspection_id, master, points_json, violation_json, created_at) \
+             VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+        )
+        .bind(&row.station)
+        .bind(&row.study_id)
+        .bind(row.seq)
+        .bind(&row.inspection_id)
+        .bind(&row.master)
+        .bind(&row.points_json)
+        .bind(&row.violation_json)
+        .bind(row.created_at)
+        .execute(&mut *tx)
+        .await?;
+        let mut suspended = false;
+        if let Some((_, reason)) = &judgement.violation {
+            suspended = sqlx::query(
+                "UPDATE stations SET status = 'suspended', status_reason = ?, updated_at = ? \
+                 WHERE name = ? AND study_id = ? AND status = 'qualified'",
+            )
+            .bind(reason)
+            .bind(now)
+            .bind(station)
+            .bind(study)
+            .execute(&mut *tx)
+            .await?
+            .rows_affected()
+                == 1;
+            if suspended {
+                for d in deliveries(reason) {
+                    sqlx::query(
+                        "INSERT INTO webhook_deliveries (id, inspection_id, endpoint, url, event_type, payload_json, \
+                         status, attempts, created_at, next_attempt_at) VALUES (?, ?, ?, ?, ?, ?, 'pending', 0, ?, ?) \
+                         ON CONFLICT (inspection_id, endpoint, event_type) DO NOTHING",
+                    )
+                    .bind(&d.id)
+                    .bind(inspection_id)
+                    .bind(&d.endpoint)
+                    .bind(&d.url)
+                    .bind(&d.event_type)
+                    .bind(&d.payload_json)
+                    .bind(now)
+                    .bind(now)
+                    .execute(&mut *tx)
+                    .await?;
+                }
+            }
+        }
+        tx.commit().await?;
+        Ok(CheckRecorded::Charted { row, suspended })
     }
 }

@@ -10,8 +10,21 @@ use crestscan::sim;
 /// Renders `preset` (part `seed`, placement `placement`) and returns it as a tar whose manifest
 /// names `serial` and `station`.
 fn run_tar(preset: &str, seed: u64, placement: u64, serial: &str, station: &str) -> (Vec<u8>, Truth) {
+    drifted_tar(preset, seed, placement, serial, station, 0.0)
+}
+
+/// As [`run_tar`], every frame taken `drift_mm` further along the camera's axis than the
+/// manifest says: the station refocused since its study.
+fn drifted_tar(
+    preset: &str,
+    seed: u64,
+    placement: u64,
+    serial: &str,
+    station: &str,
+    drift_mm: f64,
+) -> (Vec<u8>, Truth) {
     let dir = tempfile::tempdir().unwrap();
-    let spec = sim::preset(preset).unwrap();
+    let spec = sim::SimSpec { focus_drift_mm: drift_mm, ..sim::preset(preset).unwrap() };
     sim::simulate_placed(&spec, seed, placement, dir.path(), &|_| {}).unwrap();
     let path = dir.path().join("manifest.json");
     let mut manifest: Value = serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
@@ -46,9 +59,38 @@ async fn inspected(app: &TestApp, tar: Vec<u8>, query: &str) -> String {
     id
 }
 
+/// A webhook endpoint on loopback that keeps every event it is sent.
+async fn start_hook() -> (std::sync::Arc<std::sync::Mutex<Vec<Value>>>, String) {
+    let got = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+    let keep = got.clone();
+    let app = axum::Router::new().route(
+        "/hook",
+        axum::routing::post(move |body: axum::body::Bytes| {
+            let keep = keep.clone();
+            async move {
+                keep.lock().unwrap().push(serde_json::from_slice::<Value>(&body).unwrap_or(Value::Null));
+                axum::http::StatusCode::OK
+            }
+        }),
+    );
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let url = format!("http://{}/hook", listener.local_addr().unwrap());
+    tokio::spawn(async move { axum::serve(listener, app).await.unwrap() });
+    (got, url)
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_qualified_station_decides_with_its_own_uncertainty() {
-    let app = spawn_app().await;
+    let (hooked, hook_url) = start_hook().await;
+    let app = spawn_app_with(|s| {
+        s.webhooks = vec![crestscan::service::webhooks::EndpointSettings {
+            name: "quality".into(),
+            url: hook_url,
+            secrets: vec!["whsec_MfKQ9r8GKYqrTwjUPD8ILPZIo2LaLaSw".into()],
+            events: vec![crestscan::service::webhooks::EventType::StationSuspended],
+        }]
+    })
+    .await;
     let created =
         post_json(&app, "/v1/stations", serde_json::json!({"name": "line-1", "description": "ci optics"})).await;
     assert_eq!(created.status(), StatusCode::CREATED);
@@ -121,6 +163,7 @@ async fn a_qualified_station_decides_with_its_own_uncertainty() {
     // submission: corrected and decided with the station's uncertainty, its report naming both.
     let (part, part_truth) = run_tar("ci-reject", 8, 208, "P-8", "line-1");
     let id = inspected(&app, part, "?station=line-1").await;
+    let id_of_part = id.clone();
     let report: Value = app.get(&format!("/v1/inspections/{id}/report")).await.json().await.unwrap();
     assert_eq!(report["qualification"]["applied"], true, "{}", report["qualification"]);
     assert_eq!(report["qualification"]["study"], study_id.as_str());
@@ -173,6 +216,111 @@ async fn a_qualified_station_decides_with_its_own_uncertainty() {
         problem(app.submit(ci_tar(), "?station=line-9").await, StatusCode::UNPROCESSABLE_ENTITY, "unknown_station")
             .await;
     assert_eq!(unknown["culprit"], "station");
+
+    // Drift control. The study set the master's chart limits; nothing is charted yet.
+    let chart: Value = app.get("/v1/stations/line-1/checks").await.json().await.unwrap();
+    assert_eq!(chart["study"], study_id.as_str());
+    let limits = chart["limits"].as_array().unwrap();
+    assert!(limits.iter().any(|l| l["master"] == "M-1" && l["statistic"] == "height_bias"), "{chart}");
+    assert!(chart["items"].as_array().unwrap().is_empty());
+    // A check run of the master as it was studied: charted, in control, the station qualified.
+    let clean = inspected(&app, run_tar("ci-reject", 7, 111, "M-1", "line-1").0, "").await;
+    let charted = post_json(&app, "/v1/stations/line-1/checks", serde_json::json!({"inspection": clean})).await;
+    assert_eq!(charted.status(), StatusCode::CREATED);
+    let outcome: Value = charted.json().await.unwrap();
+    assert_eq!((outcome["suspended"].as_bool(), outcome["station_status"].as_str()), (Some(false), Some("qualified")));
+    assert!(outcome["check"]["violation"].is_null(), "{outcome}");
+    let bias = outcome["check"]["points"].as_array().unwrap().iter().find(|p| p["statistic"] == "height_bias").unwrap();
+    assert!(bias["z"].as_f64().unwrap().abs() < 3.0, "{bias}");
+    let twice = problem(
+        post_json(&app, "/v1/stations/line-1/checks", serde_json::json!({"inspection": clean})).await,
+        StatusCode::CONFLICT,
+        "check_exists",
+    )
+    .await;
+    assert_eq!(twice["culprit"], "inspection");
+    for not_a_check in [&runs[0], &id_of_part] {
+        let refused = problem(
+            post_json(&app, "/v1/stations/line-1/checks", serde_json::json!({"inspection": not_a_check})).await,
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "check_refused",
+        )
+        .await;
+        assert_eq!(refused["culprit"], "inspection", "{refused}");
+    }
+
+    // The station refocused by 0.2 mm: its check runs break a rule within three checks, which
+    // suspends it, tells the webhook endpoint, and stops its decisions.
+    let mut suspended_at = None;
+    for (n, placement) in (121..=123).enumerate() {
+        let run = inspected(&app, drifted_tar("ci-reject", 7, placement, "M-1", "line-1", 0.2).0, "").await;
+        let outcome: Value = post_json(&app, "/v1/stations/line-1/checks", serde_json::json!({"inspection": run}))
+            .await
+            .json()
+            .await
+            .unwrap();
+        if outcome["suspended"] == true {
+            let violation = &outcome["check"]["violation"];
+            assert!(violation["rule_number"].as_u64().is_some_and(|r| (1..=4).contains(&r)), "{violation}");
+            assert!(outcome["status_reason"].as_str().unwrap().contains("Western Electric rule"), "{outcome}");
+            suspended_at = Some(n + 1);
+            break;
+        }
+        assert!(outcome["check"]["violation"].is_null(), "a violation that did not suspend: {outcome}");
+    }
+    let suspended_at = suspended_at.expect("a 0.2 mm refocus suspends the station within three checks");
+    let station: Value = app.get("/v1/stations/line-1").await.json().await.unwrap();
+    assert_eq!(station["status"], "suspended");
+    let deadline = std::time::Instant::now() + Duration::from_secs(20);
+    let event = loop {
+        if let Some(e) = hooked.lock().unwrap().iter().find(|e| e["type"] == "station.suspended").cloned() {
+            break e;
+        }
+        assert!(std::time::Instant::now() < deadline, "no station.suspended webhook");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    assert_eq!(event["data"]["station"], "line-1");
+    assert_eq!(event["data"]["study"], study_id.as_str());
+    assert_eq!(event["data"]["violation"]["master"], "M-1");
+    let (part, _) = run_tar("ci-reject", 8, 209, "P-8", "line-1");
+    let id = inspected(&app, part, "?station=line-1").await;
+    let report: Value = app.get(&format!("/v1/inspections/{id}/report")).await.json().await.unwrap();
+    assert!(report["qualification"]["refused"].as_str().unwrap().contains("suspended"), "{}", report["qualification"]);
+    assert_eq!(report["decision"], "indeterminate");
+    let chart: Value = app.get("/v1/stations/line-1/checks").await.json().await.unwrap();
+    assert_eq!(chart["items"].as_array().unwrap().len(), 1 + suspended_at);
+    // The page draws the chart, the breaking check in red.
+    let (dom, log, net_log) = super::report_page::browse(&app.url("/v1/stations/line-1?format=html")).await;
+    assert!(dom.contains("id=\"control-chart\""), "the page has no control chart");
+    assert!(dom.contains("class=\"check violation\""), "the page does not mark the check that broke a rule");
+    super::report_page::quiet_and_local(&log, &net_log, &app.base);
+    // Requalification lifts the suspension and starts a new chart.
+    let restudied = post_json(&app, "/v1/stations/line-1/studies", serde_json::json!({"inspections": runs})).await;
+    assert_eq!(restudied.status(), StatusCode::CREATED);
+    let station: Value = app.get("/v1/stations/line-1").await.json().await.unwrap();
+    assert_eq!(station["status"], "qualified");
+    let chart: Value = app.get("/v1/stations/line-1/checks").await.json().await.unwrap();
+    assert!(chart["items"].as_array().unwrap().is_empty(), "{chart}");
+    // A qualification that expires: refused in the past, and read `suspended` once it has passed.
+    let study_until = |until: String| {
+        post_json(&app, "/v1/stations/line-1/studies", serde_json::json!({"inspections": runs, "valid_until": until}))
+    };
+    let past =
+        problem(study_until("2026-01-01T00:00:00Z".into()).await, StatusCode::UNPROCESSABLE_ENTITY, "study_refused")
+            .await;
+    assert_eq!(past["culprit"], "valid_until");
+    let expires_ms = crestscan::service::store::now_ms() + 6000;
+    assert_eq!(study_until(crestscan::service::wire::rfc3339(expires_ms)).await.status(), StatusCode::CREATED);
+    let station: Value = app.get("/v1/stations/line-1").await.json().await.unwrap();
+    assert_eq!(station["status"], "qualified");
+    let left_ms = expires_ms + 500 - crestscan::service::store::now_ms();
+    tokio::time::sleep(Duration::from_millis(left_ms.max(0) as u64)).await;
+    let station: Value = app.get("/v1/stations/line-1").await.json().await.unwrap();
+    assert_eq!(station["status"], "suspended");
+    assert!(station["status_reason"].as_str().unwrap().contains("expired"), "{station}");
+    let id = inspected(&app, run_tar("ci-reject", 8, 210, "P-8", "line-1").0, "?station=line-1").await;
+    let report: Value = app.get(&format!("/v1/inspections/{id}/report")).await.json().await.unwrap();
+    assert!(report["qualification"]["refused"].as_str().unwrap().contains("expired"), "{}", report["qualification"]);
 
     // A certificate naming threads the runs do not have: the study names the master.
     assert_eq!(
