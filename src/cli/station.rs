@@ -154,6 +154,7 @@ impl PlanArgs {
         println!(
             "  rows              {rows} (a view spans {field_z_mm:.1} mm axially; the ring to cover is {span_z_mm:.1} mm)"
         );
+        println!("  U after a study   {}", predicted_u(station.class));
         match station.class {
             Some(class) => println!(
                 "  class             {} (GET /v1/capabilities has the class's figures; qualify the station on masters before deciding with it: docs/service.md)",
@@ -165,5 +166,33 @@ impl PlanArgs {
             }
         }
         Ok(())
+    }
+}
+
+/// What the qualification benchmark measured of U at stations of `class`.
+fn predicted_u(class: Option<crestscan::domain::station::StationClass>) -> String {
+    use crestscan::domain::station::{QUALIFIED_U_UM, StationClass};
+    let own = "this station's own study states its U (docs/benchmark.md#station-qualification)";
+    let Some(class) = class else { return format!("no station like it was studied; {own}") };
+    if class == StationClass::Standard {
+        return format!(
+            "not studied by the benchmark: the standard station's U without a study is in GET /v1/capabilities; {own}"
+        );
+    }
+    let studied: Vec<(&str, f64)> =
+        QUALIFIED_U_UM.iter().filter(|(c, _, _)| *c == class).map(|(_, s, u)| (*s, *u)).collect();
+    match studied.as_slice() {
+        [] => format!("no {} station was studied; {own}", class.as_str()),
+        [(name, u)] => format!("{u:.1} µm (k = 2) at the one {} station studied ({name}); {own}", class.as_str()),
+        many => {
+            let (lo, hi) = many.iter().fold((f64::MAX, 0.0f64), |(lo, hi), (_, u)| (lo.min(*u), hi.max(*u)));
+            let each: Vec<String> = many.iter().map(|(s, u)| format!("{s} {u:.1}")).collect();
+            format!(
+                "{lo:.1}–{hi:.1} µm (k = 2) at the {} {} stations studied ({}): set by each one's repeatability; {own}",
+                many.len(),
+                class.as_str(),
+                each.join(", ")
+            )
+        }
     }
 }

@@ -9,8 +9,9 @@ use serde::{Deserialize, Serialize};
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum CheckStatistic {
-    /// The mean of the master's corrected heights less its certificate, µm: the station's bias
-    /// (a change of lens, lighting or the depth estimator's footing shows here).
+    /// The median of the master's corrected heights less its certificate, µm: the station's bias
+    /// (a change of lens, lighting or the depth estimator's footing shows here); the median, as a
+    /// few misread bins at a coarse station would swing a mean from run to run.
     HeightBias,
     /// The machined crest cone's radius at the end face, µm: where the station puts the part's
     /// surface (a refocus or a moved camera shows here, though heights, a difference of two
@@ -35,10 +36,12 @@ pub struct ControlLimits {
     pub statistic: CheckStatistic,
     /// The centre line: the mean over the study's runs, µm.
     pub center_um: f64,
-    /// One standard deviation of a new run about it, µm: the runs' sample standard deviation
-    /// times √(1 + 1/n), since the centre line is itself estimated from n runs (the height bias
-    /// is read with the correction fitted without the run, as a check run meets it); at least
-    /// [`MIN_SIGMA_UM`].
+    /// The chart's σ, µm: a third of the 99.73% prediction bound for one new run, s·√(1 + 1/n)·t
+    /// (Student's t with n − 1 degrees of freedom at the normal's 3σ tail), so that a check
+    /// beyond 3σ is as rare as the rule means although the centre line and s come from a few
+    /// runs (from 10 runs t = 4.09: σ is 1.43 s). s is the runs' sample standard deviation, at
+    /// least [`MIN_SIGMA_UM`]; the height bias is read with the correction fitted without the
+    /// run, as a check run meets it.
     pub sigma_um: f64,
     /// The runs the limits come from.
     pub runs: usize,
@@ -86,7 +89,9 @@ impl ControlLimits {
             master: master.into(),
             statistic,
             center_um: mean,
-            sigma_um: (var * (1.0 + 1.0 / n as f64)).sqrt().max(MIN_SIGMA_UM),
+            sigma_um: (var * (1.0 + 1.0 / n as f64)).sqrt().max(MIN_SIGMA_UM)
+                * crate::numeric::stats::student_t_like_normal(3.0, n - 1)
+                / 3.0,
             runs: n,
             charted: true,
             not_charted_because: None,
@@ -295,10 +300,13 @@ mod tests {
     fn limits_take_the_runs_mean_and_standard_deviation() {
         let l = ControlLimits::of("M-1", CheckStatistic::HeightBias, &[1.0, 3.0, 2.0, 2.0]).unwrap();
         assert_eq!(l.center_um, 2.0);
-        assert!((l.sigma_um - (2.0f64 / 3.0 * 1.25).sqrt()).abs() < 1e-12);
+        let t = crate::numeric::stats::student_t_like_normal(3.0, 3);
+        assert!((l.sigma_um - (2.0f64 / 3.0 * 1.25).sqrt() * t / 3.0).abs() < 1e-12);
         assert!((l.z(4.0) - 2.0 / l.sigma_um).abs() < 1e-12);
         assert_eq!(ControlLimits::of("M-1", CheckStatistic::HeightBias, &[1.0]), None);
         let flat = ControlLimits::of("M-1", CheckStatistic::CrestConeRadius, &[5.0, 5.0]).unwrap();
-        assert_eq!(flat.sigma_um, MIN_SIGMA_UM);
+        assert!(
+            (flat.sigma_um - MIN_SIGMA_UM * crate::numeric::stats::student_t_like_normal(3.0, 1) / 3.0).abs() < 1e-12
+        );
     }
 }

@@ -277,6 +277,20 @@ pub const MEASURED: Envelope = Envelope {
     frame_noise_percent: (0.0, 1.5),
 };
 
+/// The expanded uncertainty (k = 2) of a corrected height, µm, that a qualification study stated
+/// at each station the qualification benchmark ran (docs/benchmark.md, "Station qualification";
+/// a test keeps the two the same): what `station plan` can say of a planned station's U before
+/// its own study. Within a class it spans two orders of magnitude, set by each station's
+/// repeatability, which its optics' class does not decide.
+pub const QUALIFIED_U_UM: [(StationClass, &str, f64); 6] = [
+    (StationClass::Fine, "fine-ring", 4.0),
+    (StationClass::Medium, "random:287", 108.4),
+    (StationClass::Coarse, "coarse-survey", 19.6),
+    (StationClass::Coarse, "random:245", 84.1),
+    (StationClass::Coarse, "random:217", 190.4),
+    (StationClass::Coarse, "random:241", 1520.5),
+];
+
 /// The ranges the station benchmark's random stations are drawn from (`sim::station::ranges`:
 /// object pixel, depth of field, frame step, overlap; noise up to 8× the standard sensor's, which
 /// reads 0.65–0.84%): the classes below the standard one have measured figures only within them.

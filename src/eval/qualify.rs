@@ -402,10 +402,7 @@ pub fn check(
     let mut points = Vec::new();
     for l in limits {
         let value_um = match l.statistic {
-            CheckStatistic::HeightBias if !corrected.is_empty() => {
-                Some(corrected.iter().sum::<f64>() / corrected.len() as f64)
-            }
-            CheckStatistic::HeightBias => None,
+            CheckStatistic::HeightBias => median(&mut corrected.clone()),
             CheckStatistic::CrestConeRadius => report.crest_cone.as_ref().map(|c| 1e3 * c.radius_at_end_mm),
         };
         let Some(value_um) = value_um else {
@@ -434,8 +431,9 @@ fn control_limits(
                 .filter(|s| s.master == m && s.run == r)
                 .filter_map(|s| Some(s.error_mm - without.get(&(m, r))?.at_mm(s.thread)?))
                 .collect();
-            if !errors.is_empty() {
-                bias_um.push(1e3 * errors.iter().sum::<f64>() / errors.len() as f64);
+            let mut errors = errors;
+            if let Some(m) = median(&mut errors) {
+                bias_um.push(1e3 * m);
             }
         }
         out.extend(ControlLimits::of(&master.serial, CheckStatistic::HeightBias, &bias_um));

@@ -39,6 +39,27 @@ fn station_plan_states_the_presets_station_and_refuses_a_bad_sensor() {
     assert!(printed.contains("object pixel      40.8 µm"), "{printed}");
     assert!(printed.contains("rows              1 "), "{printed}");
     assert!(printed.contains("class             standard"), "{printed}");
+    assert!(printed.contains("U after a study   not studied by the benchmark"), "{printed}");
+    // A coarse camera (36 µm pixels, f/0.5): the U the benchmark's coarse studies stated.
+    let coarse = crestscan(&[
+        "station",
+        "plan",
+        "--connection",
+        "BC 4-1/2",
+        "--sensor",
+        "864x320",
+        "--pixel-um",
+        "36",
+        "--lens-mm",
+        "50",
+        "--f-number",
+        "0.5",
+        "--distance-mm",
+        "220",
+    ]);
+    let printed = text(&coarse);
+    assert!(printed.contains("class             coarse"), "{printed}");
+    assert!(printed.contains("U after a study   19.6–1520.5 µm (k = 2) at the 4 coarse stations"), "{printed}");
     let bad = crestscan(&[
         "station",
         "plan",
@@ -186,4 +207,21 @@ fn qualify_writes_what_inspect_applies_at_that_station_only() {
     let out = check(&["--history", &chart, &clean]);
     assert_eq!(out.status.code(), Some(1));
     assert!(text(&out).contains("a new study starts a new chart"), "{}", text(&out));
+}
+
+/// The U `station plan` quotes per class is the benchmark page's: each station's row in
+/// docs/benchmark.md's qualification table states the same U.
+#[test]
+fn the_plans_studied_u_is_the_benchmark_tables() {
+    let page = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/benchmark.md")).unwrap();
+    for (class, station, u) in crestscan::domain::station::QUALIFIED_U_UM {
+        let row = page
+            .lines()
+            .find(|l| l.starts_with(&format!("| {station} |")))
+            .unwrap_or_else(|| panic!("docs/benchmark.md has no row for {station}"));
+        let study = row.split('|').nth(2).unwrap();
+        let stated: Vec<f64> = study.split(',').filter_map(|c| c.trim().parse().ok()).collect();
+        // The study cell: model, held-out RMS before → after, U, Cg min, Cgk min, %GRR.
+        assert_eq!(stated.first(), Some(&u), "{station} ({}): the table says {study}", class.as_str());
+    }
 }
