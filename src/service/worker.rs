@@ -154,7 +154,7 @@ async fn process(ctx: &WorkerContext, job: Claimed, lease_token: &str, shutdown:
 
     // The station's qualification as it stands when the job starts (a later study or suspension
     // applies to later jobs).
-    let at = match at_station(ctx, &job.id).await {
+    let (at, master_run) = match at_station(ctx, &job.id).await {
         Ok(at) => at,
         Err(e) => {
             tracing::error!(inspection = %job.id, error = %e, "reading the inspection's station failed; the job runs as at an unqualified station would not be honest, so it is retried");
@@ -166,7 +166,7 @@ async fn process(ctx: &WorkerContext, job: Claimed, lease_token: &str, shutdown:
         let (ctx, job, cancel, progress) = (ctx.clone(), job.clone(), cancel.clone(), progress.clone());
         tokio::task::spawn_blocking(move || {
             let pool = ctx.compute.clone();
-            pool.install(|| contain(&job.id, || run_job(&ctx, &job, at.as_ref(), &cancel, &progress)))
+            pool.install(|| contain(&job.id, || run_job(&ctx, &job, at.as_ref(), master_run, &cancel, &progress)))
         })
     };
     tokio::pin!(task);
@@ -279,9 +279,24 @@ async fn process(ctx: &WorkerContext, job: Claimed, lease_token: &str, shutdown:
 async fn at_station(
     ctx: &WorkerContext,
     id: &str,
+) -> Result<(Option<pipeline::qualify::AtStation>, bool), crate::service::store::StoreError> {
+    let row = ctx.store.inspection(id).await?;
+    let Some(name) = row.station else { return Ok((None, false)) };
+    // A run of one of the station's masters is what a study or a check reads: classical heights.
+    let master_run = match &row.serial {
+        Some(serial) => ctx.store.masters(&name).await?.iter().any(|m| &m.serial == serial),
+        None => false,
+    };
+    Ok((qualification_at(ctx, &name).await?, master_run))
+}
+
+/// The qualification an inspection at station `name` is to apply, or why it may not.
+async fn qualification_at(
+    ctx: &WorkerContext,
+    name: &str,
 ) -> Result<Option<pipeline::qualify::AtStation>, crate::service::store::StoreError> {
     use pipeline::qualify::AtStation;
-    let Some(name) = ctx.store.inspection(id).await?.station else { return Ok(None) };
+    let name = name.to_string();
     let station = ctx.store.station(&name).await?;
     let refused = |reason: String| Ok(Some(AtStation::Refused { station: name.clone(), reason }));
     match (station.status.as_str(), &station.study_id) {
@@ -328,13 +343,17 @@ fn run_job(
     ctx: &WorkerContext,
     job: &Claimed,
     at: Option<&pipeline::qualify::AtStation>,
+    master_run: bool,
     cancel: &AtomicBool,
     progress: &Mutex<Option<(Stage, f64)>>,
 ) -> Outcome {
-    let options: JobOptions = match serde_json::from_str(&job.options_json) {
+    let mut options: JobOptions = match serde_json::from_str(&job.options_json) {
         Ok(o) => o,
         Err(e) => return Outcome::Fail(problem(Code::InvalidOption, format!("stored options unreadable: {e}"))),
     };
+    if master_run {
+        options.pipeline.profile.correction = pipeline::profile::Correction::Off;
+    }
     let path = ctx.store.files.path_of(&job.upload_sha256);
     if !path.is_file() {
         return Outcome::Fail(problem(

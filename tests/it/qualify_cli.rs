@@ -225,3 +225,51 @@ fn the_plans_studied_u_is_the_benchmark_tables() {
         assert_eq!(stated.first(), Some(&u), "{station} ({}): the table says {study}", class.as_str());
     }
 }
+
+/// Two masters of the design (two parts, each placed ten times): the model is chosen holding a
+/// master out, and u_w, the correction's spread between masters, is measured and in U.
+#[test]
+fn two_masters_measure_the_spread_between_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = |p: &Path| p.to_str().unwrap().to_string();
+    let mut args: Vec<String> = vec!["qualify".into(), "--station".into(), "bench-2".into()];
+    for seed in ["7", "9"] {
+        let (runs, certificate) =
+            (dir.path().join(format!("master-{seed}")), dir.path().join(format!("cert-{seed}.json")));
+        for placement in 101..=110 {
+            let out = crestscan(&[
+                "simulate",
+                "--preset",
+                "ci-reject",
+                "--seed",
+                seed,
+                "--placement-seed",
+                &placement.to_string(),
+                "--certificate",
+                &path(&certificate),
+                "--out",
+                &path(&runs.join(format!("run-{placement}"))),
+                "--quiet",
+            ]);
+            assert!(out.status.success(), "{}", text(&out));
+        }
+        args.extend(["--master".into(), path(&runs), "--certificate".into(), path(&certificate)]);
+    }
+    let qualification = dir.path().join("q.json");
+    args.extend(["--out".into(), path(&qualification)]);
+    let out = crestscan(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(out.status.success(), "{}", text(&out));
+    let q: Value = serde_json::from_slice(&std::fs::read(&qualification).unwrap()).unwrap();
+    assert_eq!(q["masters"].as_array().unwrap().len(), 2);
+    assert_eq!(q["selection"]["method"], "leave_one_master_out");
+    let u = &q["uncertainty"];
+    assert_eq!(u["u_w_measured"], true, "{u}");
+    let component = |k: &str| u[k].as_f64().unwrap();
+    assert!(component("u_w_um") > 0.0, "{u}");
+    let combined = ["u_cal_um", "u_p_um", "u_b_um", "u_w_um"].iter().map(|k| component(k).powi(2)).sum::<f64>().sqrt();
+    assert!((component("combined_um") - combined).abs() < 1e-9, "{u}");
+    // Each master has its own control limits.
+    let charted: std::collections::BTreeSet<&str> =
+        q["control"].as_array().unwrap().iter().map(|l| l["master"].as_str().unwrap()).collect();
+    assert_eq!(charted.len(), 2, "{}", q["control"]);
+}
