@@ -5,12 +5,12 @@
 
 use super::common::{AppState, InspectionId, Rounded};
 use super::problem::{ApiError, Problem};
+use super::station_reads::{Check, chart, check_out, station_not_found, study_qualification};
 use crate::domain::control::{ChartPoint, CheckStatistic, ControlLimits, Violation, judge};
 use crate::eval::qualify::{self, Certificate};
 use crate::pipeline::report::Report;
 use crate::problem::Code;
-use crate::service::store::{CheckJudgement, CheckRecorded, CheckRow, Status, StoreError};
-use crate::service::wire::rfc3339;
+use crate::service::store::{CheckJudgement, CheckRecorded, Status, StoreError};
 use axum::Json;
 use axum::extract::{Path, State};
 use axum::http::StatusCode;
@@ -30,23 +30,6 @@ pub struct NewCheck {
     /// A succeeded inspection of one of the study's masters at this station, not one of the
     /// study's own runs.
     pub inspection: uuid::Uuid,
-}
-
-/// A check run as charted.
-#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
-pub struct Check {
-    /// Its place on the study's chart: 1, 2, …
-    pub seq: i64,
-    /// The study whose limits it was judged against.
-    pub study: String,
-    pub inspection: String,
-    /// The master it measured.
-    pub master: String,
-    /// Each statistic's value and its distance from the centre line.
-    pub points: Vec<ChartPoint>,
-    /// The rule it broke; null in control.
-    pub violation: Option<Violation>,
-    pub created_at: String,
 }
 
 /// A check and where it left the station.
@@ -92,18 +75,6 @@ fn refused(message: String, culprit: &str) -> ApiError {
     ApiError::new(Code::CheckRefused, message).with_culprit(culprit)
 }
 
-pub fn check_out(row: &CheckRow) -> Result<Check, ApiError> {
-    Ok(Check {
-        seq: row.seq,
-        study: row.study_id.clone(),
-        inspection: row.inspection_id.clone(),
-        master: row.master.clone(),
-        points: serde_json::from_str(&row.points_json).map_err(ApiError::internal)?,
-        violation: row.violation_json.as_deref().map(serde_json::from_str).transpose().map_err(ApiError::internal)?,
-        created_at: rfc3339(row.created_at),
-    })
-}
-
 /// Chart a check run of a master: its height bias against the certificate (after the station's
 /// correction) and its crest-cone radius, against the limits the study in force set from that
 /// master's runs. A point that breaks a Western Electric rule (one beyond 3σ; two of three beyond
@@ -129,7 +100,7 @@ pub async fn create_check(
     body: Result<Json<NewCheck>, axum::extract::rejection::JsonRejection>,
 ) -> Result<Response, ApiError> {
     let Json(new) = body?;
-    let station = state.store.station(&name).await.map_err(|e| super::stations::station_not_found(e, &name))?;
+    let station = state.store.station(&name).await.map_err(|e| station_not_found(e, &name))?;
     let Some(study_id) = station.study_id.clone() else {
         return Err(refused(
             format!("station {name:?} has no study: a check is judged against one (POST /v1/stations/{name}/studies)"),
@@ -137,7 +108,7 @@ pub async fn create_check(
         ));
     };
     let study = state.store.study(&name, &study_id).await?;
-    let q = super::stations::study_qualification(&study)?;
+    let q = study_qualification(&study)?;
     let id = InspectionId::parse(&new.inspection.to_string())?.0;
     let row = state.store.inspection(&id).await.map_err(|e| match e {
         StoreError::NotFound => refused(format!("no inspection {id}"), "inspection"),
@@ -291,7 +262,7 @@ pub async fn list_checks(
     State(state): State<AppState>,
     Path(name): Path<String>,
 ) -> Result<Rounded<ControlChart>, ApiError> {
-    let station = state.store.station(&name).await.map_err(|e| super::stations::station_not_found(e, &name))?;
+    let station = state.store.station(&name).await.map_err(|e| station_not_found(e, &name))?;
     let (limits, items) = chart(&state, &station).await?;
     Ok(Rounded(ControlChart {
         station: station.name,
@@ -300,15 +271,4 @@ pub async fn list_checks(
         limits,
         items,
     }))
-}
-
-/// The study in force's limits and checks; empty before the first study.
-pub async fn chart(
-    state: &AppState,
-    station: &crate::service::store::StationRow,
-) -> Result<(Vec<ControlLimits>, Vec<Check>), ApiError> {
-    let Some(study_id) = &station.study_id else { return Ok((Vec::new(), Vec::new())) };
-    let q = super::stations::study_qualification(&state.store.study(&station.name, study_id).await?)?;
-    let items = state.store.checks(&station.name, study_id).await?.iter().map(check_out).collect::<Result<_, _>>()?;
-    Ok((q.control, items))
 }

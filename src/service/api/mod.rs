@@ -21,6 +21,7 @@ pub mod origins;
 pub mod problem;
 pub mod results;
 pub mod schemas;
+pub mod station_reads;
 pub mod stations;
 pub mod submit;
 pub mod webhooks;

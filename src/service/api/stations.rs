@@ -4,6 +4,7 @@
 
 use super::common::{AppState, InspectionId};
 use super::problem::{ApiError, Problem};
+use super::station_reads::{station_not_found, study_qualification};
 use crate::domain::qualification::Qualification;
 use crate::eval::qualify::{self, Certificate, MasterRuns};
 use crate::pipeline::report::Report;
@@ -114,15 +115,6 @@ pub struct Study {
     pub qualification: Qualification,
 }
 
-pub(super) fn station_not_found(e: StoreError, name: &str) -> ApiError {
-    match e {
-        StoreError::NotFound => {
-            ApiError::new(Code::StationNotFound, format!("no station {name:?} (POST /v1/stations creates one)"))
-        }
-        e => ApiError::from(e),
-    }
-}
-
 /// A station's masters and the qualification of the study in force (none before the first).
 async fn masters_and_study(
     state: &AppState,
@@ -174,10 +166,6 @@ async fn station_out(state: &AppState, row: StationRow) -> Result<StationRecord,
         created_at: rfc3339(row.created_at),
         updated_at: rfc3339(row.updated_at),
     })
-}
-
-pub(super) fn study_qualification(row: &StudyRow) -> Result<Qualification, ApiError> {
-    serde_json::from_str(&row.qualification_json).map_err(ApiError::internal)
 }
 
 /// Create a station (unqualified).
@@ -258,7 +246,7 @@ pub async fn get_station(
         return Ok(super::common::Rounded(station_out(&state, row).await?).into_response());
     }
     let (masters, qualification) = masters_and_study(&state, &row).await?;
-    let (_, checks) = super::checks::chart(&state, &row).await?;
+    let (_, checks) = super::station_reads::chart(&state, &row).await?;
     let (status, status_reason) = status_now(&row, qualification.as_ref());
     let page = crate::export::html::station::station_page(&crate::export::html::station::StationPage {
         name: &row.name,

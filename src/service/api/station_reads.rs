@@ -1,0 +1,61 @@
+//! What the stations' and the checks' routes both read: a station's study and its chart.
+
+use super::common::AppState;
+use super::problem::ApiError;
+use crate::domain::control::{ChartPoint, ControlLimits, Violation};
+use crate::domain::qualification::Qualification;
+use crate::problem::Code;
+use crate::service::store::{CheckRow, StationRow, StoreError, StudyRow};
+use crate::service::wire::rfc3339;
+use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
+
+pub fn station_not_found(e: StoreError, name: &str) -> ApiError {
+    match e {
+        StoreError::NotFound => {
+            ApiError::new(Code::StationNotFound, format!("no station {name:?} (POST /v1/stations creates one)"))
+        }
+        e => ApiError::from(e),
+    }
+}
+
+pub fn study_qualification(row: &StudyRow) -> Result<Qualification, ApiError> {
+    serde_json::from_str(&row.qualification_json).map_err(ApiError::internal)
+}
+
+/// A check run as charted.
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
+pub struct Check {
+    /// Its place on the study's chart: 1, 2, …
+    pub seq: i64,
+    /// The study whose limits it was judged against.
+    pub study: String,
+    pub inspection: String,
+    /// The master it measured.
+    pub master: String,
+    /// Each statistic's value and its distance from the centre line.
+    pub points: Vec<ChartPoint>,
+    /// The rule it broke; null in control.
+    pub violation: Option<Violation>,
+    pub created_at: String,
+}
+
+pub fn check_out(row: &CheckRow) -> Result<Check, ApiError> {
+    Ok(Check {
+        seq: row.seq,
+        study: row.study_id.clone(),
+        inspection: row.inspection_id.clone(),
+        master: row.master.clone(),
+        points: serde_json::from_str(&row.points_json).map_err(ApiError::internal)?,
+        violation: row.violation_json.as_deref().map(serde_json::from_str).transpose().map_err(ApiError::internal)?,
+        created_at: rfc3339(row.created_at),
+    })
+}
+
+/// The study in force's limits and checks; empty before the first study.
+pub async fn chart(state: &AppState, station: &StationRow) -> Result<(Vec<ControlLimits>, Vec<Check>), ApiError> {
+    let Some(study_id) = &station.study_id else { return Ok((Vec::new(), Vec::new())) };
+    let q = study_qualification(&state.store.study(&station.name, study_id).await?)?;
+    let items = state.store.checks(&station.name, study_id).await?.iter().map(check_out).collect::<Result<_, _>>()?;
+    Ok((q.control, items))
+}
