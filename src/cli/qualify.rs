@@ -104,7 +104,7 @@ impl CheckArgs {
     /// Charts each run; an error (exit 1) for runs that cannot be charted, exit 3 when one breaks
     /// a rule.
     pub fn run(self) -> Result<()> {
-        use crestscan::domain::control::{CheckStatistic, judge};
+        use crestscan::domain::control::judge;
         let read = |p: &Path, flag: &str| std::fs::read(p).with_context(|| format!("--{flag} {}", p.display()));
         let q: crestscan::domain::qualification::Qualification =
             serde_json::from_slice(&read(&self.qualification, "qualification")?)
@@ -144,15 +144,8 @@ impl CheckArgs {
                 let name = run.display().to_string();
                 let points = qualify::check(&q, &serial, &certificate, &name, &inspection.report)
                     .map_err(|e| anyhow::anyhow!("{}: {e}", run.display()))?;
-                let mut history: Vec<(CheckStatistic, Vec<f64>)> = Vec::new();
-                for c in chart.checks.iter().filter(|c| c.master == serial) {
-                    for p in &c.points {
-                        match history.iter_mut().find(|(s, _)| *s == p.statistic) {
-                            Some((_, z)) => z.push(p.z),
-                            None => history.push((p.statistic, vec![p.z])),
-                        }
-                    }
-                }
+                let history: Vec<&[crestscan::domain::control::ChartPoint]> =
+                    chart.checks.iter().filter(|c| c.master == serial).map(|c| c.points.as_slice()).collect();
                 let violation = judge(&q.control, &serial, &history, &points);
                 let readings: Vec<String> = points
                     .iter()

@@ -194,18 +194,18 @@ pub fn western_electric(z: &[f64], sensitizing: bool) -> Option<Rule> {
 }
 
 /// The first violation a new check makes on master `master`'s charts (`limits`, the study's):
-/// `history` holds, per statistic, the earlier checks' z (oldest first) under the same study,
+/// `earlier` holds that master's earlier checks' points under the same study (oldest first),
 /// `points` the new check's. Statistics not charted are not judged.
 pub fn judge(
     limits: &[ControlLimits],
     master: &str,
-    history: &[(CheckStatistic, Vec<f64>)],
+    earlier: &[&[ChartPoint]],
     points: &[ChartPoint],
 ) -> Option<Violation> {
     points.iter().find_map(|p| {
         let l = limits.iter().find(|l| l.master == master && l.statistic == p.statistic && l.charted)?;
         let mut z: Vec<f64> =
-            history.iter().find(|(s, _)| *s == p.statistic).map(|(_, z)| z.clone()).unwrap_or_default();
+            earlier.iter().filter_map(|c| c.iter().find(|e| e.statistic == p.statistic)).map(|e| e.z).collect();
         z.push(p.z);
         let rule = western_electric(&z, l.rules.len() > 1)?;
         Some(Violation {
@@ -277,7 +277,8 @@ mod tests {
             ControlLimits::of("M-1", CheckStatistic::HeightBias, &runs).unwrap(),
             ControlLimits::of("M-1", CheckStatistic::CrestConeRadius, &runs).unwrap(),
         ];
-        let history = vec![(CheckStatistic::HeightBias, vec![2.4, 0.1]), (CheckStatistic::CrestConeRadius, vec![])];
+        let (first, second) = ([point(CheckStatistic::HeightBias, 2.4)], [point(CheckStatistic::HeightBias, 0.1)]);
+        let history: Vec<&[ChartPoint]> = vec![&first, &second];
         assert_eq!(judge(&limits, "M-1", &history, &[point(CheckStatistic::HeightBias, 0.5)]), None);
         let v = judge(
             &limits,

@@ -6,7 +6,7 @@
 use super::common::{AppState, InspectionId, Rounded};
 use super::problem::{ApiError, Problem};
 use super::station_reads::{Check, chart, check_out, station_not_found, study_qualification};
-use crate::domain::control::{ChartPoint, CheckStatistic, ControlLimits, Violation, judge};
+use crate::domain::control::{ChartPoint, ControlLimits, Violation, judge};
 use crate::eval::qualify::{self, Certificate};
 use crate::pipeline::report::Report;
 use crate::problem::Code;
@@ -174,17 +174,15 @@ pub async fn create_check(
             &id,
             &serial,
             |earlier| {
-                let mut history: Vec<(CheckStatistic, Vec<f64>)> = Vec::new();
-                for c in earlier.iter().filter(|c| c.master == serial) {
-                    for p in serde_json::from_str::<Vec<ChartPoint>>(&c.points_json).unwrap_or_default() {
-                        match history.iter_mut().find(|(s, _)| *s == p.statistic) {
-                            Some((_, z)) => z.push(p.z),
-                            None => history.push((p.statistic, vec![p.z])),
-                        }
-                    }
-                }
-                let broken = judge(&q.control, &serial, &history, &points);
                 let seq = earlier.last().map_or(1, |c| c.seq + 1);
+                // Written by this route from the same type: it reads back.
+                let earlier: Vec<Vec<ChartPoint>> = earlier
+                    .iter()
+                    .filter(|c| c.master == serial)
+                    .map(|c| serde_json::from_str(&c.points_json).unwrap_or_default())
+                    .collect();
+                let history: Vec<&[ChartPoint]> = earlier.iter().map(Vec::as_slice).collect();
+                let broken = judge(&q.control, &serial, &history, &points);
                 CheckJudgement {
                     points_json: serde_json::to_string(&points).expect("points serialise"),
                     violation: broken.map(|v| {

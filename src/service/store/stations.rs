@@ -274,21 +274,7 @@ impl Store {
                 == 1;
             if suspended {
                 for d in deliveries(reason) {
-                    sqlx::query(
-                        "INSERT INTO webhook_deliveries (id, inspection_id, endpoint, url, event_type, payload_json, \
-                         status, attempts, created_at, next_attempt_at) VALUES (?, ?, ?, ?, ?, ?, 'pending', 0, ?, ?) \
-                         ON CONFLICT (inspection_id, endpoint, event_type) DO NOTHING",
-                    )
-                    .bind(&d.id)
-                    .bind(inspection_id)
-                    .bind(&d.endpoint)
-                    .bind(&d.url)
-                    .bind(&d.event_type)
-                    .bind(&d.payload_json)
-                    .bind(now)
-                    .bind(now)
-                    .execute(&mut *tx)
-                    .await?;
+                    super::webhooks::insert_delivery(&mut tx, inspection_id, &d, now).await?;
                 }
             }
         }

@@ -63,6 +63,32 @@ pub struct DeliveryFilter {
 const DELIVERY_COLUMNS: &str = "id, inspection_id, endpoint, url, event_type, payload_json, status, attempts, \
      created_at, next_attempt_at, delivered_at, last_error";
 
+/// Writes one pending delivery under `inspection_id` in `tx` (once per inspection, endpoint and
+/// event: a second write of it is a no-op).
+pub(super) async fn insert_delivery(
+    tx: &mut sqlx::Transaction<'_, sqlx::Sqlite>,
+    inspection_id: &str,
+    d: &NewDelivery,
+    now: i64,
+) -> Result<(), StoreError> {
+    sqlx::query(
+        "INSERT INTO webhook_deliveries (id, inspection_id, endpoint, url, event_type, payload_json, status, \
+         attempts, created_at, next_attempt_at) VALUES (?, ?, ?, ?, ?, ?, 'pending', 0, ?, ?) \
+         ON CONFLICT (inspection_id, endpoint, event_type) DO NOTHING",
+    )
+    .bind(&d.id)
+    .bind(inspection_id)
+    .bind(&d.endpoint)
+    .bind(&d.url)
+    .bind(&d.event_type)
+    .bind(&d.payload_json)
+    .bind(now)
+    .bind(now)
+    .execute(&mut **tx)
+    .await?;
+    Ok(())
+}
+
 impl Store {
     /// Terminal inspections whose deliveries are not written yet, oldest first.
     pub async fn unannounced(&self, limit: u32) -> Result<Vec<InspectionRow>, StoreError> {
@@ -89,21 +115,7 @@ impl Store {
             return Ok(false);
         }
         for d in deliveries {
-            sqlx::query(
-                "INSERT INTO webhook_deliveries (id, inspection_id, endpoint, url, event_type, payload_json, status, \
-                 attempts, created_at, next_attempt_at) VALUES (?, ?, ?, ?, ?, ?, 'pending', 0, ?, ?) \
-                 ON CONFLICT (inspection_id, endpoint, event_type) DO NOTHING",
-            )
-            .bind(&d.id)
-            .bind(inspection_id)
-            .bind(&d.endpoint)
-            .bind(&d.url)
-            .bind(&d.event_type)
-            .bind(&d.payload_json)
-            .bind(now)
-            .bind(now)
-            .execute(&mut *tx)
-            .await?;
+            insert_delivery(&mut tx, inspection_id, d, now).await?;
         }
         tx.commit().await?;
         Ok(true)
