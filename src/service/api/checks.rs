@@ -5,12 +5,13 @@
 
 use super::common::{AppState, InspectionId, Rounded};
 use super::problem::{ApiError, Problem};
-use super::station_reads::{Check, chart, check_out, station_not_found, study_qualification};
+use super::station_reads::{
+    Check, certificate_of, chart, check_out, run_at_station, station_not_found, stored_report, study_qualification,
+};
 use crate::domain::control::{ChartPoint, ControlLimits, Violation, judge};
-use crate::eval::qualify::{self, Certificate};
-use crate::pipeline::report::Report;
+use crate::eval::qualify;
 use crate::problem::Code;
-use crate::service::store::{CheckJudgement, CheckRecorded, Status, StoreError};
+use crate::service::store::{CheckJudgement, CheckRecorded};
 use axum::Json;
 use axum::extract::{Path, State};
 use axum::http::StatusCode;
@@ -110,25 +111,7 @@ pub async fn create_check(
     let study = state.store.study(&name, &study_id).await?;
     let q = study_qualification(&study)?;
     let id = InspectionId::parse(&new.inspection.to_string())?.0;
-    let row = state.store.inspection(&id).await.map_err(|e| match e {
-        StoreError::NotFound => refused(format!("no inspection {id}"), "inspection"),
-        e => ApiError::from(e),
-    })?;
-    if row.status() != Status::Succeeded {
-        return Err(refused(
-            format!("inspection {id} is {}; a check takes a succeeded inspection", row.status),
-            "inspection",
-        ));
-    }
-    if row.station.as_deref() != Some(name.as_str()) {
-        return Err(refused(
-            format!(
-                "inspection {id} was recorded at {}, not at station {name:?}",
-                row.station.as_deref().map_or("no station".to_string(), |s| format!("station {s:?}"))
-            ),
-            "inspection",
-        ));
-    }
+    let row = run_at_station(&state, &name, &id, "check", |m| refused(m, "inspection")).await?;
     let study_runs: Vec<String> = serde_json::from_str(&study.inspections_json).map_err(ApiError::internal)?;
     if study_runs.contains(&id) {
         return Err(refused(
@@ -148,19 +131,8 @@ pub async fn create_check(
             "inspection",
         ));
     };
-    let certificate = Certificate {
-        points: crate::eval::cmm::CmmMeasurements {
-            instrument: Some(master.instrument.clone()),
-            measured_at: Some(master.calibrated_at.clone()),
-            points: serde_json::from_str(&master.certificate_json).map_err(ApiError::internal)?,
-            uncertainty_mm: None,
-        },
-        instrument: master.instrument.clone(),
-        calibrated_at: master.calibrated_at.clone(),
-        expanded_uncertainty_mm: master.uncertainty_mm,
-    };
-    let (json, _) = state.store.report(&id).await?;
-    let report: Report = serde_json::from_str(&json).map_err(ApiError::internal)?;
+    let certificate = certificate_of(&master)?;
+    let report = stored_report(&state, &id).await?;
     let points =
         qualify::check(&q, &serial, &certificate, &id, &report).map_err(|e| refused(e.to_string(), "inspection"))?;
 

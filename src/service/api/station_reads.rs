@@ -4,8 +4,10 @@ use super::common::AppState;
 use super::problem::ApiError;
 use crate::domain::control::{ChartPoint, ControlLimits, Violation};
 use crate::domain::qualification::Qualification;
+use crate::eval::qualify::Certificate;
+use crate::pipeline::report::Report;
 use crate::problem::Code;
-use crate::service::store::{CheckRow, StationRow, StoreError, StudyRow};
+use crate::service::store::{CheckRow, InspectionRow, MasterRow, StationRow, Status, StoreError, StudyRow};
 use crate::service::wire::rfc3339;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
@@ -21,6 +23,52 @@ pub fn station_not_found(e: StoreError, name: &str) -> ApiError {
 
 pub fn study_qualification(row: &StudyRow) -> Result<Qualification, ApiError> {
     serde_json::from_str(&row.qualification_json).map_err(ApiError::internal)
+}
+
+/// A master's certificate as stored with it.
+pub fn certificate_of(m: &MasterRow) -> Result<Certificate, ApiError> {
+    Ok(Certificate {
+        points: crate::eval::cmm::CmmMeasurements {
+            instrument: Some(m.instrument.clone()),
+            measured_at: Some(m.calibrated_at.clone()),
+            points: serde_json::from_str(&m.certificate_json).map_err(ApiError::internal)?,
+            uncertainty_mm: None,
+        },
+        instrument: m.instrument.clone(),
+        calibrated_at: m.calibrated_at.clone(),
+        expanded_uncertainty_mm: m.uncertainty_mm,
+    })
+}
+
+/// Inspection `id` as a run a study or a check (`taker`) reads at station `name`: it exists, it
+/// succeeded, and it was recorded there; otherwise `refuse` with why.
+pub async fn run_at_station(
+    state: &AppState,
+    name: &str,
+    id: &str,
+    taker: &str,
+    refuse: impl Fn(String) -> ApiError,
+) -> Result<InspectionRow, ApiError> {
+    let row = state.store.inspection(id).await.map_err(|e| match e {
+        StoreError::NotFound => refuse(format!("no inspection {id}")),
+        e => ApiError::from(e),
+    })?;
+    if row.status() != Status::Succeeded {
+        return Err(refuse(format!("inspection {id} is {}; a {taker} takes succeeded inspections", row.status)));
+    }
+    if row.station.as_deref() != Some(name) {
+        return Err(refuse(format!(
+            "inspection {id} was recorded at {}, not at station {name:?}",
+            row.station.as_deref().map_or("no station".to_string(), |s| format!("station {s:?}"))
+        )));
+    }
+    Ok(row)
+}
+
+/// Inspection `id`'s stored report.
+pub async fn stored_report(state: &AppState, id: &str) -> Result<Report, ApiError> {
+    let (json, _) = state.store.report(id).await?;
+    serde_json::from_str(&json).map_err(ApiError::internal)
 }
 
 /// A check run as charted.

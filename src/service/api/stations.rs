@@ -4,12 +4,12 @@
 
 use super::common::{AppState, InspectionId};
 use super::problem::{ApiError, Problem};
-use super::station_reads::{station_not_found, study_qualification};
+use super::station_reads::{certificate_of, run_at_station, station_not_found, stored_report, study_qualification};
 use crate::domain::qualification::Qualification;
 use crate::eval::qualify::{self, Certificate, MasterRuns};
 use crate::pipeline::report::Report;
 use crate::problem::Code;
-use crate::service::store::{StationRow, Status, StoreError, StudyRow, now_ms};
+use crate::service::store::{StationRow, StoreError, StudyRow, now_ms};
 use crate::service::wire::rfc3339;
 use axum::Json;
 use axum::body::Bytes;
@@ -420,22 +420,7 @@ pub async fn create_study(
         )
         .with_culprit("masters"));
     }
-    let mut certificates = Vec::new();
-    for m in &masters {
-        let points: Vec<crate::eval::cmm::CmmPoint> =
-            serde_json::from_str(&m.certificate_json).map_err(ApiError::internal)?;
-        certificates.push(Certificate {
-            points: crate::eval::cmm::CmmMeasurements {
-                instrument: Some(m.instrument.clone()),
-                measured_at: Some(m.calibrated_at.clone()),
-                points,
-                uncertainty_mm: None,
-            },
-            instrument: m.instrument.clone(),
-            calibrated_at: m.calibrated_at.clone(),
-            expanded_uncertainty_mm: m.uncertainty_mm,
-        });
-    }
+    let certificates = masters.iter().map(certificate_of).collect::<Result<Vec<_>, _>>()?;
     let mut runs: Vec<Vec<(String, Report)>> = vec![Vec::new(); masters.len()];
     let mut seen = std::collections::BTreeSet::new();
     for (i, id) in new.inspections.iter().enumerate() {
@@ -443,19 +428,7 @@ pub async fn create_study(
         if !seen.insert(id.clone()) {
             return Err(refuse(i, format!("inspection {id} is named twice")));
         }
-        let row = state.store.inspection(&id).await.map_err(|_| refuse(i, format!("no inspection {id}")))?;
-        if row.status() != Status::Succeeded {
-            return Err(refuse(i, format!("inspection {id} is {}; a study takes succeeded inspections", row.status)));
-        }
-        if row.station.as_deref() != Some(name.as_str()) {
-            return Err(refuse(
-                i,
-                format!(
-                    "inspection {id} was recorded at {}, not at station {name:?}",
-                    row.station.as_deref().map_or("no station".to_string(), |s| format!("station {s:?}"))
-                ),
-            ));
-        }
+        let row = run_at_station(&state, &name, &id, "study", |m| refuse(i, m)).await?;
         let Some(m) = masters.iter().position(|m| row.serial.as_deref() == Some(m.serial.as_str())) else {
             let serials: Vec<&str> = masters.iter().map(|m| m.serial.as_str()).collect();
             return Err(refuse(
@@ -467,8 +440,8 @@ pub async fn create_study(
                 ),
             ));
         };
-        let (json, _) = state.store.report(&id).await?;
-        runs[m].push((id, serde_json::from_str(&json).map_err(ApiError::internal)?));
+        let report = stored_report(&state, &id).await?;
+        runs[m].push((id, report));
     }
     let study_id = uuid::Uuid::now_v7().to_string();
     let (station, sid, valid_until) = (name.clone(), study_id.clone(), new.valid_until.clone());
