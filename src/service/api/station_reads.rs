@@ -104,6 +104,11 @@ pub fn check_out(row: &CheckRow) -> Result<Check, ApiError> {
 pub async fn chart(state: &AppState, station: &StationRow) -> Result<(Vec<ControlLimits>, Vec<Check>), ApiError> {
     let Some(study_id) = &station.study_id else { return Ok((Vec::new(), Vec::new())) };
     let q = study_qualification(&state.store.study(&station.name, study_id).await?)?;
-    let items = state.store.checks(&station.name, study_id).await?.iter().map(check_out).collect::<Result<_, _>>()?;
-    Ok((q.control, items))
+    Ok((q.control, checks_of(state, station).await?))
+}
+
+/// The checks charted under the study in force, oldest first; none before the first study.
+pub async fn checks_of(state: &AppState, station: &StationRow) -> Result<Vec<Check>, ApiError> {
+    let Some(study_id) = &station.study_id else { return Ok(Vec::new()) };
+    state.store.checks(&station.name, study_id).await?.iter().map(check_out).collect()
 }

@@ -246,7 +246,8 @@ pub async fn get_station(
         return Ok(super::common::Rounded(station_out(&state, row).await?).into_response());
     }
     let (masters, qualification) = masters_and_study(&state, &row).await?;
-    let (_, checks) = super::station_reads::chart(&state, &row).await?;
+    // The study is read once, above: only its checks here.
+    let checks = super::station_reads::checks_of(&state, &row).await?;
     let (status, status_reason) = status_now(&row, qualification.as_ref());
     let page = crate::export::html::station::station_page(&crate::export::html::station::StationPage {
         name: &row.name,
