@@ -1,6 +1,7 @@
 //! The command line: one file per subcommand; each parses its own arguments and calls the library.
 
 mod bench;
+mod budget;
 mod compare;
 mod connections;
 mod inspect;
@@ -43,6 +44,9 @@ enum Command {
     Qualify(qualify::QualifyArgs),
     /// Run a benchmark suite: render its cases (cached in --work), inspect, compare with truth.
     Bench(bench::BenchArgs),
+    /// Where a simulated bundle's height error enters along the pipeline: the bundle inspected
+    /// with the true poses, depth maps and helix put in turn, each step measured against truth.
+    Budget(budget::BudgetArgs),
     /// Compare an inspection report with a simulated bundle's truth/truth.json.
     Compare(compare::CompareArgs),
     /// Write the profile-correction MLP's training pairs of a bundle (JSON lines; docs/models.md).
@@ -222,6 +226,7 @@ pub fn main() -> Result<()> {
         Command::Bench(args) => args.run(),
         Command::Qualify(args) => args.run(),
         Command::Station(command) => command.run(),
+        Command::Budget(args) => args.run(),
         Command::Compare(args) => args.run(),
         Command::Pairs(args) => args.run(),
         Command::Validate(args) => args.run(),

@@ -1,6 +1,7 @@
 //! A report measured against ground truth: the simulator's truth (the benchmark suites behind
 //! `crestscan bench`) or a CMM's measurements.
 
+pub mod budget;
 pub mod cmm;
 pub mod pairs;
 pub mod qualify;

@@ -162,7 +162,7 @@ pub fn inspect_at(
     if matches!(at, Some(qualify::AtStation::Qualified(_))) {
         options.profile.correction = profile::Correction::Off;
     }
-    match run_stages(recording, &options, models, Run::new(progress, cancel), at) {
+    match run_stages(recording, &options, models, Run::new(progress, cancel), at, &Substitutes::default()) {
         Ok(inspection) => Ok(Some(inspection)),
         Err(Halt::Cancelled) => Ok(None),
         Err(Halt::Failed(e)) => Err(e),
@@ -180,9 +180,40 @@ pub fn inspect_with(
     // Every caller (the service checks at submission too) meets the same bounds: an option outside
     // them can multiply a stage's memory or work without limit.
     options.check_ranges()?;
-    match run_stages(recording, options, models, Run::new(progress, cancel), None) {
+    match run_stages(recording, options, models, Run::new(progress, cancel), None, &Substitutes::default()) {
         Ok(inspection) => Ok(Some(inspection)),
         Err(Halt::Cancelled) => Ok(None),
+        Err(Halt::Failed(e)) => Err(e),
+    }
+}
+
+/// What a diagnosis puts in place of a stage's output, to see how much of the final error the
+/// stages after it add: the error budget ([`crate::eval::budget`]) runs a bundle with the
+/// simulator's true depth maps, poses or helix in turn. Nothing but a diagnosis uses it; an
+/// inspection takes [`Substitutes::default`], which replaces nothing.
+#[derive(Default)]
+pub struct Substitutes<'a> {
+    /// Rewrites view v's depth map after the depth stage (before registration).
+    pub depth: Option<&'a (dyn Fn(usize, &mut DepthMap) + Sync)>,
+    /// The poses fusion uses, in place of the registered ones (registration still runs and is
+    /// reported).
+    pub poses: Option<&'a [ViewPose]>,
+    /// The helix the heights are measured on, in place of the estimated one.
+    pub helix: Option<&'a (dyn Fn(&Helix) -> Helix + Sync)>,
+}
+
+/// [`inspect_with`] with some stages' outputs replaced ([`Substitutes`]); never cancelled.
+pub fn inspect_substituted(
+    recording: &dyn Recording,
+    options: &PipelineOptions,
+    models: &crate::learned::Models,
+    substitutes: &Substitutes,
+) -> Result<Inspection, PipelineError> {
+    options.check_ranges()?;
+    let cancel = AtomicBool::new(false);
+    match run_stages(recording, options, models, Run::new(&|_, _| {}, &cancel), None, substitutes) {
+        Ok(inspection) => Ok(inspection),
+        Err(Halt::Cancelled) => Err(PipelineError::NoDepth),
         Err(Halt::Failed(e)) => Err(e),
     }
 }
@@ -195,9 +226,17 @@ fn run_stages(
     models: &crate::learned::Models,
     mut run: Run,
     at: Option<&qualify::AtStation>,
+    substitutes: &Substitutes,
 ) -> Step<Inspection> {
-    let (depth_maps, depth_coverage, depth_model) = measure_depth(recording, options, models, &mut run)?;
-    let registered = register_views(recording, options, &depth_maps, &mut run)?;
+    let (mut depth_maps, mut depth_coverage, depth_model) = measure_depth(recording, options, models, &mut run)?;
+    if let Some(replace) = substitutes.depth {
+        depth_maps.par_iter_mut().enumerate().for_each(|(v, map)| replace(v, map));
+        depth_coverage = depth_maps.iter().map(|d| d.coverage()).sum::<f64>() / depth_maps.len().max(1) as f64;
+    }
+    let mut registered = register_views(recording, options, &depth_maps, &mut run)?;
+    if let Some(poses) = substitutes.poses {
+        registered.poses = poses.to_vec();
+    }
     let (map, map_implausible_share) =
         fuse_views(recording, options, &depth_maps, &registered.poses, &registered.encoder_z_ranges_mm, &mut run)?;
     let part = recording.part();
@@ -209,7 +248,7 @@ fn run_stages(
     // sector, over which the windows' local phase is read and its readings count as one.
     let sector_deg = station.view_spacing_deg.unwrap_or(360.0);
     let (mesh, helix, mut threads, learned) =
-        mesh_and_profile(recording, options, models, &map, map_implausible_share, sector_deg, &mut run)?;
+        mesh_and_profile(recording, options, models, &map, map_implausible_share, sector_deg, substitutes, &mut run)?;
     // The classical fits, for the training pairs (`eval::pairs`), whether or not the MLP ran.
     let measured_threads = learned.classical.clone().unwrap_or_else(|| threads.clone());
     let (assessment, crest, rule_input) = crest_and_rules(recording, options, &helix, &threads, &mut run);
@@ -322,7 +361,7 @@ fn measure_depth(
     let total = views.len();
     // Depth buffers are handed from view to view (one set per view in flight, not one per view).
     let scratches = std::sync::Mutex::new(Vec::<DepthScratch>::new());
-    let depth_options = options.depth.for_form(&recording.part().form);
+    let depth_options = options.depth.for_part(&recording.part().form, recording.optics());
     let run_ref = &*run;
     let cancelled = || run_ref.cancelled();
     let depth_maps: Vec<Option<DepthMap>> = views
@@ -529,6 +568,7 @@ fn mesh_and_profile(
     map: &UnrolledMap,
     map_implausible_share: f64,
     sector_deg: f64,
+    substitutes: &Substitutes,
     run: &mut Run,
 ) -> Step<(mesh::Mesh, Helix, Vec<ThreadMeasure>, Learned)> {
     run.progress(Stage::Mesh, 0.0);
@@ -548,8 +588,12 @@ fn mesh_and_profile(
                 let helix = profile::estimate_helix(map, form).map(|first| {
                     let threads = profile::survey_threads(map, form, &first, &options.profile);
                     let refined = profile::refine_helix(map, form, &first, &threads);
-                    match local_phase_bins {
+                    let refined = match local_phase_bins {
                         Some(bins) => refined.with_local_phase(bins),
+                        None => refined,
+                    };
+                    match substitutes.helix {
+                        Some(replace) => replace(&refined),
                         None => refined,
                     }
                 });

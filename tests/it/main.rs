@@ -1,5 +1,6 @@
 //! The integration-test binary: real files, real archives, real rendered focal stacks.
 
+mod budget;
 mod bundle_reader;
 mod common;
 mod depth;

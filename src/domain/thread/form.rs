@@ -4,6 +4,10 @@
 
 use serde::{Deserialize, Serialize};
 
+/// The share of a crest's or root's own section ([`ThreadForm::flat_half_widths_mm`]) the
+/// profile's windows read about its centre: the rest keeps their samples off the flanks.
+pub const READ_SHARE_OF_FLAT: f64 = 0.6;
+
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum Family {
@@ -250,6 +254,22 @@ impl ThreadForm {
             },
         };
         ProfileKernel { pitch: self.pitch_mm, inv_pitch: 1.0 / self.pitch_mm, height: self.height_mm, shape }
+    }
+
+    /// Half widths along z of the crest's and the root's own section about their centres: the
+    /// flats of a trapezoid, or where a round form's arcs meet their flanks (ρ·cos α either side).
+    pub fn flat_half_widths_mm(&self) -> (f64, f64) {
+        match self.profile {
+            ProfileShape::Trapezoid { load_flank_deg, stab_flank_deg, crest_width_mm } => {
+                let flanks = self.height_mm * (load_flank_deg.to_radians().tan() + stab_flank_deg.to_radians().tan());
+                (crest_width_mm / 2.0, (self.pitch_mm - crest_width_mm - flanks) / 2.0)
+            }
+            ProfileShape::Rounded { flank_deg, .. } => {
+                let cos = flank_deg.to_radians().cos();
+                let (crest, root) = self.arc_radii_mm().expect("a rounded form");
+                (crest * cos, root * cos)
+            }
+        }
     }
 
     /// Axial offsets, from a crest centre, of the centres of the root before (−z) and after (+z) it.

@@ -4,7 +4,7 @@ mod connections;
 mod form;
 
 pub use connections::{Connection, ConnectionKind, ConnectionTable, GaugePlane};
-pub use form::{Family, FormError, ProfileKernel, ProfileShape, ThreadForm};
+pub use form::{Family, FormError, ProfileKernel, ProfileShape, READ_SHARE_OF_FLAT, ThreadForm};
 
 /// Millimetres per inch; API 5B tables are in inches.
 pub const MM_PER_INCH: f64 = 25.4;

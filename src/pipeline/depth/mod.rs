@@ -121,6 +121,18 @@ pub struct DepthOptions {
     /// this existed load with the default.
     #[serde(default = "prefilter_max_pixel_mm")]
     pub prefilter_max_pixel_mm: f64,
+    /// Where the focus box reaches across a flank from the part of a crest or root the profile
+    /// reads ([`box_reaches_across_flanks`], from the form and the optics), each pixel's depth is
+    /// located on the small edge box's curve ([`DepthOptions::edge_window_radius_px`]) about the
+    /// big box's peak, when that curve is itself trusted ([`DepthOptions::min_peak_ratio`]) and the
+    /// two lie within a frame step of each other. The big box's
+    /// curve then sums the other surface's texture, which moves its shoulders: at 0.12 mm pixels
+    /// a buttress read 48 µm too tall, a round thread 85 µm too short
+    /// (docs/notebook/accuracy.md, "The error budget"). The big box still finds the peak, so the
+    /// small box's noise cannot move a pixel to another surface. [`DepthOptions::for_part`] turns
+    /// it off where the box stays on the flat.
+    #[serde(default = "yes")]
+    pub refine_across_flanks: bool,
 }
 
 fn prefilter_sigma_px() -> f64 {
@@ -185,8 +197,22 @@ impl Default for DepthOptions {
             prefilter_sigma_px: 0.7,
             prefilter_min_noise: 0.015,
             prefilter_max_pixel_mm: 0.08,
+            refine_across_flanks: true,
         }
     }
+}
+
+/// Whether a focus box of `window_radius_px` reaches from the part of a crest or root the profile
+/// reads ([`crate::domain::thread::READ_SHARE_OF_FLAT`] of its own section) across the flank: its
+/// half size on the part, plus the blur radius at which the other surface (a thread height away)
+/// is imaged, exceeds the section's unread margin.
+pub fn box_reaches_across_flanks(form: &ThreadForm, optics: &Optics, window_radius_px: usize) -> bool {
+    let pixel_mm = optics.object_pixel_mm(optics.focus_distance_mm);
+    let box_half_mm = window_radius_px as f64 * pixel_mm;
+    let blur_half_mm = 0.5 * optics.coc_px(optics.focus_distance_mm + form.height_mm) * pixel_mm;
+    let (crest, root) = form.flat_half_widths_mm();
+    let margin_mm = (1.0 - crate::domain::thread::READ_SHARE_OF_FLAT) * crest.min(root);
+    box_half_mm + blur_half_mm > margin_mm
 }
 
 impl DepthOptions {
@@ -199,6 +225,16 @@ impl DepthOptions {
             ProfileShape::Rounded { .. } => self.window_radius_px,
         };
         Self { window_radius_px, ..self.clone() }
+    }
+
+    /// [`DepthOptions::for_form`], with [`DepthOptions::refine_across_flanks`] kept only where the
+    /// box reaches across a flank at these optics (and there is a small box to refine with).
+    pub fn for_part(&self, form: &ThreadForm, optics: &Optics) -> Self {
+        let mut options = self.for_form(form);
+        options.refine_across_flanks = options.refine_across_flanks
+            && options.edge_window_radius_px > 0
+            && box_reaches_across_flanks(form, optics, options.window_radius_px);
+        options
     }
 }
 
@@ -264,6 +300,8 @@ pub struct DepthScratch {
     best_edge: Vec<f32>,
     best_edge_frame: Vec<u32>,
     edge_row: Vec<f32>,
+    /// The small box's measure per frame, as `volume` ([`DepthOptions::refine_across_flanks`]).
+    edge_volume: Vec<f32>,
     /// The pre-filtered frame and the blur's intermediate ([`noise::blur`]).
     filtered: Vec<f32>,
     filter_scratch: Vec<f32>,
@@ -306,11 +344,13 @@ pub fn depth_from_focus_in(
         best_edge,
         best_edge_frame,
         edge_row,
+        edge_volume,
         filtered,
         filter_scratch,
     } = buffers;
     let edge_radius = options.edge_window_radius_px;
     let edge_aware = edge_radius > 0;
+    let refine = edge_aware && options.refine_across_flanks;
     if edge_aware {
         native_edge.resize(w * h, 0.0);
         refill(best_edge, plane, f32::MIN);
@@ -319,6 +359,9 @@ pub fn depth_from_focus_in(
     }
     // Every cell is written before it is read (each frame fills its whole plane).
     volume.resize(plane * n, 0.0);
+    if refine {
+        edge_volume.resize(plane * n, 0.0);
+    }
     refill(best, plane, f32::MIN);
     // The frame (index) where each pixel's measure is highest so far (the first such).
     refill(best_frame, plane, 0u32);
@@ -374,10 +417,15 @@ pub fn depth_from_focus_in(
             keep_sharpest(measures, k32, best_row, best_frame_row, Ties::KeepEarlier);
             if edge_aware {
                 let (above, below) = (&native_edge[y0 * w..(y0 + 1) * w], &native_edge[y1 * w..(y1 + 1) * w]);
-                resample_row(above, below, fy, &taps.xs, &spans, &fxs, edge_row);
+                let edge_measures = if refine {
+                    &mut edge_volume[k * plane + r * w..k * plane + (r + 1) * w]
+                } else {
+                    &mut edge_row[..]
+                };
+                resample_row(above, below, fy, &taps.xs, &spans, &fxs, edge_measures);
                 let rows = r * w..(r + 1) * w;
                 keep_sharpest(
-                    edge_row,
+                    edge_measures,
                     k32,
                     &mut best_edge[rows.clone()],
                     &mut best_edge_frame[rows],
@@ -400,66 +448,95 @@ pub fn depth_from_focus_in(
     let network = MedianNetwork::new(n);
     let mut all_in_focus = vec![0f32; plane * 3];
     let volume: &[f32] = volume;
+    let edge_volume: &[f32] = edge_volume;
+    // The frame step: how far the small box's depth may lie from the big box's (its peak is
+    // looked for within a frame of the big box's).
+    let step_mm = {
+        let mut steps: Vec<f64> = offsets.windows(2).map(|p| (p[1] - p[0]).abs()).collect();
+        crate::numeric::stats::median(&mut steps).unwrap_or(0.0)
+    };
     let (best_frame, best_edge_frame): (&[u32], &[u32]) = (best_frame, best_edge_frame);
     let held = &held;
     // Per row: the n frames' rows (each one contiguous run of the frame-major volume) give the
     // maximum and, copied out, the median for all of the row's pixels at once; only trusted
     // pixels' curves are walked one by one.
-    let init = || (vec![0f32; n * w], vec![0f32; w], vec![0u32; w], vec![0f32; n]);
+    let init = || (vec![0f32; n * w], vec![0f32; w], vec![0u32; w], vec![0f32; n], vec![0f32; n], vec![0f32; n]);
     depth_mm
         .par_chunks_mut(w)
         .zip(peak_ratio.par_chunks_mut(w))
         .zip(all_in_focus.par_chunks_mut(3 * w))
         .enumerate()
-        .for_each_init(init, |(sorted, peak, k_best, column), (r, ((depth_row, ratio_row), colour_row))| {
-            let y = r * step;
-            let row_of = |k: usize| &volume[k * plane + r * w..k * plane + (r + 1) * w];
-            for k in 0..n {
-                sorted[k * w..(k + 1) * w].copy_from_slice(row_of(k));
-            }
-            // The last maximum, as `max_by` would give.
-            peak.copy_from_slice(row_of(0));
-            k_best.fill(0);
-            for k in 1..n {
-                keep_sharpest(row_of(k), k as u32, peak, k_best, Ties::TakeLater);
-            }
-            network.apply(sorted, w);
-            let floors = &sorted[network.rank * w..(network.rank + 1) * w];
-            // Every pixel's colour from its sharpest frame (the first of equals).
-            for (x, colour) in colour_row.chunks_exact_mut(3).enumerate() {
-                held[best_frame[r * w + x] as usize].colour_at(x, y, w, colour);
-            }
-            for x in 0..w {
-                let floor = floors[x].max(1e-12);
-                let (peak, mut k_best) = (peak[x], k_best[x] as usize);
-                let ratio = peak / floor;
-                ratio_row[x] = ratio;
-                if x < border || y < border || x + border >= w || y + border >= h {
-                    continue; // the focus window or the breathing correction runs off the frame
+        .for_each_init(
+            init,
+            |(sorted, peak, k_best, column, small, small_sorted), (r, ((depth_row, ratio_row), colour_row))| {
+                let y = r * step;
+                let row_of = |k: usize| &volume[k * plane + r * w..k * plane + (r + 1) * w];
+                for k in 0..n {
+                    sorted[k * w..(k + 1) * w].copy_from_slice(row_of(k));
                 }
-                if ratio < options.min_peak_ratio || k_best == 0 || k_best + 1 == n {
-                    continue;
+                // The last maximum, as `max_by` would give.
+                peak.copy_from_slice(row_of(0));
+                k_best.fill(0);
+                for k in 1..n {
+                    keep_sharpest(row_of(k), k as u32, peak, k_best, Ties::TakeLater);
                 }
-                for (k, c) in column.iter_mut().enumerate() {
-                    *c = volume[k * plane + r * w + x];
+                network.apply(sorted, w);
+                let floors = &sorted[network.rank * w..(network.rank + 1) * w];
+                // Every pixel's colour from its sharpest frame (the first of equals).
+                for (x, colour) in colour_row.chunks_exact_mut(3).enumerate() {
+                    held[best_frame[r * w + x] as usize].colour_at(x, y, w, colour);
                 }
-                if edge_aware {
-                    let k_edge = best_edge_frame[r * w + x] as usize;
-                    let own = own_peak(column, k_best, k_edge, floor);
-                    if own != k_best {
-                        // The pixel's colour where the small box is sharpest, not from the other
-                        // surface's frame: the big box's colour mixes two surfaces into
-                        // registration's texture (docs/notebook/accuracy.md, The depth stage's
-                        // edge box).
-                        held[k_edge].colour_at(x, y, w, &mut colour_row[3 * x..3 * x + 3]);
-                        k_best = own;
+                for x in 0..w {
+                    let floor = floors[x].max(1e-12);
+                    let (peak, mut k_best) = (peak[x], k_best[x] as usize);
+                    let ratio = peak / floor;
+                    ratio_row[x] = ratio;
+                    if x < border || y < border || x + border >= w || y + border >= h {
+                        continue; // the focus window or the breathing correction runs off the frame
                     }
-                }
-                if let Some(in_focus_offset) = peak_offset(column, &offsets, k_best, floor, options.peak_fraction) {
+                    if ratio < options.min_peak_ratio || k_best == 0 || k_best + 1 == n {
+                        continue;
+                    }
+                    for (k, c) in column.iter_mut().enumerate() {
+                        *c = volume[k * plane + r * w + x];
+                    }
+                    if edge_aware {
+                        let k_edge = best_edge_frame[r * w + x] as usize;
+                        let own = own_peak(column, k_best, k_edge, floor);
+                        if own != k_best {
+                            // The pixel's colour where the small box is sharpest, not from the other
+                            // surface's frame: the big box's colour mixes two surfaces into
+                            // registration's texture (docs/notebook/accuracy.md, The depth stage's
+                            // edge box).
+                            held[k_edge].colour_at(x, y, w, &mut colour_row[3 * x..3 * x + 3]);
+                            k_best = own;
+                        }
+                    }
+                    let Some(mut in_focus_offset) = peak_offset(column, &offsets, k_best, floor, options.peak_fraction)
+                    else {
+                        continue;
+                    };
+                    if refine {
+                        for (k, c) in small.iter_mut().enumerate() {
+                            *c = edge_volume[k * plane + r * w + x];
+                        }
+                        if let Some(o) = small_box_offset(
+                            small,
+                            small_sorted,
+                            &offsets,
+                            k_best,
+                            options.min_peak_ratio,
+                            options.peak_fraction,
+                        )
+                        .filter(|o| (o - in_focus_offset).abs() <= step_mm)
+                        {
+                            in_focus_offset = o;
+                        }
+                    }
                     depth_row[x] = (big_f - in_focus_offset) as f32;
                 }
-            }
-        });
+            },
+        );
     let mut map = DepthMap {
         width: w,
         height: h,
@@ -478,6 +555,29 @@ pub fn depth_from_focus_in(
         drop_speckles(&mut map, link_mm as f32, min_pixels);
     }
     Ok(Some(map))
+}
+
+/// The in-focus offset on the small box's curve `small` about the big box's peak `k_best`: its
+/// highest frame within one of `k_best` (inside the stack), located by [`peak_offset`] over its own
+/// floor (the curve's median); None unless that frame rises `min_peak_ratio` over the floor, the
+/// rule a pixel's own curve is trusted by. `sorted` is scratch of the curve's length.
+fn small_box_offset(
+    small: &[f32],
+    sorted: &mut [f32],
+    offsets: &[f64],
+    k_best: usize,
+    min_peak_ratio: f32,
+    fraction: f32,
+) -> Option<f64> {
+    let n = small.len();
+    if n < 3 {
+        return None;
+    }
+    let (lo, hi) = (k_best.saturating_sub(1).max(1), (k_best + 1).min(n - 2));
+    let k = (lo..=hi).fold(lo, |m, k| if small[k] > small[m] { k } else { m });
+    sorted.copy_from_slice(small);
+    let floor = *sorted.select_nth_unstable_by(n / 2, f32::total_cmp).1;
+    (small[k] >= min_peak_ratio * floor.max(1e-12)).then(|| peak_offset(small, offsets, k, floor, fraction)).flatten()
 }
 
 #[cfg(test)]

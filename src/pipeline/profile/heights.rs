@@ -12,22 +12,16 @@ pub fn crest_window_half_mm(form: &ThreadForm) -> f64 {
     windows(form).0
 }
 
+/// Half widths along z of the windows fitted around the crest and root centres, mm.
+pub fn window_half_widths_mm(form: &ThreadForm) -> (f64, f64) {
+    windows(form)
+}
+
 /// Half widths of the windows fitted around the crest and root centres.
 pub(super) fn windows(form: &ThreadForm) -> (f64, f64) {
-    match form.profile {
-        ProfileShape::Trapezoid { load_flank_deg, stab_flank_deg, crest_width_mm } => {
-            let root = form.pitch_mm
-                - crest_width_mm
-                - form.height_mm * (load_flank_deg.to_radians().tan() + stab_flank_deg.to_radians().tan());
-            (0.6 * crest_width_mm / 2.0, 0.6 * root / 2.0)
-        }
-        ProfileShape::Rounded { flank_deg, .. } => {
-            // An arc meets its flanks at ρ·cos α either side of its centre.
-            let cos = flank_deg.to_radians().cos();
-            let (crest, root) = form.arc_radii_mm().expect("a rounded form");
-            (0.6 * (crest * cos), 0.6 * (root * cos))
-        }
-    }
+    let (crest, root) = form.flat_half_widths_mm();
+    let share = crate::domain::thread::READ_SHARE_OF_FLAT;
+    (share * crest, share * root)
 }
 
 /// Nominal curvatures (c of r = c·x²) of a rounded form's crest and root arcs (∓1/2ρ); None for

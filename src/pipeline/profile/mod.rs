@@ -13,10 +13,13 @@ mod heights;
 mod helix;
 pub mod pitch;
 
-pub use heights::{crest_window_half_mm, measure_threads, phase_height_rms_mm, smooth_along_helix, survey_threads};
+pub use heights::{
+    crest_window_half_mm, measure_threads, phase_height_rms_mm, smooth_along_helix, survey_threads,
+    window_half_widths_mm,
+};
 pub use helix::{PhaseError, PhaseUncertainty, estimate_helix, refine_helix};
 
-use crate::domain::thread::{ProfileShape, ThreadForm};
+use crate::domain::thread::ThreadForm;
 use crate::numeric::lsq::fit_line;
 use crate::numeric::sequence::trimmed_mean_counted;
 use crate::numeric::stats::median;

@@ -1,0 +1,62 @@
+//! The error budget (`crestscan budget`) on a real render: each variant replaces what it says,
+//! and what the stages after the depth maps add with exact inputs is measured, not assumed.
+
+use crate::common::{CI_SEED, ci_bundle};
+use crestscan::bundle::{Bundle, OpenOptions};
+use crestscan::domain::thread::ConnectionTable;
+use crestscan::eval::budget::{self, BANDS, Variant};
+use crestscan::pipeline::PipelineOptions;
+use crestscan::pipeline::profile::Correction;
+use crestscan::sim::Truth;
+use std::sync::atomic::AtomicBool;
+
+#[test]
+fn the_budget_puts_each_stage_s_truth_in_and_measures_what_follows() {
+    let dir = ci_bundle();
+    let bundle = Bundle::open(dir, &ConnectionTable::api5b(), OpenOptions::default()).unwrap();
+    let truth: Truth = serde_json::from_slice(&std::fs::read(dir.join("truth/truth.json")).unwrap()).unwrap();
+    let options = PipelineOptions::default();
+    let b = budget::budget("ci", &bundle, dir, &truth, &options, crestscan::learned::models(), &Variant::ALL).unwrap();
+    assert_eq!(b.variants.iter().map(|v| v.variant).collect::<Vec<_>>(), Variant::ALL.to_vec());
+    let of = |variant| b.variants.iter().find(|v| v.variant == variant).unwrap();
+
+    // The pipeline's row is the plain inspection (profile MLP off) compared with truth.
+    let mut plain = options.clone();
+    plain.profile.correction = Correction::Off;
+    let report =
+        crestscan::pipeline::inspect(&bundle, &plain, &|_, _| {}, &AtomicBool::new(false)).unwrap().unwrap().report;
+    let accuracy = crestscan::eval::compare(&report, &truth);
+    let pipeline = of(Variant::Pipeline);
+    assert_eq!(pipeline.height_rms_um, accuracy.height_rms_um, "seed {CI_SEED}");
+    assert!(pipeline.height_rms_um > 1.0, "{pipeline:?}");
+
+    // With the true depth maps and poses the heights are those of the later stages alone: the
+    // windows read the surface within a micrometre or two, far below what depth from focus leaves.
+    for variant in [Variant::TrueDepth, Variant::TrueDepthEverywhere, Variant::TrueHelix] {
+        let v = of(variant);
+        assert!(v.height_rms_um < 3.0 && v.height_rms_um < 0.5 * pipeline.height_rms_um, "{v:?}");
+        assert!(v.surface_crest_um.abs() < 2.0 && v.surface_root_um.abs() < 2.0, "{v:?}");
+        assert!(v.coverage > 0.5, "{v:?}");
+    }
+    // Depth everywhere fills what depth from focus did not trust: coverage does not fall.
+    assert!(of(Variant::TrueDepthEverywhere).coverage >= of(Variant::TrueDepth).coverage);
+    // The true helix is put in as given.
+    assert!(of(Variant::TrueHelix).z_h_error_um.abs() < 1e-6, "{:?}", of(Variant::TrueHelix));
+    assert!(pipeline.z_h_error_um.abs() < 0.5e3 * truth.pitch_mm);
+
+    // Per-pixel depth in bands along the view: crest and root pixels found in every band that
+    // sees the thread, their errors finite where any was trusted.
+    assert_eq!(b.depth.len(), BANDS);
+    let seen: Vec<_> = b.depth.iter().filter(|d| d.crest_pixels > 0 && d.root_pixels > 0).collect();
+    assert!(seen.len() >= BANDS / 2, "{:?}", b.depth);
+    for d in seen {
+        assert!(d.crest_um.is_finite() && d.root_um.is_finite(), "{d:?}");
+        assert!((d.height_um - (d.root_um - d.crest_um)).abs() < 1e-9);
+        assert!(d.trusted > 0.0 && d.trusted <= 1.0, "{d:?}");
+    }
+    // Every thread truth has is accounted for in each variant.
+    for v in &b.variants {
+        assert_eq!(v.threads.len(), truth.threads.len());
+        assert!(v.threads.iter().all(|t| t.bins_measured <= t.bins_true));
+    }
+}
