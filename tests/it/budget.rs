@@ -36,7 +36,8 @@ fn the_budget_puts_each_stage_s_truth_in_and_measures_what_follows() {
         let v = of(variant);
         assert!(v.height_rms_um < 3.0 && v.height_rms_um < 0.5 * pipeline.height_rms_um, "{v:?}");
         assert!(v.surface_crest_um.abs() < 2.0 && v.surface_root_um.abs() < 2.0, "{v:?}");
-        assert!(v.coverage > 0.5, "{v:?}");
+        // The ci bundle is a sector: a few per cent of the ring's bins.
+        assert!(v.coverage > 0.0 && v.coverage >= 0.5 * pipeline.coverage, "{v:?} against {pipeline:?}");
     }
     // Depth everywhere fills what depth from focus did not trust: coverage does not fall.
     assert!(of(Variant::TrueDepthEverywhere).coverage >= of(Variant::TrueDepth).coverage);
@@ -44,14 +45,20 @@ fn the_budget_puts_each_stage_s_truth_in_and_measures_what_follows() {
     assert!(of(Variant::TrueHelix).z_h_error_um.abs() < 1e-6, "{:?}", of(Variant::TrueHelix));
     assert!(pipeline.z_h_error_um.abs() < 0.5e3 * truth.pitch_mm);
 
-    // Per-pixel depth in bands along the view: crest and root pixels found in every band that
-    // sees the thread, their errors finite where any was trusted.
+    // Per-pixel depth in bands along the view: crest and root pixels found (a band of the ci
+    // bundle's narrow views may hold only one of them), each figure finite where its pixels are.
     assert_eq!(b.depth.len(), BANDS);
-    let seen: Vec<_> = b.depth.iter().filter(|d| d.crest_pixels > 0 && d.root_pixels > 0).collect();
-    assert!(seen.len() >= BANDS / 2, "{:?}", b.depth);
-    for d in seen {
-        assert!(d.crest_um.is_finite() && d.root_um.is_finite(), "{d:?}");
-        assert!((d.height_um - (d.root_um - d.crest_um)).abs() < 1e-9);
+    assert!(b.depth.iter().map(|d| d.crest_pixels).sum::<usize>() > 1000, "{:?}", b.depth);
+    assert!(b.depth.iter().map(|d| d.root_pixels).sum::<usize>() > 1000, "{:?}", b.depth);
+    assert!(b.depth.iter().any(|d| d.crest_pixels > 0 && d.root_pixels > 0), "{:?}", b.depth);
+    for d in &b.depth {
+        assert_eq!(d.crest_um.is_finite(), d.crest_pixels > 0, "{d:?}");
+        assert_eq!(d.root_um.is_finite(), d.root_pixels > 0, "{d:?}");
+        if d.crest_pixels > 0 && d.root_pixels > 0 {
+            assert!((d.height_um - (d.root_um - d.crest_um)).abs() < 1e-9);
+            // The ci station's depth from focus is good to a few tens of micrometres per pixel.
+            assert!(d.median_abs_um < 50.0, "{d:?}");
+        }
         assert!(d.trusted > 0.0 && d.trusted <= 1.0, "{d:?}");
     }
     // Every thread truth has is accounted for in each variant.

@@ -433,3 +433,64 @@ fn the_envelope_ends_where_the_noise_pre_filter_starts() {
     let bound = crate::domain::station::MEASURED.frame_noise_percent.1;
     assert_eq!(bound, 100.0 * DepthOptions::default().prefilter_min_noise);
 }
+
+#[test]
+fn the_box_is_refined_where_form_and_optics_put_it_across_a_flank() {
+    use crate::domain::thread::ConnectionTable;
+    let table = ConnectionTable::api5b();
+    let form = |name: &str| table.get(name).unwrap().form();
+    let (buttress, round) = (form("BC 4-1/2"), form("LC 4-1/2"));
+    let standard = crate::sim::presets::standard_optics();
+    // The standard station's 11-pixel box (0.2 mm on the part) and its blur of the other surface
+    // (0.13 mm) stay within a buttress flat's unread margin (0.47 mm)…
+    assert!(!box_reaches_across_flanks(&buttress, &standard, 5));
+    // …but not within a round crest's (0.18 mm), whose arcs the 9-pixel box spans.
+    assert!(box_reaches_across_flanks(&round, &standard, 4));
+    // The same box at coarse-survey's optics (0.12 mm pixels, f/0.57) reaches across a buttress
+    // flank; a box of no size at sharp optics does not.
+    let coarse = Optics {
+        focal_length_mm: Some(100.0),
+        f_number: 0.5714,
+        focus_distance_mm: 350.0,
+        pixel_pitch_um: 48.0,
+        ..standard.clone()
+    };
+    assert!(box_reaches_across_flanks(&buttress, &coarse, 5));
+    let sharp = Optics { f_number: 16.0, ..standard.clone() };
+    assert!(!box_reaches_across_flanks(&buttress, &sharp, 0));
+    // for_part keeps the refinement only where the box reaches across, and only with a small box.
+    let options = DepthOptions::default();
+    assert!(!options.for_part(&buttress, &standard).refine_across_flanks);
+    assert!(options.for_part(&buttress, &coarse).refine_across_flanks);
+    let no_small_box = DepthOptions { edge_window_radius_px: 0, ..DepthOptions::default() };
+    assert!(!no_small_box.for_part(&buttress, &coarse).refine_across_flanks);
+    let off = DepthOptions { refine_across_flanks: false, ..DepthOptions::default() };
+    assert!(!off.for_part(&buttress, &coarse).refine_across_flanks);
+    // Options stored before it existed refine.
+    let old: DepthOptions =
+        serde_json::from_str(r#"{"window_radius_px": 4, "min_peak_ratio": 1.6, "peak_fraction": 0.3}"#).unwrap();
+    assert!(old.refine_across_flanks);
+}
+
+#[test]
+fn the_small_box_locates_its_own_peak_next_to_the_big_box_s_and_only_a_trusted_one() {
+    let offsets: Vec<f64> = (0..12).map(|k| k as f64 * 0.3).collect();
+    let mut sorted = vec![0f32; 12];
+    // A symmetric peak centred between frames 5 and 6 (offset 1.65 mm).
+    let small = [1.0, 1.0, 1.0, 1.1, 2.0, 6.0, 6.0, 2.0, 1.1, 1.0, 1.0, 1.0];
+    let at = |k_best| small_box_offset(&small, &mut sorted.clone(), &offsets, k_best, 1.6, 0.3);
+    for k_best in [4, 5, 6, 7] {
+        let o = at(k_best).unwrap();
+        assert!((o - 1.65).abs() < 1e-9, "{k_best}: {o}");
+    }
+    // The big box's peak two frames off: the small box's highest frame within one of it is a
+    // shoulder, and the located offset is the same curve's (the caller's step bound rejects it
+    // where it lies a step away).
+    assert!(at(3).is_some());
+    // A curve that does not rise 1.6 times over its floor is noise: not used.
+    let flat = [1.0, 1.1, 1.0, 1.2, 1.3, 1.4, 1.3, 1.2, 1.1, 1.0, 1.0, 1.0];
+    assert_eq!(small_box_offset(&flat, &mut sorted, &offsets, 5, 1.6, 0.3), None);
+    // A peak at the stack's end has no shoulder there: none.
+    let end = [6.0, 6.0, 2.0, 1.1, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0];
+    assert_eq!(small_box_offset(&end, &mut sorted, &offsets, 0, 1.6, 0.3), None);
+}

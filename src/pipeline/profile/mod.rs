@@ -19,6 +19,8 @@ pub use heights::{
 };
 pub use helix::{PhaseError, PhaseUncertainty, estimate_helix, refine_helix};
 
+#[cfg(test)]
+use crate::domain::thread::ProfileShape;
 use crate::domain::thread::ThreadForm;
 use crate::numeric::lsq::fit_line;
 use crate::numeric::sequence::trimmed_mean_counted;
