@@ -133,6 +133,11 @@ pub struct DepthOptions {
     /// it off where the box stays on the flat.
     #[serde(default = "yes")]
     pub refine_across_flanks: bool,
+    /// Whether this run refines: `refine_across_flanks` where [`DepthOptions::for_part`] found
+    /// the box reaching across a flank at the bundle's optics; false in options not resolved for
+    /// a part. Not an option of its own.
+    #[serde(skip)]
+    pub refine_now: bool,
 }
 
 fn prefilter_sigma_px() -> f64 {
@@ -198,6 +203,7 @@ impl Default for DepthOptions {
             prefilter_min_noise: 0.015,
             prefilter_max_pixel_mm: 0.08,
             refine_across_flanks: true,
+            refine_now: false,
         }
     }
 }
@@ -228,11 +234,18 @@ impl DepthOptions {
     }
 
     /// [`DepthOptions::for_form`], with [`DepthOptions::refine_across_flanks`] kept only where the
-    /// box reaches across a flank at these optics (and there is a small box to refine with).
+    /// box reaches across a flank at these optics, there is a small box to refine with, and the
+    /// object pixel is coarser than the fine class's
+    /// ([`crate::domain::station::FINE_MAX_PIXEL_MM`]). At fine pixels the windows hold many
+    /// pixels and the big box's shift is a few micrometres: there the small box's noise cost more
+    /// than it removed (the standard station's round thread read 6.1 → 8.0 µm RMS;
+    /// docs/notebook/accuracy.md, "The error budget").
     pub fn for_part(&self, form: &ThreadForm, optics: &Optics) -> Self {
         let mut options = self.for_form(form);
-        options.refine_across_flanks = options.refine_across_flanks
+        let coarse = optics.object_pixel_mm(optics.focus_distance_mm) > crate::domain::station::FINE_MAX_PIXEL_MM;
+        options.refine_now = options.refine_across_flanks
             && options.edge_window_radius_px > 0
+            && coarse
             && box_reaches_across_flanks(form, optics, options.window_radius_px);
         options
     }
@@ -350,7 +363,7 @@ pub fn depth_from_focus_in(
     } = buffers;
     let edge_radius = options.edge_window_radius_px;
     let edge_aware = edge_radius > 0;
-    let refine = edge_aware && options.refine_across_flanks;
+    let refine = edge_aware && options.refine_now;
     if edge_aware {
         native_edge.resize(w * h, 0.0);
         refill(best_edge, plane, f32::MIN);

@@ -440,7 +440,16 @@ fn the_box_is_refined_where_form_and_optics_put_it_across_a_flank() {
     let table = ConnectionTable::api5b();
     let form = |name: &str| table.get(name).unwrap().form();
     let (buttress, round) = (form("BC 4-1/2"), form("LC 4-1/2"));
-    let standard = crate::sim::presets::standard_optics();
+    // The standard station's optics (50 mm f/1.4 at 220 mm, 12 µm pixels: 0.041 mm on the part).
+    let standard = Optics {
+        projection: Projection::Perspective,
+        focal_length_mm: Some(50.0),
+        f_number: 1.4,
+        focus_distance_mm: 220.0,
+        pixel_pitch_um: 12.0,
+        principal_point_px: None,
+        magnification: None,
+    };
     // The standard station's 11-pixel box (0.2 mm on the part) and its blur of the other surface
     // (0.13 mm) stay within a buttress flat's unread margin (0.47 mm)…
     assert!(!box_reaches_across_flanks(&buttress, &standard, 5));
@@ -460,16 +469,20 @@ fn the_box_is_refined_where_form_and_optics_put_it_across_a_flank() {
     assert!(!box_reaches_across_flanks(&buttress, &sharp, 0));
     // for_part keeps the refinement only where the box reaches across, and only with a small box.
     let options = DepthOptions::default();
-    assert!(!options.for_part(&buttress, &standard).refine_across_flanks);
-    assert!(options.for_part(&buttress, &coarse).refine_across_flanks);
+    assert!(!options.for_part(&buttress, &standard).refine_now);
+    // At fine pixels (the standard station's 0.041 mm) it is not refined even where the box
+    // reaches across.
+    assert!(!options.for_part(&round, &standard).refine_now);
+    assert!(options.for_part(&round, &coarse).refine_now);
+    assert!(options.for_part(&buttress, &coarse).refine_now);
     let no_small_box = DepthOptions { edge_window_radius_px: 0, ..DepthOptions::default() };
-    assert!(!no_small_box.for_part(&buttress, &coarse).refine_across_flanks);
+    assert!(!no_small_box.for_part(&buttress, &coarse).refine_now);
     let off = DepthOptions { refine_across_flanks: false, ..DepthOptions::default() };
-    assert!(!off.for_part(&buttress, &coarse).refine_across_flanks);
+    assert!(!off.for_part(&buttress, &coarse).refine_now);
     // Options stored before it existed refine.
     let old: DepthOptions =
         serde_json::from_str(r#"{"window_radius_px": 4, "min_peak_ratio": 1.6, "peak_fraction": 0.3}"#).unwrap();
-    assert!(old.refine_across_flanks);
+    assert!(old.refine_now);
 }
 
 #[test]
