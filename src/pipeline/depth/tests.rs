@@ -479,10 +479,12 @@ fn the_box_is_refined_where_form_and_optics_put_it_across_a_flank() {
     assert!(!no_small_box.for_part(&buttress, &coarse).refine_now);
     let off = DepthOptions { refine_across_flanks: false, ..DepthOptions::default() };
     assert!(!off.for_part(&buttress, &coarse).refine_now);
-    // Options stored before it existed refine.
+    // Options stored before it existed refine where for_part finds the box across a flank;
+    // options not resolved for a part never do.
     let old: DepthOptions =
         serde_json::from_str(r#"{"window_radius_px": 4, "min_peak_ratio": 1.6, "peak_fraction": 0.3}"#).unwrap();
-    assert!(old.refine_now);
+    assert!(old.refine_across_flanks && !old.refine_now);
+    assert!(old.for_part(&buttress, &coarse).refine_now);
 }
 
 #[test]
