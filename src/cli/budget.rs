@@ -14,13 +14,14 @@ pub struct BudgetArgs {
     /// Simulated bundles (folders with truth/ beside manifest.json).
     #[arg(required = true)]
     bundles: Vec<PathBuf>,
-    /// Pipeline options as a JSON file (as `inspect --options`); the profile MLP is always off.
+    /// Pipeline options as a JSON file (as `inspect --options`); the profile MLP runs as they say
+    /// in the first run only.
     #[arg(long)]
     options: Option<PathBuf>,
     /// Also write every bundle's budget here, one JSON object per line.
     #[arg(long)]
     json: Option<PathBuf>,
-    /// Only these runs (comma-separated) [default: all five].
+    /// Only these runs (comma-separated) [default: all six].
     #[arg(long, value_enum, value_delimiter = ',')]
     variants: Vec<VariantArg>,
     /// Print the per-thread tables too.
@@ -37,6 +38,7 @@ impl BudgetArgs {
             self.variants.iter().map(|&v| Variant::from(v)).collect()
         };
         let mut lines = String::new();
+        let mut failed = Vec::new();
         for dir in &self.bundles {
             let bundle = open_bundle(dir, OpenOptions::default())?;
             let truth_path = dir.join("truth").join("truth.json");
@@ -45,14 +47,31 @@ impl BudgetArgs {
             )
             .with_context(|| format!("{}: not a simulation's truth", truth_path.display()))?;
             let case = dir.file_name().map_or_else(|| dir.display().to_string(), |n| n.to_string_lossy().into_owned());
-            let b = budget::budget(&case, &bundle, dir, &truth, &options, crestscan::learned::models(), &variants)
-                .with_context(|| format!("{}", dir.display()))?;
+            // One bundle the pipeline refuses does not stop the others: it is named, and the
+            // command fails at the end.
+            let b = match budget::budget(&case, &bundle, dir, &truth, &options, crestscan::learned::models(), &variants)
+            {
+                Ok(b) => b,
+                Err(e) => {
+                    eprintln!("{}: {e}", dir.display());
+                    failed.push(dir.display().to_string());
+                    continue;
+                }
+            };
             print!("{}", text(&b, self.threads));
             lines.push_str(&serde_json::to_string(&b)?);
             lines.push('\n');
         }
         if let Some(path) = &self.json {
             std::fs::write(path, lines).with_context(|| format!("writing {}", path.display()))?;
+        }
+        if !failed.is_empty() {
+            anyhow::bail!(
+                "the pipeline refused {} of {} bundles: {}",
+                failed.len(),
+                self.bundles.len(),
+                failed.join(", ")
+            );
         }
         Ok(())
     }
@@ -137,6 +156,7 @@ fn text(b: &Budget, threads: bool) -> String {
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
 enum VariantArg {
+    AsConfigured,
     Pipeline,
     TruePoses,
     TrueDepth,
@@ -147,6 +167,7 @@ enum VariantArg {
 impl From<VariantArg> for Variant {
     fn from(v: VariantArg) -> Self {
         match v {
+            VariantArg::AsConfigured => Variant::AsConfigured,
             VariantArg::Pipeline => Variant::Pipeline,
             VariantArg::TruePoses => Variant::TruePoses,
             VariantArg::TrueDepth => Variant::TrueDepth,

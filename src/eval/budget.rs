@@ -10,8 +10,9 @@
 //! thread. The depth maps themselves are read per pixel, crest and root apart, in bands along
 //! the view's axis (where a perspective view sees the flanks obliquely).
 //!
-//! Heights are the classical ones (the profile MLP is off): the budget is of the measurement, and
-//! the MLP's effect is read apart (its `auto`).
+//! Heights are the classical ones (the profile MLP is off) in every run but the first, which runs
+//! the options as given: the budget is of the measurement, and the MLP's effect is the difference
+//! between the first two rows.
 
 use crate::bundle::Bundle;
 use crate::domain::optics::{Optics, ViewPose};
@@ -92,7 +93,10 @@ pub struct VariantBudget {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Variant {
-    /// The pipeline as it runs.
+    /// The pipeline with the options as given, the profile MLP included where they run it (the
+    /// default `auto`: at object pixels over 0.06 mm); the window columns are the classical fits.
+    AsConfigured,
+    /// The pipeline as it runs, the profile MLP off: the classical measurement.
     Pipeline,
     /// The true poses in fusion.
     TruePoses,
@@ -105,12 +109,19 @@ pub enum Variant {
 }
 
 impl Variant {
-    pub const ALL: [Variant; 5] =
-        [Variant::Pipeline, Variant::TruePoses, Variant::TrueDepth, Variant::TrueDepthEverywhere, Variant::TrueHelix];
+    pub const ALL: [Variant; 6] = [
+        Variant::AsConfigured,
+        Variant::Pipeline,
+        Variant::TruePoses,
+        Variant::TrueDepth,
+        Variant::TrueDepthEverywhere,
+        Variant::TrueHelix,
+    ];
 
     pub fn label(self) -> &'static str {
         match self {
-            Variant::Pipeline => "pipeline",
+            Variant::AsConfigured => "as configured (profile MLP as the options say)",
+            Variant::Pipeline => "pipeline (MLP off)",
             Variant::TruePoses => "+ true poses",
             Variant::TrueDepth => "+ true depth (trusted pixels)",
             Variant::TrueDepthEverywhere => "+ true depth (every pixel)",
@@ -147,6 +158,7 @@ pub fn budget(
     models: &crate::learned::Models,
     variants_wanted: &[Variant],
 ) -> Result<Budget, BudgetError> {
+    let configured = options;
     let mut options = options.clone();
     options.profile.correction = crate::pipeline::profile::Correction::Off;
     let true_depth = read_true_depth(bundle, dir)?;
@@ -171,15 +183,16 @@ pub fn budget(
         };
         let subs = Substitutes {
             depth: match variant {
-                Variant::Pipeline | Variant::TruePoses => None,
+                Variant::AsConfigured | Variant::Pipeline | Variant::TruePoses => None,
                 Variant::TrueDepth | Variant::TrueHelix => Some(&trusted_only),
                 Variant::TrueDepthEverywhere => Some(&everywhere),
             },
-            poses: (variant != Variant::Pipeline).then_some(true_poses.as_slice()),
+            poses: (!matches!(variant, Variant::AsConfigured | Variant::Pipeline)).then_some(true_poses.as_slice()),
             helix: (variant == Variant::TrueHelix).then_some(&true_helix),
         };
-        let inspection = crate::pipeline::inspect_substituted(bundle, &options, models, &subs)?;
-        if depth.is_empty() && matches!(variant, Variant::Pipeline | Variant::TruePoses) {
+        let run_options = if variant == Variant::AsConfigured { configured } else { &options };
+        let inspection = crate::pipeline::inspect_substituted(bundle, run_options, models, &subs)?;
+        if depth.is_empty() && matches!(variant, Variant::AsConfigured | Variant::Pipeline | Variant::TruePoses) {
             depth = depth_bands(&bundle.optics, &true_poses, &inspection.depth_maps, &true_depth, model);
         }
         variants.push(variant_budget(variant, &inspection, truth));

@@ -27,6 +27,10 @@ fn the_budget_puts_each_stage_s_truth_in_and_measures_what_follows() {
         crestscan::pipeline::inspect(&bundle, &plain, &|_, _| {}, &AtomicBool::new(false)).unwrap().unwrap().report;
     let accuracy = crestscan::eval::compare(&report, &truth);
     let pipeline = of(Variant::Pipeline);
+    // The first row runs the options as given: the default inspection.
+    let configured =
+        crestscan::pipeline::inspect(&bundle, &options, &|_, _| {}, &AtomicBool::new(false)).unwrap().unwrap().report;
+    assert_eq!(of(Variant::AsConfigured).height_rms_um, crestscan::eval::compare(&configured, &truth).height_rms_um);
     assert_eq!(pipeline.height_rms_um, accuracy.height_rms_um, "seed {CI_SEED}");
     assert!(pipeline.height_rms_um > 1.0, "{pipeline:?}");
 
