@@ -126,6 +126,9 @@ fn text(b: &Budget, threads: bool) -> String {
             um(Some(v.window_root_um)),
         );
     }
+    for (variant, reason) in &b.refused {
+        let _ = writeln!(s, "\n{}: refused: {reason}", variant.label());
+    }
     if threads {
         for v in &b.variants {
             let _ = writeln!(s, "\n{} per thread (µm):\n", v.variant.label());

@@ -138,6 +138,9 @@ pub struct Budget {
     pub form: String,
     pub depth: Vec<DepthBand>,
     pub variants: Vec<VariantBudget>,
+    /// The runs the pipeline refused (no thread found, say), with its reason: a substitution can
+    /// leave the helix without a spectrum where the pipeline's own run found one.
+    pub refused: Vec<(Variant, String)>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -171,6 +174,7 @@ pub fn budget(
         .collect::<Result<Vec<_>, _>>()?;
     let model = &truth.part_model;
     let mut variants = Vec::new();
+    let mut refused = Vec::new();
     let mut depth = Vec::new();
     for &variant in variants_wanted {
         let trusted_only = |v: usize, map: &mut DepthMap| substitute_depth(map, &true_depth[v], true);
@@ -191,7 +195,13 @@ pub fn budget(
             helix: (variant == Variant::TrueHelix).then_some(&true_helix),
         };
         let run_options = if variant == Variant::AsConfigured { configured } else { &options };
-        let inspection = crate::pipeline::inspect_substituted(bundle, run_options, models, &subs)?;
+        let inspection = match crate::pipeline::inspect_substituted(bundle, run_options, models, &subs) {
+            Ok(inspection) => inspection,
+            Err(e) => {
+                refused.push((variant, e.to_string()));
+                continue;
+            }
+        };
         if depth.is_empty() && matches!(variant, Variant::AsConfigured | Variant::Pipeline | Variant::TruePoses) {
             depth = depth_bands(&bundle.optics, &true_poses, &inspection.depth_maps, &true_depth, model);
         }
@@ -205,6 +215,7 @@ pub fn budget(
         form: format!("{:?}", model.form.family),
         depth,
         variants,
+        refused,
     })
 }
 
