@@ -57,7 +57,7 @@ use crate::domain::frame::FrameError;
 use crate::domain::optics::ViewPose;
 use crate::domain::rules::{self, RuleInput};
 use crate::problem::{Code, ErrorCode};
-use depth::{DepthMap, DepthScratch, depth_from_focus_in};
+use depth::{DepthMap, DepthScratch};
 use fuse::Fusion;
 use profile::{Helix, ThreadMeasure};
 use rayon::prelude::*;
@@ -346,17 +346,10 @@ fn measure_depth(
 ) -> Step<(Vec<DepthMap>, f64, Option<crate::learned::ModelUse>)> {
     let views = recording.views();
     run.progress(Stage::Depth, 0.0);
-    let model = match options.depth.method {
-        depth::DepthMethod::Classic => None,
-        depth::DepthMethod::Cnn => Some(
-            models
-                .get(crate::learned::ModelRole::Depth, options.depth.model.as_deref())
-                .map_err(PipelineError::from)?,
-        ),
-    };
+    let estimator = depth::estimator::estimator(&options.depth, models).map_err(PipelineError::from)?;
     // The nets' share of the stage, summed over views (they run on the same workers as the
     // classical measure), for benchmarks to set against the classical stage.
-    let (cnn_nanos, classic_nanos) = (std::sync::atomic::AtomicU64::new(0), std::sync::atomic::AtomicU64::new(0));
+    let (learned_nanos, total_nanos) = (std::sync::atomic::AtomicU64::new(0), std::sync::atomic::AtomicU64::new(0));
     let done = AtomicUsize::new(0);
     let total = views.len();
     // Depth buffers are handed from view to view (one set per view in flight, not one per view).
@@ -370,34 +363,21 @@ fn measure_depth(
         .map(|(v, view)| {
             let started = Instant::now();
             let mut scratch = scratches.lock().expect("no panics while held").pop().unwrap_or_default();
-            let map = depth_from_focus_in(
-                &mut scratch,
-                recording.optics(),
+            let frame_at = |k| recording.read_frame(v, k);
+            let stack = depth::estimator::ViewStack {
+                optics: recording.optics(),
                 view,
-                &depth_options,
-                |k| recording.read_frame(v, k),
-                &cancelled,
-            );
+                options: &depth_options,
+                frame_at: &frame_at,
+                cancelled: &cancelled,
+            };
+            let estimate = estimator.estimate(&stack, &mut scratch);
             scratches.lock().expect("no panics while held").push(scratch);
-            let mut map = map?;
-            classic_nanos.fetch_add(started.elapsed().as_nanos() as u64, Ordering::Relaxed);
-            if let (Some(model), Some(classical)) = (&model, map.as_mut()) {
-                let started = Instant::now();
-                let done = depth::cnn_depth(
-                    model,
-                    recording.optics(),
-                    view,
-                    |k| recording.read_frame(v, k),
-                    &cancelled,
-                    classical,
-                )?;
-                cnn_nanos.fetch_add(started.elapsed().as_nanos() as u64, Ordering::Relaxed);
-                if !done {
-                    map = None;
-                }
-            }
+            let estimate = estimate?;
+            total_nanos.fetch_add(started.elapsed().as_nanos() as u64, Ordering::Relaxed);
+            learned_nanos.fetch_add(estimate.as_ref().map_or(0, |e| e.learned.as_nanos() as u64), Ordering::Relaxed);
             run_ref.progress(Stage::Depth, (done.fetch_add(1, Ordering::Relaxed) + 1) as f64 / total as f64);
-            Ok(map)
+            Ok(estimate.map(|e| e.map))
         })
         .collect::<Result<_, PipelineError>>()?;
     if run.cancelled() || depth_maps.iter().any(Option::is_none) {
@@ -406,7 +386,7 @@ fn measure_depth(
     drop(scratches);
     let mut depth_maps: Vec<DepthMap> = depth_maps.into_iter().flatten().collect();
     // The sub-frame phase bias is the classical peak finder's; the nets' planes have their own.
-    if options.depth.equalize_phase && model.is_none() {
+    if options.depth.equalize_phase && estimator.model().is_none() {
         let grids: Vec<Option<(f64, f64)>> = views
             .iter()
             .map(|v| depth::even_frame_grid(&v.frames.iter().map(|f| f.offset_mm).collect::<Vec<_>>()))
@@ -418,12 +398,13 @@ fn measure_depth(
         return Err(PipelineError::NoDepth.into());
     }
     let stage_seconds = run.lap(Stage::Depth);
+    let model = estimator.model().cloned();
     if model.is_some() {
-        // The views run in parallel: the stage's wall time shared by the two parts' summed times.
-        let (cnn, classic) = (cnn_nanos.into_inner() as f64, classic_nanos.into_inner() as f64);
-        run.record_part(report::DEPTH_CNN, stage_seconds * cnn / (cnn + classic).max(1.0));
+        // The views run in parallel: the stage's wall time shared by the parts' summed times.
+        let (learned, all) = (learned_nanos.into_inner() as f64, total_nanos.into_inner() as f64);
+        run.record_part(report::DEPTH_CNN, stage_seconds * learned / all.max(1.0));
     }
-    Ok((depth_maps, depth_coverage, model.map(|m| m.identity.clone())))
+    Ok((depth_maps, depth_coverage, model))
 }
 
 /// What registration hands on: the refined poses, what it measured, and the views' z ranges at

@@ -283,3 +283,53 @@ fn cnn_depth_measures_the_classical_pixels_near_truth_and_the_report_names_the_m
     assert!(err.to_string().contains("no-such-depth") && err.to_string().contains("depth-unet"), "{err}");
     assert_eq!(crestscan::problem::ErrorCode::culprit(&err).as_deref(), Some("depth.model"));
 }
+
+/// The bundle's frames, counting how often each is decoded.
+struct Counting<'a> {
+    bundle: &'a Bundle,
+    reads: std::sync::Mutex<std::collections::HashMap<(usize, usize), usize>>,
+}
+
+impl crestscan::domain::frame::FrameSource for Counting<'_> {
+    fn read_frame(
+        &self,
+        view: usize,
+        frame: usize,
+    ) -> Result<crestscan::domain::frame::Frame, crestscan::domain::frame::FrameError> {
+        *self.reads.lock().unwrap().entry((view, frame)).or_default() += 1;
+        crestscan::domain::frame::FrameSource::read_frame(self.bundle, view, frame)
+    }
+}
+
+impl crestscan::domain::frame::Recording for Counting<'_> {
+    fn part(&self) -> &crestscan::domain::part::Part {
+        self.bundle.part()
+    }
+    fn optics(&self) -> &crestscan::domain::optics::Optics {
+        self.bundle.optics()
+    }
+    fn views(&self) -> &[crestscan::domain::frame::View] {
+        self.bundle.views()
+    }
+}
+
+#[test]
+fn every_depth_estimator_decodes_each_frame_once() {
+    use crestscan::domain::frame::Recording;
+    use crestscan::pipeline::depth::DepthMethod;
+    let bundle = Bundle::open(ci_bundle(), &ConnectionTable::api5b(), OpenOptions::default()).unwrap();
+    let frames: usize = bundle.views().iter().map(|v| v.frames.len()).sum();
+    for method in [DepthMethod::Classic, DepthMethod::Cnn] {
+        let counting = Counting { bundle: &bundle, reads: Default::default() };
+        let mut options = PipelineOptions::default();
+        options.profile.correction = Correction::Off;
+        options.depth.method = method;
+        let inspection = pipeline::inspect(&counting, &options, &|_, _| {}, &AtomicBool::new(false)).unwrap().unwrap();
+        let reads = counting.reads.into_inner().unwrap();
+        assert_eq!(reads.len(), frames, "{method:?}: every frame read");
+        assert!(reads.values().all(|&n| n == 1), "{method:?}: {reads:?}");
+        // The nets still ran: the report names their model.
+        let models = inspection.report.provenance.as_ref().map_or(0, |p| p.models.len());
+        assert_eq!(models, usize::from(method == DepthMethod::Cnn), "{method:?}");
+    }
+}

@@ -18,6 +18,7 @@
 //! option, decides a Gaussian pre-filter for noisy views.
 
 pub mod cnn;
+pub mod estimator;
 pub mod measure;
 pub mod noise;
 mod peak;
@@ -127,7 +128,7 @@ pub struct DepthOptions {
     /// big box's peak, when that curve is itself trusted ([`DepthOptions::min_peak_ratio`]) and the
     /// two lie within a frame step of each other. The big box's
     /// curve then sums the other surface's texture, which moves its shoulders: at 0.12 mm pixels
-    /// a buttress read 48 µm too tall, a round thread 85 µm too short
+    /// a buttress read 48 µm too tall, a round thread 50–59 µm too short
     /// (docs/notebook/accuracy.md, "The error budget"). The big box still finds the peak, so the
     /// small box's noise cannot move a pixel to another surface. [`DepthOptions::for_part`] turns
     /// it off where the box stays on the flat.
@@ -318,6 +319,10 @@ pub struct DepthScratch {
     /// The pre-filtered frame and the blur's intermediate ([`noise::blur`]).
     filtered: Vec<f32>,
     filter_scratch: Vec<f32>,
+    /// Whether [`depth_from_focus_in`] leaves the view's decoded frames in `kept_frames` for a
+    /// second reader ([`estimator::Cnn`]) rather than dropping them.
+    pub(super) keep_frames: bool,
+    pub(super) kept_frames: Vec<Option<Frame>>,
 }
 
 /// `buffer` holding `len` copies of `value` (its allocation kept).
@@ -360,6 +365,8 @@ pub fn depth_from_focus_in(
         edge_volume,
         filtered,
         filter_scratch,
+        keep_frames,
+        kept_frames,
     } = buffers;
     let edge_radius = options.edge_window_radius_px;
     let edge_aware = edge_radius > 0;
@@ -469,7 +476,7 @@ pub fn depth_from_focus_in(
         crate::numeric::stats::median(&mut steps).unwrap_or(0.0)
     };
     let (best_frame, best_edge_frame): (&[u32], &[u32]) = (best_frame, best_edge_frame);
-    let held = &held;
+    let held_frames = &held;
     // Per row: the n frames' rows (each one contiguous run of the frame-major volume) give the
     // maximum and, copied out, the median for all of the row's pixels at once; only trusted
     // pixels' curves are walked one by one.
@@ -497,7 +504,7 @@ pub fn depth_from_focus_in(
                 let floors = &sorted[network.rank * w..(network.rank + 1) * w];
                 // Every pixel's colour from its sharpest frame (the first of equals).
                 for (x, colour) in colour_row.chunks_exact_mut(3).enumerate() {
-                    held[best_frame[r * w + x] as usize].colour_at(x, y, w, colour);
+                    held_frames[best_frame[r * w + x] as usize].colour_at(x, y, w, colour);
                 }
                 for x in 0..w {
                     let floor = floors[x].max(1e-12);
@@ -521,7 +528,7 @@ pub fn depth_from_focus_in(
                             // surface's frame: the big box's colour mixes two surfaces into
                             // registration's texture (docs/notebook/accuracy.md, The depth stage's
                             // edge box).
-                            held[k_edge].colour_at(x, y, w, &mut colour_row[3 * x..3 * x + 3]);
+                            held_frames[k_edge].colour_at(x, y, w, &mut colour_row[3 * x..3 * x + 3]);
                             k_best = own;
                         }
                     }
@@ -550,6 +557,10 @@ pub fn depth_from_focus_in(
                 }
             },
         );
+    kept_frames.clear();
+    if *keep_frames {
+        kept_frames.extend(held.into_iter().map(|h| Some(h.frame)));
+    }
     let mut map = DepthMap {
         width: w,
         height: h,
