@@ -5,7 +5,8 @@
 //! whole process, and would end it again at each re-claim.
 //!
 //! The model counts the buffers the stages hold at once: per view in
-//! flight, the depth stage's focus volume (4 bytes a sample), its held frames (as decoded) and
+//! flight, the depth stage's focus volume (4 bytes a sample; 8 where the small box refines the
+//! depth at flanks), its held frames (as decoded) and
 //! about a dozen single-precision planes; per view, its depth map, confidence and colour until
 //! fusion; the fused grid's cells with registration's view grids; the mesh. The coefficients are
 //! upper bounds of what those stages allocate, checked against measured peaks
@@ -61,12 +62,15 @@ pub fn estimate(recording: &dyn Recording, options: &PipelineOptions, threads: u
     let views = recording.views();
     let pixels = |v: &crate::domain::frame::View| v.format.width as f64 * v.format.height as f64;
     // Each thread holds one view's stack at a time; the largest views bound what is in flight.
+    // Where the small box refines the depth at flanks, its measure is a second focus volume.
+    let depth_options = options.depth.for_part(&recording.part().form, recording.optics());
+    let volume_bytes = if depth_options.refine_now { 8.0 } else { 4.0 };
     let mut stacks: Vec<f64> = views
         .iter()
         .map(|v| {
             let frames = v.frames.len() as f64;
             let sample_bytes = v.format.channels as f64 * (v.format.bit_depth as f64 / 8.0).ceil();
-            frames * pixels(v) * (4.0 + sample_bytes) + DEPTH_PLANES * 4.0 * pixels(v)
+            frames * pixels(v) * (volume_bytes + sample_bytes) + DEPTH_PLANES * 4.0 * pixels(v)
         })
         .collect();
     stacks.sort_by(|a, b| b.total_cmp(a));
