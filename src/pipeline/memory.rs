@@ -77,7 +77,9 @@ pub fn estimate(recording: &dyn Recording, options: &PipelineOptions, threads: u
     let depth: f64 = stacks.iter().take(threads.max(1)).sum();
     let view_bytes: f64 = views.iter().map(pixels).sum::<f64>() * KEPT_BYTES_PER_VIEW_PIXEL;
     let band = surface_pixels(recording.optics(), views, recording.part().circumference_mm());
-    let cells = band.pixels / (options.cell_px * options.cell_px);
+    let pixel_mm = recording.optics().object_pixel_mm(recording.optics().focus_distance_mm);
+    let cell_px = options.cell_mm(pixel_mm, &recording.part().form) / pixel_mm;
+    let cells = band.pixels / (cell_px * cell_px);
     let surface = cells * BYTES_PER_SURFACE_CELL;
     let mesh_vertices = (options.mesh.max_vertices as f64).min(cells);
     let mesh = mesh_vertices * BYTES_PER_MESH_VERTEX;

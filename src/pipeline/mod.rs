@@ -506,7 +506,7 @@ fn fuse_views(
     let (part, optics, views) = (recording.part(), recording.optics(), recording.views());
     let total = views.len();
     let pixel_mm = optics.object_pixel_mm(optics.focus_distance_mm);
-    let cell_mm = options.cell_px * pixel_mm;
+    let cell_mm = options.cell_mm(pixel_mm, &part.form);
     // The views' z ranges at the encoder poses, moved by each view's axial correction.
     let z_range_mm = poses.iter().zip(views).zip(encoder_z_ranges_mm).fold(
         (f64::MAX, f64::MIN),

@@ -23,7 +23,7 @@ pub struct PipelineOptions {
     #[serde(default)]
     pub uncertainty: UncertaintyOptions,
     pub arc_rule: ArcRule,
-    /// Fused-map cell size in object pixels.
+    /// Fused-map cell size in object pixels, at most: see [`PipelineOptions::cell_mm`].
     pub cell_px: f64,
     /// Take the ring's axial offset from the end face's silhouette when the views show it.
     #[serde(default = "yes")]
@@ -54,7 +54,24 @@ impl Default for PipelineOptions {
     }
 }
 
+/// Rows of the fused map a crest's window spans at the least ([`PipelineOptions::cell_mm`]): 4
+/// (a row in each quarter) left a third of coarse-survey's round bins unmeasured, 5 a tenth.
+pub const ROWS_PER_CREST_WINDOW: f64 = 5.0;
+
 impl PipelineOptions {
+    /// The fused map's cell, mm: `cell_px` object pixels, or less where that would give a crest's
+    /// window fewer than [`ROWS_PER_CREST_WINDOW`] rows along z (never under one pixel). The
+    /// window's fit needs samples in its outer quarters on both sides, and with a round thread's
+    /// narrow crest arc at coarse pixels the 1.5-pixel rows left five bins of six without them
+    /// (coarse-survey's round part: 16% of bins measured, 90% at one pixel; docs/notebook/accuracy.md,
+    /// "The error budget").
+    pub fn cell_mm(&self, object_pixel_mm: f64, form: &crate::domain::thread::ThreadForm) -> f64 {
+        let (crest_half_mm, _) = form.flat_half_widths_mm();
+        let window_mm = 2.0 * crate::domain::thread::READ_SHARE_OF_FLAT * crest_half_mm;
+        let wanted_mm = window_mm / ROWS_PER_CREST_WINDOW;
+        (self.cell_px * object_pixel_mm).min(wanted_mm.max(object_pixel_mm))
+    }
+
     /// The models' names, when given, are names (domain::text caps them at 64 characters), whatever
     /// the method: a name is stored with the options even where the run does not use it.
     pub fn check_model_names(&self) -> Result<(), crate::learned::LearnedError> {
