@@ -225,6 +225,24 @@ impl PipelineOptions {
 mod tests {
     use super::*;
 
+    #[test]
+    fn the_fused_cell_gives_a_round_crest_s_window_five_rows_at_coarse_pixels_only() {
+        let table = crate::domain::thread::ConnectionTable::api5b();
+        let (buttress, round) = (table.get("BC 4-1/2").unwrap().form(), table.get("LC 4-1/2").unwrap().form());
+        let options = PipelineOptions::default();
+        // The standard station's 0.041 mm pixels: 1.5 pixels for both forms.
+        assert_eq!(options.cell_mm(0.041, buttress), 1.5 * 0.041);
+        assert_eq!(options.cell_mm(0.041, round), 1.5 * 0.041);
+        // coarse-survey's 0.12 mm: the buttress crest window (1.4 mm) keeps 1.5 pixels; the round
+        // crest arc's (0.53 mm) would hold under three rows, so the cell goes to one pixel (a fifth
+        // of the window is 0.106 mm, under a pixel).
+        assert_eq!(options.cell_mm(0.12, buttress), 1.5 * 0.12);
+        assert_eq!(options.cell_mm(0.12, round), 0.12);
+        // Between the two, a fifth of the window.
+        let fifth = 2.0 * crate::domain::thread::READ_SHARE_OF_FLAT * round.flat_half_widths_mm().0 / 5.0;
+        assert!((options.cell_mm(0.08, round) - fifth).abs() < 1e-12 && fifth < 1.5 * 0.08 && fifth > 0.08);
+    }
+
     /// Every numeric leaf of the stored shape, by dotted path.
     fn numeric_leaves(value: &serde_json::Value, prefix: &str, out: &mut Vec<String>) {
         match value {
