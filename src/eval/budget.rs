@@ -145,8 +145,9 @@ pub struct Budget {
 
 #[derive(Debug, thiserror::Error)]
 pub enum BudgetError {
-    #[error("{0}: {1}")]
-    Truth(String, String),
+    /// The simulator's truth lacks what the budget reads (a pose, a depth map), named.
+    #[error("{0}")]
+    Truth(String),
     #[error(transparent)]
     Pipeline(#[from] crate::pipeline::PipelineError),
 }
@@ -164,27 +165,26 @@ pub fn budget(
     let configured = options;
     let mut options = options.clone();
     options.profile.correction = crate::pipeline::profile::Correction::Off;
-    let true_depth = read_true_depth(bundle, dir)?;
-    let true_poses = bundle
+    let true_depth: Vec<Vec<f32>> = bundle
         .views
         .iter()
-        .map(|v| {
-            truth.true_poses.get(&v.id).copied().ok_or_else(|| BudgetError::Truth(v.id.clone(), "no true pose".into()))
-        })
-        .collect::<Result<Vec<_>, _>>()?;
+        .map(|view| crate::sim::read_true_depth(dir, &view.id))
+        .collect::<Result<_, _>>()
+        .map_err(BudgetError::Truth)?;
+    let true_poses = truth.poses_of(&bundle.views).map_err(BudgetError::Truth)?;
     let model = &truth.part_model;
+    let trusted_only = |v: usize, map: &mut DepthMap| substitute_depth(map, &true_depth[v], true);
+    let everywhere = |v: usize, map: &mut DepthMap| substitute_depth(map, &true_depth[v], false);
+    let true_helix = |h: &Helix| Helix {
+        z_h_mm: model.helix_z_h_mm,
+        pitch_mm: model.form.pitch_mm,
+        local_offsets_mm: Vec::new(),
+        ..h.clone()
+    };
     let mut variants = Vec::new();
     let mut refused = Vec::new();
     let mut depth = Vec::new();
     for &variant in variants_wanted {
-        let trusted_only = |v: usize, map: &mut DepthMap| substitute_depth(map, &true_depth[v], true);
-        let everywhere = |v: usize, map: &mut DepthMap| substitute_depth(map, &true_depth[v], false);
-        let true_helix = |h: &Helix| Helix {
-            z_h_mm: model.helix_z_h_mm,
-            pitch_mm: model.form.pitch_mm,
-            local_offsets_mm: Vec::new(),
-            ..h.clone()
-        };
         let subs = Substitutes {
             depth: match variant {
                 Variant::AsConfigured | Variant::Pipeline | Variant::TruePoses => None,
@@ -219,22 +219,6 @@ pub fn budget(
     })
 }
 
-/// Each view's true depth map at full resolution (truth/<view>.depth.pfm; NaN off the part).
-fn read_true_depth(bundle: &Bundle, dir: &Path) -> Result<Vec<Vec<f32>>, BudgetError> {
-    bundle
-        .views
-        .iter()
-        .map(|view| {
-            let path = dir.join(format!("truth/{}.depth.pfm", view.id));
-            let bytes =
-                std::fs::read(&path).map_err(|e| BudgetError::Truth(path.display().to_string(), e.to_string()))?;
-            let (_, _, depth) =
-                crate::sim::pfm::read(&bytes).map_err(|e| BudgetError::Truth(path.display().to_string(), e))?;
-            Ok(depth)
-        })
-        .collect()
-}
-
 /// The map's depths replaced by truth's (every `row_step`-th row): at the trusted pixels only, or
 /// at every pixel truth sees the part (with the least confidence a trusted pixel has there, so
 /// that fusion weighs them alike).
@@ -265,7 +249,7 @@ enum Place {
 fn place_of(model: &PartModel, z_mm: f64, theta_rad: f64) -> Place {
     let form = &model.form;
     let p = form.pitch_mm;
-    let (crest_half, root_half) = crate::pipeline::profile::window_half_widths_mm(form);
+    let (crest_half, root_half) = form.window_half_widths_mm();
     let u = (z_mm - model.helix_z_h_mm - p * theta_rad.rem_euclid(std::f64::consts::TAU) / std::f64::consts::TAU) / p;
     let nearest = u.round();
     let dz = (u - nearest) * p;

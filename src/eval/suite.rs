@@ -284,17 +284,7 @@ pub fn run_case(
     let inspection = &timed.inspection;
     let accuracy = compare(&inspection.report, &truth);
     let depth = depth_error(&bundle, &dir, &inspection.depth_maps)?;
-    let truth_poses = bundle
-        .views
-        .iter()
-        .map(|v| {
-            truth
-                .true_poses
-                .get(&v.id)
-                .copied()
-                .ok_or_else(|| BenchError::Other(format!("truth lacks the pose of {}", v.id)))
-        })
-        .collect::<Result<Vec<_>, _>>()?;
+    let truth_poses = truth.poses_of(&bundle.views).map_err(BenchError::Other)?;
     let encoder: Vec<_> = bundle.views.iter().map(|v| v.pose).collect();
     let table1 = if case.preset == "seed-table1" { table1_rows(&inspection.report, &truth) } else { Vec::new() };
     let mut result = CaseResult {
@@ -433,9 +423,7 @@ fn depth_error(
 ) -> Result<DepthError, BenchError> {
     let (mut sq, mut errors, mut seen, mut total) = (0.0, Vec::new(), 0usize, 0usize);
     for (view, depth) in bundle.views.iter().zip(depth_maps) {
-        let bytes = std::fs::read(dir.join(format!("truth/{}.depth.pfm", view.id)))
-            .map_err(|e| BenchError::Other(e.to_string()))?;
-        let (_, _, t) = crate::sim::pfm::read(&bytes).map_err(BenchError::Other)?;
+        let t = crate::sim::read_true_depth(dir, &view.id).map_err(BenchError::Other)?;
         // The map holds every `row_step`-th pixel row; truth holds every row.
         let truth_rows = t.chunks_exact(depth.width).step_by(depth.row_step.max(1)).flatten();
         for (d, t) in depth.depth_mm.iter().zip(truth_rows) {

@@ -66,8 +66,7 @@ impl PipelineOptions {
     /// (coarse-survey's round part: 16% of bins measured, 90% at one pixel; docs/notebook/accuracy.md,
     /// "The error budget").
     pub fn cell_mm(&self, object_pixel_mm: f64, form: &crate::domain::thread::ThreadForm) -> f64 {
-        let (crest_half_mm, _) = form.flat_half_widths_mm();
-        let window_mm = 2.0 * crate::domain::thread::READ_SHARE_OF_FLAT * crest_half_mm;
+        let window_mm = 2.0 * form.window_half_widths_mm().0;
         let wanted_mm = window_mm / ROWS_PER_CREST_WINDOW;
         (self.cell_px * object_pixel_mm).min(wanted_mm.max(object_pixel_mm))
     }
@@ -239,7 +238,7 @@ mod tests {
         assert_eq!(options.cell_mm(0.12, buttress), 1.5 * 0.12);
         assert_eq!(options.cell_mm(0.12, round), 0.12);
         // Between the two, a fifth of the window.
-        let fifth = 2.0 * crate::domain::thread::READ_SHARE_OF_FLAT * round.flat_half_widths_mm().0 / 5.0;
+        let fifth = 2.0 * round.window_half_widths_mm().0 / 5.0;
         assert!((options.cell_mm(0.08, round) - fifth).abs() < 1e-12 && fifth < 1.5 * 0.08 && fifth > 0.08);
     }
 

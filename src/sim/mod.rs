@@ -24,7 +24,7 @@ use rayon::prelude::*;
 use render::{Camera, Sensor, Tracer};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// A view as planned by the fixture: where the encoders say the camera is.
@@ -101,6 +101,28 @@ pub struct Truth {
     pub part_model: PartModel,
     pub depth_of_field_mm: f64,
     pub notes: Vec<String>,
+}
+
+impl Truth {
+    /// The true poses of `views`, in their order; Err names the first view truth has none for.
+    pub fn poses_of(&self, views: &[crate::domain::frame::View]) -> Result<Vec<ViewPose>, String> {
+        views
+            .iter()
+            .map(|v| self.true_poses.get(&v.id).copied().ok_or_else(|| format!("truth lacks the pose of {}", v.id)))
+            .collect()
+    }
+}
+
+/// Where a rendered bundle keeps view `view_id`'s true depth map (PFM; NaN off the part).
+pub fn true_depth_path(bundle_dir: &Path, view_id: &str) -> PathBuf {
+    bundle_dir.join("truth").join(format!("{view_id}.depth.pfm"))
+}
+
+/// View `view_id`'s true depth map at full resolution, row-major; Err names the file.
+pub fn read_true_depth(bundle_dir: &Path, view_id: &str) -> Result<Vec<f32>, String> {
+    let path = true_depth_path(bundle_dir, view_id);
+    let bytes = std::fs::read(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+    pfm::read(&bytes).map(|(_, _, depth)| depth).map_err(|e| format!("{}: {e}", path.display()))
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -299,7 +321,7 @@ pub fn simulate_placed(
                 depth_map_cached: Vec::new(),
             };
             let depth = camera.depth_map(&tracer);
-            let path = out.join("truth").join(format!("{}.depth.pfm", view.id));
+            let path = true_depth_path(out, &view.id);
             let mut bytes = Vec::new();
             pfm::write(&mut bytes, spec.width as usize, spec.height as usize, &depth).map_err(io(&path))?;
             std::fs::write(&path, bytes).map_err(io(&path))?;

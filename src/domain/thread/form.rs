@@ -272,6 +272,13 @@ impl ThreadForm {
         }
     }
 
+    /// Half widths along z of the windows the profile reads about the crest's and the root's
+    /// centres: [`READ_SHARE_OF_FLAT`] of [`ThreadForm::flat_half_widths_mm`].
+    pub fn window_half_widths_mm(&self) -> (f64, f64) {
+        let (crest, root) = self.flat_half_widths_mm();
+        (READ_SHARE_OF_FLAT * crest, READ_SHARE_OF_FLAT * root)
+    }
+
     /// Axial offsets, from a crest centre, of the centres of the root before (−z) and after (+z) it.
     pub fn root_centres_mm(&self) -> (f64, f64) {
         let p = self.pitch_mm;

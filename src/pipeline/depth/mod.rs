@@ -217,8 +217,8 @@ pub fn box_reaches_across_flanks(form: &ThreadForm, optics: &Optics, window_radi
     let pixel_mm = optics.object_pixel_mm(optics.focus_distance_mm);
     let box_half_mm = window_radius_px as f64 * pixel_mm;
     let blur_half_mm = 0.5 * optics.coc_px(optics.focus_distance_mm + form.height_mm) * pixel_mm;
-    let (crest, root) = form.flat_half_widths_mm();
-    let margin_mm = (1.0 - crate::domain::thread::READ_SHARE_OF_FLAT) * crest.min(root);
+    let ((crest, root), (crest_read, root_read)) = (form.flat_half_widths_mm(), form.window_half_widths_mm());
+    let margin_mm = (crest - crest_read).min(root - root_read);
     box_half_mm + blur_half_mm > margin_mm
 }
 

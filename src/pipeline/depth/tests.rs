@@ -440,16 +440,8 @@ fn the_box_is_refined_where_form_and_optics_put_it_across_a_flank() {
     let table = ConnectionTable::api5b();
     let form = |name: &str| table.get(name).unwrap().form();
     let (buttress, round) = (form("BC 4-1/2"), form("LC 4-1/2"));
-    // The standard station's optics (50 mm f/1.4 at 220 mm, 12 µm pixels: 0.041 mm on the part).
-    let standard = Optics {
-        projection: Projection::Perspective,
-        focal_length_mm: Some(50.0),
-        f_number: 1.4,
-        focus_distance_mm: 220.0,
-        pixel_pitch_um: 12.0,
-        principal_point_px: None,
-        magnification: None,
-    };
+    // The standard station's optics (0.041 mm on the part).
+    let standard = Optics::standard_camera();
     // The standard station's 11-pixel box (0.2 mm on the part) and its blur of the other surface
     // (0.13 mm) stay within a buttress flat's unread margin (0.47 mm)…
     assert!(!box_reaches_across_flanks(&buttress, &standard, 5));

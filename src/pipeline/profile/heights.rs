@@ -9,19 +9,7 @@ pub(super) const CREST_LINE_HALF_MM: f64 = 0.15;
 /// Half width along z of the window a crest's radius is fitted over (the crest stage models how a
 /// mill surface that cuts part of that window shows in the fitted radius).
 pub fn crest_window_half_mm(form: &ThreadForm) -> f64 {
-    windows(form).0
-}
-
-/// Half widths along z of the windows fitted around the crest and root centres, mm.
-pub fn window_half_widths_mm(form: &ThreadForm) -> (f64, f64) {
-    windows(form)
-}
-
-/// Half widths of the windows fitted around the crest and root centres.
-pub(super) fn windows(form: &ThreadForm) -> (f64, f64) {
-    let (crest, root) = form.flat_half_widths_mm();
-    let share = crate::domain::thread::READ_SHARE_OF_FLAT;
-    (share * crest, share * root)
+    form.window_half_widths_mm().0
 }
 
 /// Nominal curvatures (c of r = c·x²) of a rounded form's crest and root arcs (∓1/2ρ); None for
@@ -207,7 +195,7 @@ pub(super) fn measure_threads_every(
 ) -> Vec<ThreadMeasure> {
     let g = &map.grid;
     let p = helix.pitch_mm;
-    let (crest_half, root_half) = windows(form);
+    let (crest_half, root_half) = form.window_half_widths_mm();
     let (before, after) = form.root_centres_mm();
     let z_max = g.z0_mm + g.nz as f64 * g.dz_mm;
     // Threads whose phase lies inside the grid. The pitch is the form's, validated positive and
@@ -343,7 +331,7 @@ pub fn smooth_along_helix(threads: &mut [ThreadMeasure], options: &ProfileOption
 /// window reaches a flank least squares counts it whole, which errs on the cautious side.
 fn height_off_centre(form: &ThreadForm, offset_mm: f64) -> Option<f64> {
     let kernel = form.kernel();
-    let (crest_half, root_half) = windows(form);
+    let (crest_half, root_half) = form.window_half_widths_mm();
     let (before, after) = form.root_centres_mm();
     let (crest_section, root_section) = match nominal_curvatures(form) {
         None => (Section::Flat, Section::Flat),

@@ -13,10 +13,7 @@ mod heights;
 mod helix;
 pub mod pitch;
 
-pub use heights::{
-    crest_window_half_mm, measure_threads, phase_height_rms_mm, smooth_along_helix, survey_threads,
-    window_half_widths_mm,
-};
+pub use heights::{crest_window_half_mm, measure_threads, phase_height_rms_mm, smooth_along_helix, survey_threads};
 pub use helix::{PhaseError, PhaseUncertainty, estimate_helix, refine_helix};
 
 #[cfg(test)]

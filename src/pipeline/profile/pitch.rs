@@ -33,7 +33,7 @@ pub struct PitchProfile {
 /// Slot index ranges of the crest window and the two root windows (their halves inside the
 /// pitch), as [`super::heights`] fits them.
 pub fn window_slots(form: &ThreadForm) -> [std::ops::Range<usize>; 3] {
-    let (crest_half, root_half) = heights::windows(form);
+    let (crest_half, root_half) = form.window_half_widths_mm();
     let (before, after) = form.root_centres_mm();
     let span = after - before;
     let slot =

@@ -332,7 +332,7 @@ fn a_windows_phase_error_costs_what_the_form_says() {
     assert!(phase_height_rms_mm(&buttress, whole_pitch) > 0.5 * buttress.height_mm);
     let round = ThreadForm::api_round(3.175, 1.80975, 0.0508, 0.0625, Some(0.4318)).unwrap();
     let (rho_crest, rho_root) = round.arc_radii_mm().unwrap();
-    let (w_crest, w_root) = crate::pipeline::profile::heights::windows(&round);
+    let (w_crest, w_root) = round.window_half_widths_mm();
     let kappa_of = |rho: f64, w: f64| 0.5 / rho + w * w / (4.0 * rho.powi(3));
     let kappa = kappa_of(rho_crest, w_crest) + kappa_of(rho_root, w_root);
     let u = 0.005;
