@@ -126,6 +126,16 @@ fn text(b: &Budget, threads: bool) -> String {
             um(Some(v.window_root_um)),
         );
     }
+    let _ = writeln!(s, "\nBins truth has and the run left without a height, by why:\n");
+    for v in &b.variants {
+        let why: Vec<String> = v.unmeasured.iter().map(|c| format!("{} {}", c.reason.as_str(), c.bins)).collect();
+        let _ = writeln!(
+            s,
+            "- {}: {}",
+            v.variant.label(),
+            if why.is_empty() { "none".to_string() } else { why.join(", ") }
+        );
+    }
     for (variant, reason) in &b.refused {
         let _ = writeln!(s, "\n{}: refused: {reason}", variant.label());
     }

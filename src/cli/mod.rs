@@ -80,8 +80,8 @@ enum Command {
 #[derive(Args, Debug)]
 struct LearnedArgs {
     /// Correct each bin's pitch of profile with the seed's MLP before its height is taken (needs
-    /// ONNX Runtime: scripts/setup-onnxruntime); `auto` where the station's pixels are coarse
-    /// (docs/models.md).
+    /// ONNX Runtime: scripts/setup-onnxruntime); `auto` where the model's card says it helps the
+    /// part's thread family at the station's pixels (docs/models.md).
     #[arg(long, value_enum, default_value_t = CorrectionArg::from(ProfileOptions::default().correction))]
     profile_correction: CorrectionArg,
     /// The correction model by name [default: the shipped one]; an installed one is
@@ -97,7 +97,7 @@ struct LearnedArgs {
 enum CorrectionArg {
     On,
     Off,
-    /// Where the station's object pixel exceeds the options' `profile.correction_min_pixel_mm`.
+    /// Where the model's card says it helps threads of the part's family at the station's pixel.
     Auto,
 }
 

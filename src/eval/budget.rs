@@ -17,7 +17,7 @@
 use crate::bundle::Bundle;
 use crate::domain::optics::{Optics, ViewPose};
 use crate::pipeline::depth::DepthMap;
-use crate::pipeline::profile::{Helix, ThreadMeasure};
+use crate::pipeline::profile::{Helix, ThreadMeasure, UnmeasuredCount, count_unmeasured, sum_unmeasured};
 use crate::pipeline::surface::UnrolledMap;
 use crate::pipeline::{Inspection, PipelineOptions, Substitutes};
 use crate::sim::Truth;
@@ -66,6 +66,8 @@ pub struct ThreadBudget {
     /// Bins measured of those truth has.
     pub bins_measured: usize,
     pub bins_true: usize,
+    /// Of those truth has, the bins without a height by why.
+    pub unmeasured: Vec<UnmeasuredCount>,
 }
 
 /// One run of the pipeline with some stages' outputs replaced by truth.
@@ -86,6 +88,12 @@ pub struct VariantBudget {
     pub surface_root_um: f64,
     pub window_crest_um: f64,
     pub window_root_um: f64,
+    /// Of the bins truth has, those without a height by why, over the threads.
+    pub unmeasured: Vec<UnmeasuredCount>,
+    /// Where a learned model changed the heights: the RMS of its change (reported − classical,
+    /// over the bins both have), µm, which the model's effect relates its error to
+    /// (docs/models.md, "Choosing when it runs").
+    pub correction_rms_um: Option<f64>,
     pub threads: Vec<ThreadBudget>,
 }
 
@@ -366,6 +374,29 @@ fn surface_by_thread(map: &UnrolledMap, model: &PartModel) -> std::collections::
     by_thread
 }
 
+/// The RMS of the profile model's change to the heights (reported − classical, over the bins both
+/// have), µm; None where no profile model ran.
+fn correction_rms_um(inspection: &Inspection) -> Option<f64> {
+    let report = &inspection.report;
+    let corrected = report
+        .provenance
+        .as_ref()
+        .is_some_and(|p| p.models.iter().any(|m| m.role == crate::learned::ModelRole::ProfileCorrection));
+    if !corrected {
+        return None;
+    }
+    let mut changes = Vec::new();
+    for t in &report.threads {
+        let Some(classical) = inspection.threads.iter().find(|m| m.index == t.index) else { continue };
+        for (bin, reported) in classical.bins.iter().zip(&t.height_mm.values) {
+            if let (Some(c), Some(r)) = (bin.height_mm, reported) {
+                changes.push(1e3 * (r - c));
+            }
+        }
+    }
+    (!changes.is_empty()).then(|| (changes.iter().map(|c| c * c).sum::<f64>() / changes.len() as f64).sqrt())
+}
+
 fn variant_budget(variant: Variant, inspection: &Inspection, truth: &Truth) -> VariantBudget {
     let model = &truth.part_model;
     let report = &inspection.report;
@@ -379,6 +410,7 @@ fn variant_budget(variant: Variant, inspection: &Inspection, truth: &Truth) -> V
             let reported = report.threads.iter().find(|r| r.index == t.index);
             let (mut heights, mut crests, mut roots) = (Vec::new(), Vec::new(), Vec::new());
             let mut bins_true = 0;
+            let mut true_bins = Vec::new();
             for (k, true_height) in t.height_mm.values.iter().enumerate() {
                 let Some(true_height) = true_height else { continue };
                 bins_true += 1;
@@ -390,6 +422,7 @@ fn variant_budget(variant: Variant, inspection: &Inspection, truth: &Truth) -> V
                 else {
                     continue;
                 };
+                true_bins.push(bin);
                 let crest = model.crest_at(t.index, angle);
                 let true_crest_r = model.radius(crest.z_mm, angle.to_radians());
                 if let Some(c) = bin.crest_radius_mm {
@@ -414,6 +447,7 @@ fn variant_budget(variant: Variant, inspection: &Inspection, truth: &Truth) -> V
                 window_root_um: median(roots),
                 bins_measured: heights.len(),
                 bins_true,
+                unmeasured: count_unmeasured(true_bins),
             }
         })
         .collect();
@@ -433,6 +467,8 @@ fn variant_budget(variant: Variant, inspection: &Inspection, truth: &Truth) -> V
         surface_root_um: over_threads(|t| t.surface_root_um),
         window_crest_um: over_threads(|t| t.window_crest_um),
         window_root_um: over_threads(|t| t.window_root_um),
+        unmeasured: sum_unmeasured(threads.iter().map(|t| t.unmeasured.as_slice())),
+        correction_rms_um: correction_rms_um(inspection),
         threads,
     }
 }

@@ -7,6 +7,7 @@
 //! in place.
 
 pub mod depth_cnn;
+pub mod effect;
 mod pool;
 pub mod profile_mlp;
 mod registry;

@@ -72,12 +72,29 @@ pub struct ModelUse {
 pub struct Model {
     pub identity: ModelUse,
     pub pool: SessionPool,
+    /// What it is known to do to heights (a profile-correction model's card; None where the
+    /// card measured nothing: `auto` then leaves the heights classical).
+    pub effect: Option<super::effect::Effect>,
 }
 
 /// The part of a model card the binary reads (the rest is for people: docs/models.md).
 #[derive(Deserialize)]
 struct Card {
     role: ModelRole,
+    #[serde(default)]
+    effect: Option<serde_json::Value>,
+}
+
+impl Card {
+    /// The card's effect, checked; an error names what is wrong with it.
+    fn effect(&self, name: &str) -> Result<Option<super::effect::Effect>, LearnedError> {
+        let bad = |message: String| LearnedError::Model { name: name.into(), message: format!("its card's {message}") };
+        let Some(value) = &self.effect else { return Ok(None) };
+        let effect: super::effect::Effect =
+            serde_json::from_value(value.clone()).map_err(|e| bad(format!("effect: {e}")))?;
+        effect.check().map_err(bad)?;
+        Ok(Some(effect))
+    }
 }
 
 struct Shipped {
@@ -106,8 +123,8 @@ const SHIPPED: &[Shipped] = &[
 pub struct Models {
     shipped: Vec<Arc<Model>>,
     installed_dir: Option<PathBuf>,
-    /// Installed models opened so far, by sha256 (a file replaced under the same name is a new
-    /// model).
+    /// Installed models opened so far, by the sha256 of their weights and card (a file replaced
+    /// under the same name is a new model).
     installed: Mutex<HashMap<String, Arc<Model>>>,
 }
 
@@ -158,6 +175,10 @@ impl Models {
                         source: ModelSource::Shipped,
                     },
                     pool: SessionPool::new(s.name, Arc::from(s.bytes)),
+                    effect: serde_json::from_str::<Card>(s.card)
+                        .expect("a shipped card is JSON with a role")
+                        .effect(s.name)
+                        .expect("a shipped card's effect is checked by its test"),
                 })
             })
             .collect();
@@ -194,17 +215,22 @@ impl Models {
         };
         let Some(dir) = &self.installed_dir else { return Err(unknown()) };
         let (onnx, card) = (dir.join(format!("{name}.onnx")), dir.join(format!("{name}.json")));
-        let Some(card_role) = read_role(&card) else { return Err(unknown()) };
-        if card_role != role {
+        let card_bytes = std::fs::read(&card).map_err(|_| unknown())?;
+        let Ok(card) = serde_json::from_slice::<Card>(&card_bytes) else { return Err(unknown()) };
+        if card.role != role {
             return Err(unknown());
         }
+        let effect = card.effect(name)?;
         let bytes = std::fs::read(&onnx).map_err(|_| unknown())?;
         let sha256 = sha256_hex(&bytes);
         let mut installed = self.installed.lock().unwrap_or_else(|e| e.into_inner());
-        let model = installed.entry(sha256.clone()).or_insert_with(|| {
+        // A card rewritten beside the same weights (its effect measured again) is a new model too.
+        let key = format!("{sha256}:{}", sha256_hex(&card_bytes));
+        let model = installed.entry(key).or_insert_with(|| {
             Arc::new(Model {
                 identity: ModelUse { role, name: name.into(), sha256, source: ModelSource::Installed },
                 pool: SessionPool::new(name, Arc::from(bytes)),
+                effect,
             })
         });
         Ok(model.clone())
@@ -245,6 +271,11 @@ mod tests {
             assert_eq!(card["name"], name);
             assert_eq!(card["sha256"], sha256.as_str(), "{name}: the card's sha256 is stale");
             assert!(card["role"].is_string());
+        }
+        // Every shipped card's effect parses and passes its checks (Models::new relies on it).
+        for s in SHIPPED {
+            let card: Card = serde_json::from_str(s.card).unwrap();
+            card.effect(s.name).unwrap_or_else(|e| panic!("{}: {e}", s.name));
         }
     }
 

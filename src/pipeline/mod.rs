@@ -264,7 +264,11 @@ fn run_stages(
             ..quality::SurfaceFit::of(&helix, part, depth_coverage, &phase)
         },
     );
-    quality.flag_learned(depth_model.as_ref(), &learned.used, learned.unavailable.as_ref());
+    quality.flag_learned(
+        depth_model.as_ref(),
+        learned.correction.as_ref().filter(|c| c.run),
+        learned.unavailable.as_ref(),
+    );
     if let Some(reason) = qualification.as_ref().and_then(|q| q.refused.as_ref()) {
         quality.flag(
             quality::QualityStatus::Degraded,
@@ -272,6 +276,13 @@ fn run_stages(
             format!("The station's qualification could not be applied, so no decision is made. {reason}."),
         );
     }
+    // A learned correction's own error, as its card measured it per micrometre of change.
+    let model_by_thread_mm: Vec<(u32, f64)> = learned
+        .correction
+        .iter()
+        .filter(|c| c.run)
+        .flat_map(|c| c.change_by_thread.iter().map(|t| (t.thread, 1e-3 * t.rms_um * c.error_per_change())))
+        .collect();
     let (uncertainty, thread_mean_u) = uncertainty::heights(
         &mut threads,
         &uncertainty::Scales {
@@ -289,6 +300,7 @@ fn run_stages(
                 .as_ref()
                 .filter(|q| q.applied)
                 .map(|q| 1e-3 * q.noise_median_um.unwrap_or(0.0)),
+            model_by_thread_mm: &model_by_thread_mm,
         },
         crest.cone.as_ref().map(|c| c.scatter_um),
         &quality,
@@ -332,6 +344,7 @@ fn run_stages(
         models: depth_model.into_iter().chain(learned.used).collect(),
         timings: run.into_timings(),
         qualification,
+        profile_correction: learned.correction,
     });
     Ok(Inspection { report, map, depth_maps, poses: registered.poses, mesh, threads: measured_threads })
 }
@@ -598,16 +611,20 @@ fn mesh_and_profile(
     let optics = recording.optics();
     let pixel_mm = optics.object_pixel_mm(optics.focus_distance_mm);
     let profile_options = &options.profile;
-    if profile_options.correction.wanted(pixel_mm, profile_options.correction_min_pixel_mm) {
-        let corrected = models
-            .get(crate::learned::ModelRole::ProfileCorrection, profile_options.correction_model.as_deref())
-            .and_then(|model| {
-                let mut corrected = threads.clone();
-                profile::pitch::correct_heights(map, form, &helix, &mut corrected, profile_options, &model)?;
-                Ok((model, corrected))
-            });
+    let choice = profile::choose_correction(profile_options, models, recording.part().family(), pixel_mm);
+    let mut choice = match choice {
+        Ok(choice) => choice,
+        Err(e) => return Err(PipelineError::from(e).into()),
+    };
+    if let Some((c, model)) = choice.as_mut().and_then(|(c, m)| c.run.then_some((c, m.clone()))) {
+        let corrected = {
+            let mut corrected = threads.clone();
+            profile::pitch::correct_heights(map, form, &helix, &mut corrected, profile_options, &model)
+                .map(|_| corrected)
+        };
         match corrected {
-            Ok((model, corrected)) => {
+            Ok(corrected) => {
+                c.change_by_thread = profile::change_by_thread(&threads, &corrected);
                 classical = Some(std::mem::replace(&mut threads, corrected));
                 models_used.push(model.identity.clone());
             }
@@ -621,6 +638,8 @@ fn mesh_and_profile(
                             | crate::learned::LearnedError::Model { .. }
                     ) =>
             {
+                c.run = false;
+                c.why = format!("{} It could not run: {e}", c.why);
                 unavailable = Some(e)
             }
             Err(e) => return Err(PipelineError::from(e).into()),
@@ -633,7 +652,8 @@ fn mesh_and_profile(
         run.record_part(report::PROFILE_CORRECTION, correction_seconds);
     }
     run.check()?;
-    Ok((mesh, helix, threads, Learned { used: models_used, unavailable, classical }))
+    let correction = choice.map(|(c, _)| c);
+    Ok((mesh, helix, threads, Learned { used: models_used, unavailable, classical, correction }))
 }
 
 /// The learned models a run used, and the one `auto` wanted and could not run.
@@ -642,6 +662,8 @@ struct Learned {
     unavailable: Option<crate::learned::LearnedError>,
     /// The classical threads, where the MLP replaced their heights.
     classical: Option<Vec<ThreadMeasure>>,
+    /// Whether the profile correction ran and why, wherever it was not off.
+    correction: Option<profile::CorrectionChoice>,
 }
 
 /// Black-crest observations from the per-thread measures, then the API 5B rules on them.

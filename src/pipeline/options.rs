@@ -158,7 +158,6 @@ pub const RANGES: &[OptionRange] = &[
     count("uncertainty.noise_half_bins", 1.0, 180.0),
     range("uncertainty.encoder_axial_bound_mm", 0.0, 10.0),
     range("cell_px", 1.0, 10.0),
-    range("profile.correction_min_pixel_mm", 0.0, 1.0),
 ];
 
 /// An option outside its documented range.
@@ -204,18 +203,26 @@ impl PipelineOptions {
     /// These options with `overrides` written over them, object by object (the shape `POST
     /// /v1/inspections` takes under `pipeline`; keys it leaves out keep their values).
     pub fn overridden_by(&self, overrides: serde_json::Value) -> Result<Self, serde_json::Error> {
-        fn merge(base: &mut serde_json::Value, overrides: serde_json::Value) {
+        // A key the options do not have is refused with its path, as the service refuses it: a
+        // misspelt or retired option would otherwise change nothing, silently.
+        fn merge(base: &mut serde_json::Value, overrides: serde_json::Value, path: &str) -> Result<(), String> {
             match (base, overrides) {
                 (serde_json::Value::Object(b), serde_json::Value::Object(o)) => {
                     for (k, v) in o {
-                        merge(b.entry(k).or_insert(serde_json::Value::Null), v);
+                        let here = if path.is_empty() { k.clone() } else { format!("{path}.{k}") };
+                        let Some(slot) = b.get_mut(&k) else { return Err(format!("{here}: unknown option")) };
+                        merge(slot, v, &here)?;
                     }
+                    Ok(())
                 }
-                (b, o) => *b = o,
+                (b, o) => {
+                    *b = o;
+                    Ok(())
+                }
             }
         }
         let mut merged = serde_json::to_value(self)?;
-        merge(&mut merged, overrides);
+        merge(&mut merged, overrides, "").map_err(<serde_json::Error as serde::de::Error>::custom)?;
         serde_json::from_value(merged)
     }
 }
@@ -223,6 +230,16 @@ impl PipelineOptions {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_option_the_pipeline_does_not_have_is_refused_by_its_path() {
+        let options = PipelineOptions::default();
+        let retired = serde_json::json!({"profile": {"correction_min_pixel_mm": 0.0}});
+        let err = options.overridden_by(retired).unwrap_err().to_string();
+        assert!(err.contains("profile.correction_min_pixel_mm: unknown option"), "{err}");
+        let set = options.overridden_by(serde_json::json!({"profile": {"correction": "off"}})).unwrap();
+        assert_eq!(set.profile.correction, crate::pipeline::profile::Correction::Off);
+    }
 
     #[test]
     fn the_fused_cell_gives_a_round_crest_s_window_five_rows_at_coarse_pixels_only() {

@@ -87,7 +87,7 @@ impl Quality {
     pub fn flag_learned(
         &mut self,
         depth_model: Option<&crate::learned::ModelUse>,
-        used: &[crate::learned::ModelUse],
+        corrected: Option<&crate::pipeline::profile::CorrectionChoice>,
         unavailable: Option<&crate::learned::LearnedError>,
     ) {
         if let Some(m) = depth_model {
@@ -105,18 +105,17 @@ impl Quality {
                 ),
             );
         }
-        for m in used {
+        if let Some(c) = corrected {
             self.flag(
                 QualityStatus::Degraded,
                 QualityCode::ProfileCorrected,
                 format!(
-                    "The heights were corrected by a learned model whose accuracy crestscan has not measured, so no \
-                     decision is made. They were read off pitches corrected by the {} model {} (sha256 {}); the method's uncertainty \
-                     was measured for the classical heights, so each height's U includes the heights' dispersion along \
-                     the helix and their thread's distance from nominal, and no decision is made (docs/models.md)",
-                    m.role.as_str(),
-                    m.name,
-                    m.sha256
+                    "The heights were corrected by the profile model {}, so no decision is made. {} Each height's U \
+                     carries {:.2} µm of error per µm the model changed its thread, besides the heights' dispersion \
+                     along the helix and their thread's distance from nominal (docs/models.md, \"Choosing when it runs\")",
+                    c.model,
+                    c.why,
+                    c.error_per_change()
                 ),
             );
         }

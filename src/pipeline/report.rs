@@ -9,7 +9,7 @@ use crate::domain::station::Station;
 use crate::domain::thread::Family;
 use crate::pipeline::PipelineOptions;
 use crate::pipeline::crest::CrestCone;
-use crate::pipeline::profile::{Helix, ThreadMeasure};
+use crate::pipeline::profile::{Helix, ThreadMeasure, UnmeasuredCount};
 use crate::pipeline::quality::Quality;
 use crate::pipeline::register::{EndFace, Registration};
 use crate::pipeline::uncertainty::{self, Decision, DecisionFinding, HeightFinding, UncertaintyBudget};
@@ -49,6 +49,11 @@ pub struct ThreadReport {
     pub max_height_mm: Option<f64>,
     /// How many of the 360 bins have a height.
     pub bins_measured: usize,
+    /// The bins without a height, counted by why (the window that gave no level and what it
+    /// lacked; docs/pipeline.md, 5. Thread profile); reasons with no bin left out. Empty in
+    /// reports stored before reasons were kept.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub unmeasured_bins: Vec<UnmeasuredCount>,
     /// The thread's height judged against nominal ± tolerance with its uncertainty: the mean over
     /// its crests within Lc that are neither black nor the chamfer, and that mean's expanded
     /// uncertainty (absent in reports stored before it was judged).
@@ -140,6 +145,11 @@ pub struct Report {
     /// not applied. Absent where the inspection named no qualified station.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub qualification: Option<crate::pipeline::qualify::QualificationUse>,
+    /// Whether the profile-correction model ran and why: what its card measured for this family
+    /// of threads at this object pixel, and the change it made per thread. Absent where the
+    /// correction was off, and in reports stored before the choice was recorded.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub profile_correction: Option<crate::pipeline::profile::CorrectionChoice>,
     /// What made this report: the software, the settings, and (in the service) the inspection and
     /// its bundle (absent in reports stored before it was recorded).
     #[serde(default)]
@@ -162,6 +172,9 @@ pub struct Report {
     pub end_face: Option<EndFace>,
     /// The share (0–1) of the frames' pixels whose depth from focus was trusted.
     pub depth_coverage: f64,
+    /// Every thread's unmeasured bins counted by why, summed over the threads.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub unmeasured_bins: Vec<UnmeasuredCount>,
     /// How many views' focus measure took the noise pre-filter (docs/pipeline.md, 1. Depth from
     /// focus; the frames' noise is the station's `frame_noise_percent`).
     #[serde(default)]
@@ -242,6 +255,11 @@ impl Report {
             self.height_tolerance_mm,
             self.helix.z_h_mm
         ));
+        if !self.unmeasured_bins.is_empty() {
+            let reasons: Vec<String> =
+                self.unmeasured_bins.iter().map(|c| format!("{} {}", c.reason.as_str(), c.bins)).collect();
+            out.push_str(&format!("  bins without a height, by why: {}\n", reasons.join(", ")));
+        }
         match &self.end_face {
             Some(end) => out.push_str(&format!(
                 "  z from the end face: the ring's axial offset {:+.1} µm taken out ({} views, scatter {:.1} µm)\n",
@@ -337,6 +355,7 @@ pub struct Findings<'a> {
     pub models: Vec<crate::learned::ModelUse>,
     pub timings: Vec<StageTiming>,
     pub qualification: Option<crate::pipeline::qualify::QualificationUse>,
+    pub profile_correction: Option<crate::pipeline::profile::CorrectionChoice>,
 }
 
 impl Report {
@@ -371,6 +390,7 @@ impl Report {
                         .then(|| measured.iter().sum::<f64>() / measured.len() as f64),
                     max_height_mm: measured.iter().copied().reduce(f64::max),
                     bins_measured: measured.len(),
+                    unmeasured_bins: crate::pipeline::profile::count_unmeasured(&t.bins),
                     height_finding: Some(height_finding),
                 }
             })
@@ -396,6 +416,7 @@ impl Report {
             uncertainty: Some(f.uncertainty),
             station: Some(station),
             qualification: f.qualification,
+            profile_correction: f.profile_correction,
             provenance: Some(Provenance {
                 software_version: env!("CARGO_PKG_VERSION").into(),
                 settings: f.options.clone(),
@@ -410,6 +431,7 @@ impl Report {
             registration: f.registration,
             end_face: f.end_face,
             depth_coverage: f.depth_coverage,
+            unmeasured_bins: crate::pipeline::profile::count_unmeasured(f.threads.iter().flat_map(|t| &t.bins)),
             depth_prefiltered_views: f.depth_prefiltered_views,
             map_coverage: f.map_coverage,
             map_implausible_share: f.map_implausible_share,

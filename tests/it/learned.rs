@@ -126,13 +126,23 @@ fn without_onnx_runtime_the_cli_says_what_is_missing_and_the_classical_path_runs
     let off = run("off");
     assert!(off.status.success(), "{}", String::from_utf8_lossy(&off.stderr));
     assert!(String::from_utf8_lossy(&off.stdout).contains("ACCEPT"));
-    // `auto` at a station whose pixels call for the MLP (every station, with a bound of 0): the
-    // classical heights, and the report says why.
-    let options = tempfile::NamedTempFile::new().unwrap();
-    std::fs::write(options.path(), r#"{"profile": {"correction_min_pixel_mm": 0.0}}"#).unwrap();
+    // `auto` with a model whose card says it helps buttress threads at every pixel: it is wanted,
+    // cannot run, and the heights are the classical ones with the report saying why.
+    let models = tempfile::tempdir().unwrap();
+    std::fs::copy(concat!(env!("CARGO_MANIFEST_DIR"), "/models/profile-mlp.onnx"), models.path().join("helpful.onnx"))
+        .unwrap();
+    let card = serde_json::json!({
+        "role": "profile_correction",
+        "effect": {"measured_by": "this test", "entries": [{
+            "family": "buttress", "object_pixel_mm": [0.0, 1.0], "cases": 3, "better_cases": 3,
+            "classical_rms_um": 30.0, "corrected_rms_um": 10.0, "error_per_change": 0.5
+        }]}
+    });
+    std::fs::write(models.path().join("helpful.json"), card.to_string()).unwrap();
     let auto = std::process::Command::new(bin)
-        .args(["inspect", "--quiet", "--json", "--profile-correction", "auto", "--options"])
-        .arg(options.path())
+        .args(["inspect", "--quiet", "--json", "--profile-correction", "auto", "--correction-model", "helpful"])
+        .arg("--models-dir")
+        .arg(models.path())
         .arg(ci_bundle())
         .env("CRESTSCAN_ORT_LIB", "/nonexistent/libonnxruntime.so")
         .output()
@@ -144,6 +154,25 @@ fn without_onnx_runtime_the_cli_says_what_is_missing_and_the_classical_path_runs
     assert!(reason["message"].as_str().unwrap().contains("ONNX Runtime is not available"), "{reason}");
     assert_ne!(report["quality"]["status"], "ok");
     assert!(report["provenance"].get("models").is_none(), "{}", report["provenance"]);
+    let choice = &report["profile_correction"];
+    assert_eq!(choice["ran"], false, "{choice}");
+    assert!(choice["why"].as_str().unwrap().contains("could not run"), "{choice}");
+    // A card whose effect does not hold together is refused with what is wrong, not ignored.
+    let broken = serde_json::json!({"role": "profile_correction", "effect": {"measured_by": "x", "entries": [{
+        "family": "buttress", "object_pixel_mm": [0.2, 0.1], "cases": 1, "better_cases": 1,
+        "classical_rms_um": 1.0, "corrected_rms_um": 1.0, "error_per_change": 1.0
+    }]}});
+    std::fs::write(models.path().join("helpful.json"), broken.to_string()).unwrap();
+    let refused = std::process::Command::new(bin)
+        .args(["inspect", "--quiet", "--profile-correction", "auto", "--correction-model", "helpful"])
+        .arg("--models-dir")
+        .arg(models.path())
+        .arg(ci_bundle())
+        .output()
+        .unwrap();
+    assert!(!refused.status.success());
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(stderr.contains("helpful") && stderr.contains("object_pixel_mm"), "{stderr}");
 }
 
 #[test]

@@ -297,13 +297,20 @@ fn table(page: &mut String, r: &Report) {
                 }
             )
         });
+        // Why the rest have none, in small print under the count.
+        let why: Vec<String> =
+            t.unmeasured_bins.iter().map(|c| format!("{} {}", c.reason.as_str().replace('_', " "), c.bins)).collect();
+        let bins = if why.is_empty() {
+            t.bins_measured.to_string()
+        } else {
+            format!("{}<br><small>without: {}</small>", t.bins_measured, escape(&why.join(", ")))
+        };
         let _ = writeln!(
             page,
-            "<tr><td>{}</td><td>{:.2}–{:.2}</td><td>{within}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{:.2}</td><td>{}</td><td>{}</td></tr>",
+            "<tr><td>{}</td><td>{:.2}–{:.2}</td><td>{within}</td><td>{bins}</td><td>{}</td><td>{}</td><td>{}</td><td>{:.2}</td><td>{}</td><td>{}</td></tr>",
             t.index,
             t.crest_z_mm[0],
             t.crest_z_mm[1],
-            t.bins_measured,
             mm(t.mean_height_mm),
             mm(t.min_height_mm),
             mm(t.max_height_mm),

@@ -80,10 +80,21 @@ pub(super) fn shared_section(windows: &[&[(f64, f64)]], nominal_c_per_mm: f64) -
 /// 3 of its robust scales, a window that is a little tilted (a round crest read off its centre,
 /// the taper) lost samples at one end, and the line through the rest carried the section's misfit
 /// to the centre (docs/notebook/accuracy.md).
-pub(super) fn fit_at_centre(samples: &[(f64, f64)], section: Section, half: f64, separation_mm: f64) -> Option<f64> {
+pub(super) fn fit_at_centre(
+    samples: &[(f64, f64)],
+    section: Section,
+    half: f64,
+    separation_mm: f64,
+) -> Result<f64, WindowMiss> {
+    if samples.is_empty() {
+        return Err(WindowMiss::Empty);
+    }
+    if samples.len() < 6 {
+        return Err(WindowMiss::TooFew);
+    }
     let (lo, hi) = samples.iter().fold((f64::MAX, f64::MIN), |(l, h), s| (l.min(s.0), h.max(s.0)));
-    if lo > -0.5 * half || hi < 0.5 * half || samples.len() < 6 {
-        return None;
+    if lo > -0.5 * half || hi < 0.5 * half {
+        return Err(WindowMiss::OneSided);
     }
     let levelled: Vec<(f64, f64)> = samples.iter().map(|&(x, r)| (x, r - section.offset_mm(x))).collect();
     let n = levelled.len();
@@ -107,7 +118,8 @@ pub(super) fn fit_at_centre(samples: &[(f64, f64)], section: Section, half: f64,
         }
     }
     let own: Vec<(f64, f64)> = levelled.iter().copied().filter(|s| (s.1 - level).abs() <= separation_mm).collect();
-    let (a, b) = fit_line_checked(&own)?;
+    // The half nearest the level holds at least six samples, so what is near it is never empty.
+    let (a, b) = fit_line_checked(&own).ok_or(WindowMiss::OneSided)?;
     abs.clear();
     abs.extend(own.iter().map(|&(x, r)| (r - a - b * x).abs()));
     let mad = median(&mut abs).expect("at least six samples").max(1e-6);
@@ -115,9 +127,21 @@ pub(super) fn fit_at_centre(samples: &[(f64, f64)], section: Section, half: f64,
         own.iter().copied().filter(|&(x, r)| (r - a - b * x).abs() <= 3.0 * 1.4826 * mad).collect();
     let (lo, hi) = kept.iter().fold((f64::MAX, f64::MIN), |(l, h), s| (l.min(s.0), h.max(s.0)));
     if lo > -0.5 * half || hi < 0.5 * half {
-        return None; // what is kept lies to one side: the centre would be extrapolated
+        return Err(WindowMiss::OneSided); // what is kept lies to one side: the centre would be extrapolated
     }
-    fit_line_checked(&kept).map(|(a, _)| a)
+    fit_line_checked(&kept).map(|(a, _)| a).ok_or(WindowMiss::OneSided)
+}
+
+/// Why [`fit_at_centre`] gave no level.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum WindowMiss {
+    /// No sample at all.
+    Empty,
+    /// Fewer than six.
+    TooFew,
+    /// The samples, or those the window's own surface kept, lie to one side of its centre (or
+    /// do not spread along it).
+    OneSided,
 }
 
 /// [`fit_line`] through at least six samples that spread in x.
@@ -289,18 +313,21 @@ pub(super) fn measure_threads_every(
             // pulls the fused radius off the root, and the first bins would read high.
             let root_on_part = w.crest_z_mm + before - root_half > g.dz_mm;
             let height = match (crest_r, rb, ra) {
-                (Some(c), Some(b), Some(a)) if root_on_part => Some(over_roots(c, b, a, before, after)),
-                _ => None,
+                _ if !root_on_part => Err(Unmeasured::RootOffPart),
+                (Err(miss), _, _) => Err(Unmeasured::of_window(miss, true)),
+                (_, Err(miss), _) | (_, _, Err(miss)) => Err(Unmeasured::of_window(miss, false)),
+                (Ok(c), Ok(b), Ok(a)) => Ok(over_roots(c, b, a, before, after)),
             };
             BinMeasure {
                 angle_deg: w.angle_deg,
                 crest_z_mm: w.crest_z_mm,
-                height_mm: height,
-                crest_radius_mm: crest_r,
+                height_mm: height.ok(),
+                crest_radius_mm: crest_r.ok(),
                 crest_gray: w.crest_gray,
-                raw_height_mm: height,
-                kept_bins: usize::from(height.is_some()),
+                raw_height_mm: height.ok(),
+                kept_bins: usize::from(height.is_ok()),
                 uncertainty_mm: None,
+                unmeasured: height.err(),
             }
         })
         .collect();

@@ -161,7 +161,14 @@ pub fn correct_heights(
         let height = pitch_height_mm(form, out, p.scale_mm);
         let bin = &mut threads[p.thread].bins[p.bin];
         // A model that answers NaN for a pitch leaves the bin unmeasured rather than wrong.
-        bin.raw_height_mm = bin.raw_height_mm.and(Some(height)).filter(|h| h.is_finite());
+        if bin.raw_height_mm.is_some() {
+            if height.is_finite() {
+                bin.raw_height_mm = Some(height);
+            } else {
+                bin.raw_height_mm = None;
+                bin.unmeasured = Some(super::Unmeasured::ModelNotFinite);
+            }
+        }
     }
     smooth_along_helix(threads, options);
     Ok(profiles.len())

@@ -1,6 +1,8 @@
 use super::*;
 
-use crate::pipeline::profile::heights::{Section, fit_at_centre, fit_curvature, fit_line_checked, nominal_curvatures};
+use crate::pipeline::profile::heights::{
+    Section, WindowMiss, fit_at_centre, fit_curvature, fit_line_checked, nominal_curvatures,
+};
 use crate::pipeline::profile::helix::{form_fundamental, fundamental_beside_a_line};
 use crate::pipeline::surface::GridSpec;
 
@@ -176,7 +178,10 @@ fn fixed_section_fit_recovers_the_centre_of_an_arc() {
     let measured = fit_curvature(&pts).unwrap();
     assert!((measured + 0.5 / radius).abs() < 1e-6, "{measured}");
     // Samples on one side only: an extrapolation, refused.
-    assert!(fit_at_centre(&pts[30..], section, 0.25, 0.9).is_none());
+    assert_eq!(fit_at_centre(&pts[30..], section, 0.25, 0.9), Err(WindowMiss::OneSided));
+    // Nothing, or too little to fit, each named.
+    assert_eq!(fit_at_centre(&[], section, 0.25, 0.9), Err(WindowMiss::Empty));
+    assert_eq!(fit_at_centre(&pts[..5], section, 0.25, 0.9), Err(WindowMiss::TooFew));
 }
 
 /// A root window near a flank: two thirds of its samples on the root (with noise), a third that
@@ -226,19 +231,74 @@ fn a_window_whose_own_surface_lies_to_one_side_gives_no_value() {
     // sits at one end, and its centre would be an extrapolation.
     let pts = contaminated_root_window(0.6);
     let level = fit_at_centre(&pts, Section::Flat, 0.7, 0.5 * 1.5748);
-    assert!(level.is_none_or(|l| (l - 50.0 - 1.5748).abs() < 0.01), "{level:?}");
+    assert!(level.is_err() || level.is_ok_and(|l| (l - 50.0 - 1.5748).abs() < 0.01), "{level:?}");
 }
 
+/// Every bin without a height says why, and the count by reason adds up to the unmeasured bins:
+/// a hole in the fused surface over the crests is `crest_no_surface`, the end face's first row is
+/// `root_off_part`.
 #[test]
-fn auto_corrects_only_where_the_pixels_are_coarser_than_its_bound() {
-    let bound = ProfileOptions::default().correction_min_pixel_mm;
-    assert!(!Correction::Auto.wanted(bound, bound));
-    assert!(Correction::Auto.wanted(bound * 1.01, bound));
-    assert!(Correction::On.wanted(0.001, bound));
-    assert!(!Correction::Off.wanted(1.0, bound));
-    // The standard station (41 µm pixels) and the envelope the uncertainty was measured in stay
-    // classical.
-    assert!(!Correction::Auto.wanted(0.045, bound));
+fn each_unmeasured_bin_is_counted_by_its_reason() {
+    let (mut map, form) = ideal_map(1.234, 0.002);
+    let helix = estimate_helix(&map, &form).unwrap();
+    let g = map.grid.clone();
+    // No surface over thread 3's crest between 90° and 120°.
+    let crest_z = |theta: f64| helix.z_h_mm + helix.pitch_mm * (2.0 + theta / 360.0);
+    for it in 0..g.ntheta {
+        let theta = g.theta_deg_at(it);
+        if !(90.0..120.0).contains(&theta) {
+            continue;
+        }
+        for iz in 0..g.nz {
+            if (g.z_at(iz) - crest_z(theta)).abs() < 0.9 {
+                let i = map.index(iz, it);
+                map.radius_mm[i] = f32::NAN;
+            }
+        }
+    }
+    let threads = measure_threads(&map, &form, &helix, &ProfileOptions::default());
+    let third = &threads[2];
+    let hole: Vec<_> = third.bins.iter().filter(|b| (90.0..120.0).contains(&b.angle_deg)).collect();
+    assert_eq!(hole.len(), 30);
+    assert!(hole.iter().all(|b| b.height_mm.is_none() && b.unmeasured == Some(Unmeasured::CrestNoSurface)));
+    let counts = count_unmeasured(&third.bins);
+    assert_eq!(counts, vec![UnmeasuredCount { reason: Unmeasured::CrestNoSurface, bins: 30 }]);
+    // Every bin without a height has a reason, and none with one has.
+    for t in &threads {
+        for b in &t.bins {
+            assert_eq!(b.height_mm.is_none(), b.unmeasured.is_some(), "thread {} at {}°", t.index, b.angle_deg);
+        }
+        let unmeasured = t.bins.iter().filter(|b| b.height_mm.is_none()).count();
+        assert_eq!(count_unmeasured(&t.bins).iter().map(|c| c.bins).sum::<usize>(), unmeasured);
+    }
+    // The first thread's roots before the crest lie off the part at the end face.
+    assert!(threads[0].bins.iter().any(|b| b.unmeasured == Some(Unmeasured::RootOffPart)));
+}
+
+/// `auto` follows the shipped model's measured effect: at the standard station's pixels a
+/// buttress part stays classical (the model is known to add error there); at coarse pixels it is
+/// corrected; `on` always runs and `off` never.
+#[test]
+fn auto_corrects_where_the_models_card_says_it_helps() {
+    use crate::domain::thread::Family;
+    let models = crate::learned::Models::new(None);
+    let choose = |correction, family, pixel_mm| {
+        let options = ProfileOptions { correction, ..Default::default() };
+        choose_correction(&options, &models, family, pixel_mm).unwrap().map(|(c, _)| c)
+    };
+    let standard = choose(Correction::Auto, Family::Buttress, 0.041).expect("a choice under auto");
+    assert!(!standard.run, "{}", standard.why);
+    let effect = standard.effect.as_ref().expect("the shipped card measured buttress at fine pixels");
+    assert!(!effect.helps() && standard.why.contains("not known to help"), "{}", standard.why);
+    let coarse = choose(Correction::Auto, Family::Buttress, 0.12).unwrap();
+    assert!(coarse.run && coarse.effect.as_ref().unwrap().helps(), "{}", coarse.why);
+    assert!(coarse.error_per_change() > 0.0);
+    assert!(choose(Correction::On, Family::Buttress, 0.041).unwrap().run);
+    assert!(choose(Correction::Off, Family::Buttress, 0.12).is_none());
+    // Beyond every measured range: auto leaves the heights classical and says why.
+    let unmeasured = choose(Correction::Auto, Family::Round, 10.0).unwrap();
+    assert!(!unmeasured.run && unmeasured.effect.is_none() && unmeasured.why.contains("measured nothing"));
+    assert_eq!(unmeasured.error_per_change(), 1.0);
 }
 
 fn helix_read_at(readings: Vec<(u16, f64)>) -> Helix {

@@ -108,6 +108,13 @@ pub struct UncertaintyBudget {
     /// Each other thread's own distance from nominal, as a standard uncertainty, µm.
     #[serde(default)]
     pub from_nominal_by_thread: Vec<ThreadTerm>,
+    /// Where a learned model corrected the heights, the standard uncertainty it puts on each
+    /// thread's heights, µm: its card's measured error per micrometre of change (1 where the card
+    /// measured nothing for the station) times the RMS change it made to that thread
+    /// (docs/models.md, "Choosing when it runs"). It and the two terms above estimate the same
+    /// error: a height's U takes the larger, not both.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub model_by_thread: Vec<ThreadTerm>,
     /// Heights left out of those two terms as on or beside a black crest.
     #[serde(default)]
     pub black_crest_bins_left_out: usize,
@@ -156,6 +163,9 @@ pub struct Scales<'a> {
     /// The qualification study's median local scatter of a height, mm: at a qualified station a
     /// bin's own scatter counts only beyond it (the station's repeatability holds the rest).
     pub station_noise_mm: Option<f64>,
+    /// Per thread, the standard uncertainty a learned correction puts on its heights, mm (empty
+    /// where none ran; a thread not listed takes the largest listed).
+    pub model_by_thread_mm: &'a [(u32, f64)],
 }
 
 /// Whether the measurement cannot vouch for its own uncertainty: the quality checks say it failed
@@ -236,14 +246,18 @@ pub fn heights(
     // The distance from nominal bounds a bias of unknown sign and size within it: a rectangular
     // distribution over ± the distance, whose standard uncertainty is the distance over √3 (GUM
     // 4.3.7).
-    let expanded_of = |noise_mm: f64, from_nominal_mm: f64| {
+    // A learned correction's term and the failed path's two read the same thing, the corrected
+    // heights' error, from two sides (the card's measured effect; the heights' own dispersion and
+    // distance from nominal): the larger is taken, not both. Summed, U covered more than 99% of
+    // the errors at every corrected check station (docs/models.md, "Choosing when it runs").
+    let expanded_of = |noise_mm: f64, from_nominal_mm: f64, model_mm: f64| {
+        let read_off = along_mm.powi(2) + from_nominal_mm.powi(2) / 3.0;
         k * (noise_mm.powi(2)
             + method_mm.powi(2)
             + registration_mm.powi(2)
             + phase_height_mm.powi(2)
-            + along_mm.powi(2)
-            + from_nominal_mm.powi(2) / 3.0)
-            .sqrt()
+            + read_off.max(model_mm.powi(2)))
+        .sqrt()
     };
     let raw: Vec<Option<f64>> = threads.iter().flat_map(|t| t.bins.iter().map(|b| b.raw_height_mm)).collect();
     let noise = local_noise(&raw, options.noise_half_bins, 10);
@@ -251,11 +265,16 @@ pub fn heights(
     // no bin has enough anywhere (a few short runs of bins), a coarser reading of the same scatter.
     let mut known: Vec<f64> = noise.iter().flatten().copied().collect();
     let part_noise = median(&mut known).or_else(|| sparse_noise(&raw, scales.station.depth_of_field_mm));
+    let largest_model_mm = scales.model_by_thread_mm.iter().map(|&(_, mm)| mm).fold(0.0, f64::max);
+    let model_of = |thread: u32| {
+        scales.model_by_thread_mm.iter().find(|&&(t, _)| t == thread).map_or(largest_model_mm, |&(_, mm)| mm)
+    };
     let mut expanded = Vec::new();
     let mut means = Vec::with_capacity(threads.len());
     let mut i = 0;
     for (t, own_from_nominal) in threads.iter_mut().zip(&thread_from_nominal_mm) {
         let from_nominal_mm = own_from_nominal.unwrap_or(part_from_nominal_mm);
+        let model_mm = model_of(t.index);
         let mut thread_noise = Vec::new();
         for b in &mut t.bins {
             let s = noise[i].or(part_noise);
@@ -268,7 +287,7 @@ pub fn heights(
             b.uncertainty_mm = match (b.height_mm, s) {
                 (Some(_), Some(s)) => {
                     thread_noise.push(s);
-                    let u = expanded_of(noise_of(s, b.kept_bins.max(1) as f64), from_nominal_mm);
+                    let u = expanded_of(noise_of(s, b.kept_bins.max(1) as f64), from_nominal_mm, model_mm);
                     expanded.push(u);
                     Some(u)
                 }
@@ -276,7 +295,8 @@ pub fn heights(
             };
         }
         let n = t.bins.iter().filter(|b| b.height_mm.is_some()).count() as f64;
-        let mean_u = median(&mut thread_noise).map(|s| expanded_of(noise_of(s, n), from_nominal_mm));
+        // The model's term is a thread's common error: its mean carries it whole.
+        let mean_u = median(&mut thread_noise).map(|s| expanded_of(noise_of(s, n), from_nominal_mm, model_mm));
         means.push((t.index, mean_u));
     }
     let z_mm = match scales.end_face {
@@ -306,6 +326,11 @@ pub fn heights(
             .iter()
             .zip(&thread_from_nominal_mm)
             .filter_map(|(t, v)| v.map(|mm| ThreadTerm { thread: t.index, um: 1e3 * mm }))
+            .collect(),
+        model_by_thread: threads
+            .iter()
+            .filter(|_| !scales.model_by_thread_mm.is_empty())
+            .map(|t| ThreadTerm { thread: t.index, um: 1e3 * model_of(t.index) })
             .collect(),
         black_crest_bins_left_out: if failed { left_out } else { 0 },
         noise_correlation_bins: correlation,

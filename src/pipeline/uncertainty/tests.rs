@@ -51,6 +51,7 @@ fn budget() -> UncertaintyBudget {
         along_helix_um: 0.0,
         from_nominal_um: 0.0,
         from_nominal_by_thread: vec![],
+        model_by_thread: vec![],
         black_crest_bins_left_out: 0,
         noise_correlation_bins: 1.0,
         expanded_median_um: Some(8.0),
@@ -217,6 +218,7 @@ fn scales_of<'a>(st: &'a Station, registration: &'a Registration, crests: &'a [T
     Scales {
         station_u_mm: None,
         station_noise_mm: None,
+        model_by_thread_mm: &[],
         station: st,
         focus_window_radius_px: 5,
         pipe_radius_mm: 57.15,
@@ -261,6 +263,36 @@ fn a_part_measured_in_scraps_carries_the_dispersion_of_all_its_heights() {
     assert!((budget.along_helix_um - 346.41).abs() < 0.01, "{budget:?}");
     let u_um = 1e3 * threads[0].bins[12].uncertainty_mm.unwrap();
     assert!(u_um > 600.0, "{u_um}");
+}
+
+/// A learned correction's term and the failed path's read the same error: a height's U takes the
+/// larger. Smaller than the dispersion it changes nothing; larger, it replaces it, thread by
+/// thread, and a thread without its own takes the largest.
+#[test]
+fn a_corrections_term_and_the_dispersion_count_once() {
+    let registration = no_pairs();
+    let st = station(0.04);
+    let failed = depth_coverage_low();
+    let run = |model: &[(u32, f64)]| {
+        let mut threads = noisy(0.004);
+        // Thread 2 reads 30 µm off along half its turn: a dispersion of 15 µm RMS.
+        for b in threads[1].bins.iter_mut().take(180) {
+            b.height_mm = b.height_mm.map(|h| h + 0.030);
+        }
+        let scales = Scales { model_by_thread_mm: model, ..scales_of(&st, &registration, &[]) };
+        let (budget, _) = heights(&mut threads, &scales, Some(3.0), &failed, &UncertaintyOptions::default());
+        let u: Vec<f64> = threads.iter().map(|t| t.bins[200].uncertainty_mm.unwrap()).collect();
+        (budget, u)
+    };
+    let (plain, u0) = run(&[]);
+    assert!(plain.model_by_thread.is_empty());
+    let (small, u_small) = run(&[(1, 1e-4), (2, 1e-4), (3, 1e-4)]);
+    assert_eq!(u_small, u0, "a term under the dispersion changes nothing");
+    assert_eq!(small.model_by_thread.len(), 3);
+    let (_, u_large) = run(&[(1, 0.2), (2, 1e-4)]);
+    assert!(u_large[0] > 0.39 && u_large[0] < 0.41 + u0[0], "k · 0.2 mm and little else: {}", u_large[0]);
+    assert_eq!(u_large[1], u0[1], "thread 2's own term is small");
+    assert_eq!(u_large[2], u_large[0], "thread 3 takes the largest");
 }
 
 /// A failed measurement's dispersion terms read machined crests only, and each thread its own

@@ -89,7 +89,7 @@ fn pipeline_options_schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::
                 .enum_values(Some(["off", "on", "auto"]))
                 .description(Some(
                     "Correct each pitch of profile with the seed's MLP (needs ONNX Runtime); auto: where the \
-                     station's object pixel exceeds correction_min_pixel_mm",
+                     model's card says it helps threads of the part's family at the station's object pixel",
                 )),
             serde_json::Value::String(_) if path == "depth.method" => builder
                 .schema_type(SchemaType::new(Type::String))
