@@ -32,6 +32,10 @@ pub struct ServeArgs {
     /// TOML file with any of the settings below (snake_case keys).
     #[arg(long, env = "CRESTSCAN_CONFIG")]
     config: Option<PathBuf>,
+    /// What this process does: all (the API and the workers), api (the API only) or worker (jobs
+    /// only; /healthz, /readyz and /metrics on --bind) [default: all].
+    #[arg(long, env = "CRESTSCAN_ROLE", value_enum)]
+    role: Option<RoleArg>,
     /// Listen address [default: 127.0.0.1:8080].
     #[arg(long, env = "CRESTSCAN_BIND")]
     bind: Option<std::net::SocketAddr>,
@@ -157,6 +161,29 @@ pub struct ServeArgs {
     /// http://collector:4318/v1/traces [default: none].
     #[arg(long, env = "CRESTSCAN_OTLP_ENDPOINT")]
     otlp_endpoint: Option<String>,
+    /// Keep uploaded bundles in an S3-compatible object store, s3://bucket/prefix, instead of the
+    /// data directory (credentials from AWS_ACCESS_KEY_ID / AWS_SECRET_ACCESS_KEY) [default: none].
+    #[arg(long, env = "CRESTSCAN_OBJECT_STORE")]
+    object_store: Option<String>,
+    /// The object store's endpoint for a store other than AWS, e.g. http://minio:9000.
+    #[arg(long, env = "CRESTSCAN_S3_ENDPOINT")]
+    s3_endpoint: Option<String>,
+    /// The object store's region [default: AWS_REGION, else us-east-1].
+    #[arg(long, env = "CRESTSCAN_S3_REGION")]
+    s3_region: Option<String>,
+    /// The object store's access key [default: AWS_ACCESS_KEY_ID].
+    #[arg(long, env = "CRESTSCAN_S3_ACCESS_KEY_ID")]
+    s3_access_key_id: Option<String>,
+    /// Its secret [default: AWS_SECRET_ACCESS_KEY]; prefer the environment to the command line.
+    #[arg(long, env = "CRESTSCAN_S3_SECRET_ACCESS_KEY", hide_env_values = true)]
+    s3_secret_access_key: Option<String>,
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum RoleArg {
+    Api,
+    Worker,
+    All,
 }
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
@@ -229,6 +256,28 @@ impl ServeArgs {
         );
         if let Some(url) = self.otlp_endpoint {
             s.otlp_endpoint = Some(url);
+        }
+        if let Some(role) = self.role {
+            s.role = match role {
+                RoleArg::Api => crestscan::service::config::Role::Api,
+                RoleArg::Worker => crestscan::service::config::Role::Worker,
+                RoleArg::All => crestscan::service::config::Role::All,
+            };
+        }
+        if let Some(url) = self.object_store {
+            s.object_store = Some(url);
+        }
+        if let Some(url) = self.s3_endpoint {
+            s.s3_endpoint = Some(url);
+        }
+        if let Some(region) = self.s3_region {
+            s.s3_region = Some(region);
+        }
+        if let Some(key) = self.s3_access_key_id {
+            s.s3_access_key_id = Some(key);
+        }
+        if let Some(secret) = self.s3_secret_access_key {
+            s.s3_secret_access_key = Some(secret);
         }
         if let Some(auth) = self.auth {
             s.auth = match auth {

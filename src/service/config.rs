@@ -10,6 +10,10 @@ use std::path::{Path, PathBuf};
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Settings {
+    /// What this process does (`all`: the API and the workers, the embedded default; `api`: the
+    /// API only, no job is run here; `worker`: jobs only, with `/healthz`, `/readyz` and
+    /// `/metrics` on `bind` and nothing else). Processes of different roles share the store.
+    pub role: Role,
     /// Address the HTTP server listens on.
     pub bind: SocketAddr,
     /// Host names (besides IP addresses and `localhost`) requests may be addressed to; `*` takes
@@ -113,6 +117,50 @@ pub struct Settings {
     /// An OpenTelemetry collector's OTLP/HTTP traces URL (`http://collector:4318/v1/traces`):
     /// spans of requests and inspection runs are exported there; none by default.
     pub otlp_endpoint: Option<String>,
+    /// Keep uploaded bundles in an S3-compatible object store, `s3://bucket/prefix`, instead of
+    /// the data directory's `uploads/` (docs/operations.md, "Beyond one machine"); credentials
+    /// from the usual `AWS_ACCESS_KEY_ID` / `AWS_SECRET_ACCESS_KEY`. None by default.
+    pub object_store: Option<String>,
+    /// The object store's endpoint, for a store other than AWS (`http://minio:9000`): requests
+    /// are then path-style, and plain HTTP is allowed.
+    pub s3_endpoint: Option<String>,
+    /// The object store's region (`AWS_REGION` otherwise; `us-east-1` where neither says).
+    pub s3_region: Option<String>,
+    /// The object store's access key, where it is not the environment's `AWS_ACCESS_KEY_ID`.
+    pub s3_access_key_id: Option<String>,
+    /// Its secret (`CRESTSCAN_S3_SECRET_ACCESS_KEY`, or the config file); never logged.
+    #[serde(skip_serializing)]
+    pub s3_secret_access_key: Option<String>,
+}
+
+/// A process's role ([`Settings::role`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Role {
+    Api,
+    Worker,
+    #[default]
+    All,
+}
+
+impl Role {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Role::Api => "api",
+            Role::Worker => "worker",
+            Role::All => "all",
+        }
+    }
+
+    /// Whether this process serves the API.
+    pub fn serves_api(self) -> bool {
+        self != Role::Worker
+    }
+
+    /// Whether this process runs jobs.
+    pub fn runs_jobs(self) -> bool {
+        self != Role::Api
+    }
 }
 
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -134,6 +182,7 @@ pub enum LogFormat {
 impl Default for Settings {
     fn default() -> Self {
         Self {
+            role: Role::All,
             bind: SocketAddr::from(([127, 0, 0, 1], 8080)),
             allowed_hosts: Vec::new(),
             allowed_origins: Vec::new(),
@@ -174,6 +223,11 @@ impl Default for Settings {
             webhook_max_attempts: 15,
             webhook_retry_seconds: 5.0,
             otlp_endpoint: None,
+            object_store: None,
+            s3_endpoint: None,
+            s3_region: None,
+            s3_access_key_id: None,
+            s3_secret_access_key: None,
         }
     }
 }
@@ -210,6 +264,9 @@ impl Settings {
                 "max_views",
                 &format!("must be at least 1, and max_frames_per_view at least {}", crate::bundle::MIN_FRAMES),
             );
+        }
+        if self.role == Role::Worker && self.workers == 0 {
+            return invalid("workers", "must be at least 1 for a worker process (role worker)");
         }
         if !(0..=19).contains(&self.compute_nice) {
             return invalid("compute_nice", "must be 0 to 19");
@@ -324,6 +381,22 @@ impl Settings {
             && let Err(e) = origin_of(url)
         {
             return invalid("otlp_endpoint", e);
+        }
+        if let Some(url) = &self.object_store
+            && let Err(e) = crate::service::store::blobs::S3Location::parse(url)
+        {
+            return invalid("object_store", e);
+        }
+        if let Some(url) = &self.s3_endpoint
+            && let Err(e) = origin_of(url)
+        {
+            return invalid("s3_endpoint", e);
+        }
+        if self.s3_access_key_id.is_some() != self.s3_secret_access_key.is_some() {
+            return invalid("s3_access_key_id", "and s3_secret_access_key are set together or not at all".into());
+        }
+        if self.s3_endpoint.is_some() && self.object_store.is_none() {
+            return invalid("s3_endpoint", "is set without object_store (s3://bucket/prefix)".into());
         }
         if !self.callback_origins.is_empty() && self.callback_secrets.is_empty() {
             return invalid(

@@ -36,13 +36,33 @@ pub struct Application {
 }
 
 impl Application {
-    pub async fn build(settings: Settings) -> Result<Self, StartupError> {
+    pub async fn build(mut settings: Settings) -> Result<Self, StartupError> {
         settings.validate()?;
+        if !settings.role.runs_jobs() {
+            settings.workers = 0;
+        }
         let webhooks =
             crate::service::webhooks::client(&settings).map_err(|e| StartupError::Webhooks(e.to_string()))?;
         let mut store = Store::open(&settings.database_path(), &settings.uploads_dir(), &settings.tmp_dir()).await?;
         store.files = store.files.with_free_floor(settings.min_free_disk_mb.saturating_mul(1 << 20));
         store.max_interruptions = settings.max_interruptions as i64;
+        if let Some(url) = &settings.object_store {
+            use crate::service::store::blobs::{BlobStore, S3Blobs, S3Location, S3Settings};
+            let location = S3Location::parse(url).map_err(|e| StoreError::Io(std::io::Error::other(e)))?;
+            let s3 = S3Settings {
+                endpoint: settings.s3_endpoint.clone(),
+                region: settings.s3_region.clone(),
+                credentials: settings.s3_access_key_id.clone().zip(settings.s3_secret_access_key.clone()),
+            };
+            let blobs = S3Blobs::open(location, &s3, &settings.tmp_dir()).map_err(StoreError::Io)?;
+            // Refuse to start against a store that does not take a write, rather than accept
+            // uploads that cannot be kept.
+            blobs.check().await.map_err(|e| {
+                StoreError::Io(std::io::Error::new(e.kind(), format!("object store {}: {e}", blobs.describe())))
+            })?;
+            tracing::info!(blobs = %blobs.describe(), "uploads are kept in the object store");
+            store.blobs = Arc::new(blobs);
+        }
         let cleared = store.files.clear_temporaries(Duration::from_secs(6 * 3600)).map_err(StoreError::Io)?;
         if cleared > 0 {
             tracing::info!(cleared, "removed temporaries of interrupted uploads");
@@ -110,7 +130,11 @@ impl Application {
             stop_rx.clone(),
         ));
         let header_timeout = Duration::from_secs_f64(self.state.settings.header_timeout_seconds);
-        let app = api::router(self.state);
+        let app = if self.state.settings.role.serves_api() {
+            api::router(self.state)
+        } else {
+            api::operations_router(self.state)
+        };
         let mut http_stop = stop_rx.clone();
         let server = serve(self.listener, app, header_timeout, async move {
             let _ = http_stop.wait_for(|s| *s).await;

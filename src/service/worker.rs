@@ -164,9 +164,15 @@ async fn process(ctx: &WorkerContext, job: Claimed, lease_token: &str, shutdown:
     };
     let task = {
         let (ctx, job, cancel, progress) = (ctx.clone(), job.clone(), cancel.clone(), progress.clone());
+        let runtime = tokio::runtime::Handle::current();
         tokio::task::spawn_blocking(move || {
+            // The bundle as a local file: the stored one, or a download from the object store
+            // (inside the task, so that the lease is renewed while a large one arrives).
+            let bundle = runtime.block_on(ctx.store.blobs.fetch(&job.upload_sha256));
             let pool = ctx.compute.clone();
-            pool.install(|| contain(&job.id, || run_job(&ctx, &job, at.as_ref(), master_run, &cancel, &progress)))
+            pool.install(|| {
+                contain(&job.id, || run_job(&ctx, &job, bundle, at.as_ref(), master_run, &cancel, &progress))
+            })
         })
     };
     tokio::pin!(task);
@@ -342,6 +348,7 @@ fn contain(id: &str, run: impl FnOnce() -> Outcome) -> Outcome {
 fn run_job(
     ctx: &WorkerContext,
     job: &Claimed,
+    bundle: std::io::Result<crate::service::store::blobs::LocalCopy>,
     at: Option<&pipeline::qualify::AtStation>,
     master_run: bool,
     cancel: &AtomicBool,
@@ -354,13 +361,27 @@ fn run_job(
     if master_run {
         options.pipeline.profile.correction = pipeline::profile::Correction::Off;
     }
-    let path = ctx.store.files.path_of(&job.upload_sha256);
-    if !path.is_file() {
-        return Outcome::Fail(problem(
-            Code::UploadMissing,
-            format!("the uploaded bundle {} is no longer in the store", job.upload_sha256),
-        ));
-    }
+    let copy = match bundle {
+        Ok(copy) => copy,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            return Outcome::Fail(problem(
+                Code::UploadMissing,
+                format!("the uploaded bundle {} is no longer in the store", job.upload_sha256),
+            ));
+        }
+        // The store unreachable or the download cut: another attempt may succeed.
+        Err(e) => {
+            return Outcome::Retry(problem(
+                Code::IoError,
+                format!(
+                    "the uploaded bundle {} could not be read from {}: {e}",
+                    job.upload_sha256,
+                    ctx.store.blobs.describe()
+                ),
+            ));
+        }
+    };
+    let path = copy.path();
     let limits = ctx.settings.bundle_limits();
     let bundle = match Bundle::open(
         &path,

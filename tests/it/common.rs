@@ -103,3 +103,47 @@ pub fn walk(dir: &Path) -> Vec<PathBuf> {
     out.sort();
     out
 }
+
+/// An S3-compatible server for the tests: moto's (`pip install 'moto[server]'`, which the README's
+/// test command and `.ci/run` install), started once per test process on a free loopback port
+/// with the bucket `crestscan-it`, killed when the process exits. Its endpoint URL.
+pub fn moto_endpoint() -> &'static str {
+    static ENDPOINT: OnceLock<String> = OnceLock::new();
+    static PID: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+    ENDPOINT.get_or_init(|| {
+        extern "C" fn stop_moto() {
+            let pid = PID.load(std::sync::atomic::Ordering::Relaxed);
+            if pid != 0 {
+                // SAFETY: signals the child this process started; nothing else is touched.
+                unsafe { libc::kill(pid as libc::pid_t, libc::SIGKILL) };
+            }
+        }
+        let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+        let child = std::process::Command::new("moto_server")
+            .args(["-H", "127.0.0.1", "-p", &port.to_string()])
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap_or_else(|e| {
+                panic!("moto_server could not be started ({e}): python3 -m pip install 'moto[server]==5.2.1'")
+            });
+        PID.store(child.id(), std::sync::atomic::Ordering::Relaxed);
+        // SAFETY: registers a plain C function to run at exit.
+        unsafe { libc::atexit(stop_moto) };
+        let endpoint = format!("http://127.0.0.1:{port}");
+        // Ready when it answers; then the bucket (a plain PUT on its path).
+        let start = std::time::Instant::now();
+        loop {
+            let put = std::process::Command::new("curl")
+                .args(["-sf", "-X", "PUT", &format!("{endpoint}/crestscan-it")])
+                .output()
+                .expect("curl runs");
+            if put.status.success() {
+                break;
+            }
+            assert!(start.elapsed() < std::time::Duration::from_secs(30), "moto_server did not answer on {endpoint}");
+            std::thread::sleep(std::time::Duration::from_millis(200));
+        }
+        endpoint
+    })
+}

@@ -40,6 +40,10 @@ pub struct Readiness {
     pub disk_floor_mb: u64,
     pub queued: i64,
     pub running: i64,
+    /// This process's role: `all`, `api` or `worker`.
+    pub role: String,
+    /// Where uploaded bundles are kept: `local <dir>` or `s3://bucket/prefix`.
+    pub blobs: String,
 }
 
 /// Readiness: the database answers and commits a write, the data directory takes writes and has
@@ -68,6 +72,21 @@ pub async fn readyz(State(state): State<AppState>) -> Result<Json<Readiness>, Ap
     .await
     .map_err(ApiError::internal)?
     .map_err(|e| ApiError::new(Code::NotReady, format!("data directory not writable: {e}")))?;
+    match tokio::time::timeout(std::time::Duration::from_secs(5), state.store.blobs.check()).await {
+        Ok(Ok(())) => {}
+        Ok(Err(e)) => {
+            return Err(ApiError::new(
+                Code::NotReady,
+                format!("blob store {} does not take writes: {e}", state.store.blobs.describe()),
+            ));
+        }
+        Err(_) => {
+            return Err(ApiError::new(
+                Code::NotReady,
+                format!("blob store {} does not take writes: no answer within 5 s", state.store.blobs.describe()),
+            ));
+        }
+    }
     let floor_mb = state.store.files.free_floor_bytes() >> 20;
     if !room {
         return Err(ApiError::new(
@@ -84,6 +103,8 @@ pub async fn readyz(State(state): State<AppState>) -> Result<Json<Readiness>, Ap
         disk_floor_mb: floor_mb,
         queued,
         running,
+        role: state.settings.role.as_str().into(),
+        blobs: state.store.blobs.describe(),
     }))
 }
 

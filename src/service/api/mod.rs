@@ -165,6 +165,31 @@ pub fn router(state: AppState) -> Router {
         .with_state(state)
 }
 
+/// A worker process's routes (`role: worker`): liveness, readiness and metrics, for whatever runs
+/// and scales it; every other path is a 404 that says where the API is.
+pub fn operations_router(state: AppState) -> Router {
+    let (routes, _) = OpenApiRouter::<AppState>::new().merge(health::router()).split_for_parts();
+    routes
+        .fallback(not_on_a_worker)
+        .layer(tower_http::catch_panic::CatchPanicLayer::new())
+        .layer(middleware::from_fn(request_head_limits))
+        .layer(middleware::from_fn(unknown_query_parameters))
+        .layer(middleware::from_fn_with_state(state.clone(), observe))
+        .with_state(state)
+}
+
+async fn not_on_a_worker(request: Request) -> ApiError {
+    ApiError::new(
+        Code::RouteNotFound,
+        format!(
+            "no route {} {} on a worker process (role worker): it serves /healthz, /readyz and /metrics; the API is \
+             served by the processes of role api or all",
+            request.method(),
+            request.uri().path()
+        ),
+    )
+}
+
 /// CORS for the `allowed_origins` setting only (none by default: a page elsewhere cannot read
 /// an answer).
 fn cors(origins: &[String]) -> Option<tower_http::cors::CorsLayer> {

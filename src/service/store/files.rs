@@ -104,6 +104,11 @@ impl FileStore {
         tempfile::Builder::new().prefix(&temp_prefix("work")).tempdir_in(&self.tmp)
     }
 
+    /// The directory the placed files live under.
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+
     pub fn path_of(&self, sha256: &str) -> PathBuf {
         self.root.join(&sha256[..2]).join(sha256)
     }

@@ -148,11 +148,7 @@ impl Store {
                 };
             }
         }
-        let files = self.files.clone();
-        let sha = new.upload.sha256.clone();
-        tokio::task::spawn_blocking(move || files.place(file, &sha))
-            .await
-            .map_err(|e| StoreError::Io(std::io::Error::other(e)))??;
+        self.blobs.put(&new.upload.sha256, file).await?;
         sqlx::query(
             "INSERT INTO inspections (id, status, upload_sha256, serial, connection, client_reference, options_json, \
              created_at, updated_at, max_attempts, available_at, idempotency_key, request_sha256, station) \

@@ -2,6 +2,7 @@
 //! CMM data; [`files::FileStore`] for uploaded bundles. SQL stays portable (no SQLite-only
 //! functions beyond `RETURNING`, which PostgreSQL shares) so the store could move later.
 
+pub mod blobs;
 mod cmm;
 pub mod files;
 mod inspections;
@@ -123,7 +124,11 @@ impl FromStr for Status {
 #[derive(Clone)]
 pub struct Store {
     pub pool: SqlitePool,
+    /// Local staging for uploads (temporaries, the free-space floor) and, in the embedded
+    /// default, the blobs' own directory.
     pub files: FileStore,
+    /// Where uploaded bundles' bytes live ([`blobs::LocalBlobs`] over `files`, or an object store).
+    pub blobs: std::sync::Arc<dyn blobs::BlobStore>,
     /// Deaths of the worker's process while running one job before that job is failed as
     /// poisonous ([`queue`]).
     pub max_interruptions: i64,
@@ -156,7 +161,8 @@ impl Store {
         MIGRATOR.run(&pool).await?;
         let files = FileStore::open(uploads, tmp)?;
         let (changes, _) = tokio::sync::broadcast::channel(256);
-        Ok(Self { pool, files, max_interruptions: 5, changes })
+        let blobs = std::sync::Arc::new(blobs::LocalBlobs::new(files.clone()));
+        Ok(Self { pool, files, blobs, max_interruptions: 5, changes })
     }
 
     /// Sends the inspection's row as it now reads to the change feed, when anyone listens.
@@ -189,10 +195,7 @@ impl Store {
     /// one is checked again and deleted under the database's write lock, which a submission holds
     /// while it places its file, so a file being accepted right now is never taken.
     pub async fn remove_orphan_uploads(&self) -> Result<usize, StoreError> {
-        let files = self.files.clone();
-        let stored = tokio::task::spawn_blocking(move || files.stored_hashes())
-            .await
-            .map_err(|e| StoreError::Io(std::io::Error::other(e)))??;
+        let stored = self.blobs.list().await?;
         let live: std::collections::HashSet<String> =
             sqlx::query_scalar("SELECT sha256 FROM uploads WHERE purged_at IS NULL")
                 .fetch_all(&self.pool)
@@ -207,7 +210,7 @@ impl Store {
                 .fetch_optional(&mut *tx)
                 .await?;
             if live.is_none() {
-                self.files.remove(&sha)?;
+                self.blobs.remove(&sha).await?;
                 removed += 1;
             }
             tx.commit().await?;

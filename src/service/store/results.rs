@@ -148,7 +148,7 @@ impl Store {
             .execute(&mut *tx)
             .await?;
             if marked.rows_affected() == 1 {
-                self.files.remove(sha)?;
+                self.blobs.remove(sha).await?;
                 purged += 1;
             }
             tx.commit().await?;

@@ -316,9 +316,10 @@ async fn a_full_disk_answers_507_and_every_202_survives_recovery_and_restart() {
     let store = app.store().await;
     let live: Vec<String> =
         sqlx::query_scalar("SELECT sha256 FROM uploads WHERE purged_at IS NULL").fetch_all(&store.pool).await.unwrap();
-    assert_eq!(app.uploads(), live.len(), "upload files without a row, or rows without a file");
+    let stored = store.blobs.list().await.unwrap();
+    assert_eq!(stored.len(), live.len(), "upload files without a row, or rows without a file");
     for sha in &live {
-        assert!(store.files.exists(sha), "row {sha} has no file");
+        assert!(stored.contains(sha), "row {sha} has no file");
     }
     store.pool.close().await;
     app.stop().await;
@@ -332,20 +333,25 @@ async fn upload_files_without_a_row_are_removed_at_start_up() {
     let store = open_store(dir.path()).await;
     let kept = created(insert(&store, b"a real upload", "{}".into(), None).await.unwrap());
     let kept_sha = store.inspection(&kept).await.unwrap().upload_sha256;
-    store.pool.close().await;
+    // An upload placed in the blob store (the local directory, or the object store the suite
+    // runs against) whose row never committed.
     let orphan_sha = crestscan::service::store::files::sha256_hex(b"an upload whose commit failed");
-    let orphan = dir.path().join("uploads").join(&orphan_sha[..2]).join(&orphan_sha);
-    std::fs::create_dir_all(orphan.parent().unwrap()).unwrap();
-    std::fs::write(&orphan, b"an upload whose commit failed").unwrap();
+    let mut staged = store.files.temp_file().unwrap();
+    std::io::Write::write_all(&mut staged, b"an upload whose commit failed").unwrap();
+    store.blobs.put(&orphan_sha, staged).await.unwrap();
+    assert!(store.blobs.list().await.unwrap().contains(&orphan_sha));
+    store.pool.close().await;
     // Not ours: names of another shape are left alone.
+    std::fs::create_dir_all(dir.path().join("uploads")).unwrap();
     let stranger = dir.path().join("uploads").join("README");
     std::fs::write(&stranger, b"left by a person").unwrap();
 
     let app = spawn_app_in(dir.path(), |s| s.workers = 0).await;
-    assert!(!orphan.exists(), "the orphan upload file is still there");
-    assert!(stranger.exists());
     let store = app.store().await;
-    assert!(store.files.exists(&kept_sha), "the upload with its row was removed");
+    let stored = store.blobs.list().await.unwrap();
+    assert!(!stored.contains(&orphan_sha), "the orphan upload is still there");
+    assert!(stranger.exists());
+    assert!(stored.contains(&kept_sha), "the upload with its row was removed");
     store.pool.close().await;
     app.stop().await;
 }

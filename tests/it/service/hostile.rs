@@ -149,7 +149,7 @@ async fn a_bundle_over_the_memory_budget_is_refused_before_the_202() {
     assert_eq!(v["culprit"], "views[].frames", "{v}");
     let detail = v["detail"].as_str().unwrap();
     assert!(detail.contains("worker_memory_mb") && detail.contains("2048 MiB"), "{detail}");
-    assert_eq!(app.uploads(), 0);
+    assert_eq!(app.uploads().await, 0);
     // The ci bundle fits the same budget.
     assert_eq!(app.submit(ci_tar(), "").await.status(), StatusCode::ACCEPTED);
     app.stop().await;
@@ -227,7 +227,7 @@ async fn huge_manifests_are_refused_by_their_limit_before_any_frame_is_read() {
     assert_eq!(v["culprit"], "manifest.json: views[1].frames", "{v}");
     let expected = format!("max_frames_per_view ({frames_per_view})");
     assert!(v["detail"].as_str().unwrap().contains(&expected), "{v}");
-    assert_eq!(app.uploads(), 0);
+    assert_eq!(app.uploads().await, 0);
     app.stop().await;
 }
 
@@ -263,7 +263,7 @@ async fn an_inflating_zip_is_refused_by_its_compression_ratio() {
     let stored = zip(zip::CompressionMethod::Stored);
     let v = problem(send(stored).await.unwrap(), StatusCode::UNPROCESSABLE_ENTITY, "unreadable_frame").await;
     assert_eq!(v["culprit"].as_str(), Some(first.as_str()), "{v}");
-    assert_eq!(app.uploads(), 0);
+    assert_eq!(app.uploads().await, 0);
     app.stop().await;
 }
 
@@ -415,7 +415,7 @@ async fn slow_uploads_are_cut_off_and_others_are_served() {
     // Their places are free again, and nothing of theirs is stored.
     // (the same bundle as the other client's: one stored file)
     assert_eq!(app.submit(bundle, "").await.status(), StatusCode::ACCEPTED);
-    assert_eq!(app.uploads(), 1);
+    assert_eq!(app.uploads().await, 1);
     app.stop().await;
 }
 

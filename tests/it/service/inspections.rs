@@ -95,7 +95,7 @@ async fn bad_requests_get_their_problem_codes_and_store_nothing() {
     })
     .await;
     problem(small.submit(ci_tar(), "").await, StatusCode::PAYLOAD_TOO_LARGE, "body_too_large").await;
-    assert_eq!(small.uploads(), 0);
+    assert_eq!(small.uploads().await, 0);
     small.stop().await;
 
     // Routing and ids.
@@ -120,7 +120,7 @@ async fn bad_requests_get_their_problem_codes_and_store_nothing() {
     // Nothing was stored by any of it.
     let page: Value = app.get("/v1/inspections").await.json().await.unwrap();
     assert_eq!(page["items"].as_array().unwrap().len(), 0);
-    assert_eq!(app.uploads(), 0);
+    assert_eq!(app.uploads().await, 0);
 
     // Results of an inspection that has none yet, and bad CMM data, once one exists.
     let id = app.submit(ci_tar(), "").await.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
@@ -156,7 +156,7 @@ async fn idempotent_retry_and_cancel() {
     assert_eq!(v["culprit"], "Idempotency-Key");
     let page: Value = app.get("/v1/inspections").await.json().await.unwrap();
     assert_eq!(page["items"].as_array().unwrap().len(), 1);
-    assert_eq!(app.uploads(), 1, "one content-addressed upload");
+    assert_eq!(app.uploads().await, 1, "one content-addressed upload");
 
     // Cancel while queued: at once.
     let id = first["id"].as_str().unwrap();

@@ -2,6 +2,7 @@
 //! reqwest; and the real binary, killed with SIGKILL and restarted.
 
 mod auth;
+mod blobs;
 mod browser;
 mod caps;
 mod disk_full;
@@ -12,6 +13,7 @@ mod openapi;
 mod queue;
 mod report_page;
 mod results;
+mod roles;
 mod stations;
 mod traces;
 mod webhooks;
@@ -93,13 +95,25 @@ impl TestApp {
         open_store(&self.data).await
     }
 
-    pub fn uploads(&self) -> usize {
-        let dir = self.data.join("uploads");
-        if dir.exists() { walk(&dir).len() } else { 0 }
+    /// Uploaded bundles stored, in whichever blob store the app keeps them.
+    pub async fn uploads(&self) -> usize {
+        self.store().await.blobs.list().await.unwrap().len()
     }
 }
 
+/// The S3-compatible server the service tests run against where `CRESTSCAN_TEST_S3_ENDPOINT`
+/// names one (`.ci/run` runs the service suite a second time so, against moto; the bucket
+/// `crestscan-it` must exist, credentials from the AWS_* environment): each data directory's
+/// uploads go under a prefix of its own. None: the embedded default, the local directory.
+pub fn test_object_store(data: &Path) -> Option<(String, String)> {
+    let endpoint = std::env::var("CRESTSCAN_TEST_S3_ENDPOINT").ok().filter(|e| !e.is_empty())?;
+    let name = data.file_name().unwrap().to_string_lossy().to_ascii_lowercase();
+    let prefix: String = name.chars().map(|c| if c.is_ascii_alphanumeric() { c } else { '-' }).collect();
+    Some((format!("s3://crestscan-it/{prefix}"), endpoint))
+}
+
 pub fn test_settings(data: &Path) -> Settings {
+    let (object_store, s3_endpoint) = test_object_store(data).unzip();
     Settings {
         bind: "127.0.0.1:0".parse().unwrap(),
         data_dir: data.to_path_buf(),
@@ -108,14 +122,29 @@ pub fn test_settings(data: &Path) -> Settings {
         poll_interval_ms: 50,
         shutdown_grace_seconds: 5.0,
         log: "warn".into(),
+        s3_access_key_id: object_store.as_ref().map(|_| "test".into()),
+        s3_secret_access_key: object_store.as_ref().map(|_| "test".into()),
+        object_store,
+        s3_endpoint,
         ..Settings::default()
     }
 }
 
+/// The store of a data directory as the app opens it: its SQLite file, and its blobs where the
+/// tests keep them ([`test_object_store`]).
 pub async fn open_store(data: &Path) -> crestscan::service::store::Store {
-    crestscan::service::store::Store::open(&data.join("crestscan.db"), &data.join("uploads"), &data.join("tmp"))
-        .await
-        .unwrap()
+    use crestscan::service::store::blobs::{S3Blobs, S3Location, S3Settings};
+    let mut store =
+        crestscan::service::store::Store::open(&data.join("crestscan.db"), &data.join("uploads"), &data.join("tmp"))
+            .await
+            .unwrap();
+    if let Some((url, endpoint)) = test_object_store(data) {
+        let s3 =
+            S3Settings { endpoint: Some(endpoint), region: None, credentials: Some(("test".into(), "test".into())) };
+        store.blobs =
+            std::sync::Arc::new(S3Blobs::open(S3Location::parse(&url).unwrap(), &s3, &data.join("tmp")).unwrap());
+    }
+    store
 }
 
 /// Starts the real application on port 0 with a fresh data directory.
@@ -158,8 +187,15 @@ pub async fn spawn_app() -> TestApp {
 /// The real binary, `crestscan serve` on a loopback port over `data` with `extra` arguments: the
 /// child and its base URL (read off the line it prints when listening).
 pub fn start_binary(data: &Path, extra: &[&str]) -> (std::process::Child, String) {
+    let blobs: Vec<String> = test_object_store(data)
+        .map(|(url, endpoint)| {
+            let key = ["--s3-access-key-id", "test", "--s3-secret-access-key", "test"].map(String::from);
+            [vec!["--object-store".into(), url, "--s3-endpoint".into(), endpoint], key.to_vec()].concat()
+        })
+        .unwrap_or_default();
     let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_crestscan"))
         .args(["serve", "--bind", "127.0.0.1:0", "--log", "warn"])
+        .args(&blobs)
         .args(extra)
         .arg("--data-dir")
         .arg(data)

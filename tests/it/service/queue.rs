@@ -20,14 +20,14 @@ async fn finished_uploads_are_purged_and_shared_ones_kept() {
     // The same bundle again: the same content-addressed upload, now in use by a queued inspection.
     let second: Value = app.submit(ci_tar(), "").await.json().await.unwrap();
     let second = second["id"].as_str().unwrap().to_string();
-    assert_eq!(app.uploads(), 1);
+    assert_eq!(app.uploads().await, 1);
     assert_eq!(store.purge_uploads(later_ms()).await.unwrap(), 0, "an unfinished inspection still needs it");
-    assert_eq!(app.uploads(), 1);
+    assert_eq!(app.uploads().await, 1);
     cancel(second.clone()).await;
     // Finished, but after the cutoff: kept.
     assert_eq!(store.purge_uploads(later_ms() - 7_200_000).await.unwrap(), 0);
     assert_eq!(store.purge_uploads(later_ms()).await.unwrap(), 1);
-    assert_eq!(app.uploads(), 0);
+    assert_eq!(app.uploads().await, 0);
     assert_eq!(store.purge_uploads(later_ms()).await.unwrap(), 0, "purged once");
     for id in [&first, &second] {
         let v: Value = app.get(&format!("/v1/inspections/{id}")).await.json().await.unwrap();
@@ -124,7 +124,7 @@ async fn an_api_node_and_a_worker_node_share_a_data_directory_and_failures_are_p
     let created: Value = api.submit(ci_tar(), "").await.json().await.unwrap();
     let id = created["id"].as_str().unwrap();
     let sha = created["bundle"]["sha256"].as_str().unwrap();
-    api.store().await.files.remove(sha).unwrap();
+    api.store().await.blobs.remove(sha).await.unwrap();
     // A worker node on the same directory claims it and fails it with a problem object.
     let worker = spawn_app_in(&api.data, |_| {}).await;
     let done = api.wait(id, Duration::from_secs(60)).await;

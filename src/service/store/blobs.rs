@@ -1,0 +1,373 @@
+//! Where uploaded bundles' bytes live, content-addressed by sha256: the local directory (the
+//! embedded default, [`LocalBlobs`]) or an S3-compatible object store ([`S3Blobs`],
+//! `--object-store s3://bucket/prefix`). Uploads are staged in local temporary space either way
+//! (hashed and checked while they arrive); [`BlobStore::put`] then makes the staged file the
+//! blob before the database row that names it commits, so a committed row never points at
+//! nothing. Workers read a blob through [`BlobStore::fetch`]: the file itself, or a download
+//! into temporary space checked against its hash.
+
+use super::files::FileStore;
+use futures_util::future::BoxFuture;
+use std::io;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+/// The capability the service needs of a place for bundles' bytes.
+pub trait BlobStore: Send + Sync {
+    /// Makes the staged file (fsynced, its sha256 known) the blob `sha256`, durably. A blob that
+    /// is already there is kept (the same content).
+    fn put<'a>(&'a self, sha256: &'a str, staged: tempfile::NamedTempFile) -> BoxFuture<'a, io::Result<()>>;
+    /// A local file holding the blob, for as long as the returned copy lives.
+    fn fetch<'a>(&'a self, sha256: &'a str) -> BoxFuture<'a, io::Result<LocalCopy>>;
+    /// Deletes the blob; one that is not there is no error.
+    fn remove<'a>(&'a self, sha256: &'a str) -> BoxFuture<'a, io::Result<()>>;
+    /// Every stored blob's sha256.
+    fn list(&self) -> BoxFuture<'_, io::Result<Vec<String>>>;
+    /// Whether a write would succeed now (readiness): a small probe written and deleted.
+    fn check(&self) -> BoxFuture<'_, io::Result<()>>;
+    /// Where the blobs are, for logs and readiness (`local /data/uploads`, `s3://bucket/prefix`).
+    fn describe(&self) -> String;
+}
+
+/// A blob as a local file: the stored file itself, or a download removed when this is dropped.
+pub enum LocalCopy {
+    InPlace(PathBuf),
+    Downloaded(tempfile::TempPath),
+}
+
+impl LocalCopy {
+    pub fn path(&self) -> &Path {
+        match self {
+            LocalCopy::InPlace(p) => p,
+            LocalCopy::Downloaded(p) => p,
+        }
+    }
+}
+
+fn blocking<T: Send + 'static>(
+    f: impl FnOnce() -> io::Result<T> + Send + 'static,
+) -> BoxFuture<'static, io::Result<T>> {
+    Box::pin(async move { tokio::task::spawn_blocking(f).await.map_err(io::Error::other)? })
+}
+
+/// The data directory's `uploads/`: the embedded default.
+#[derive(Clone, Debug)]
+pub struct LocalBlobs {
+    files: FileStore,
+}
+
+impl LocalBlobs {
+    pub fn new(files: FileStore) -> Self {
+        Self { files }
+    }
+}
+
+impl BlobStore for LocalBlobs {
+    fn put<'a>(&'a self, sha256: &'a str, staged: tempfile::NamedTempFile) -> BoxFuture<'a, io::Result<()>> {
+        let (files, sha) = (self.files.clone(), sha256.to_string());
+        blocking(move || files.place(staged, &sha).map(|_| ()))
+    }
+
+    fn fetch<'a>(&'a self, sha256: &'a str) -> BoxFuture<'a, io::Result<LocalCopy>> {
+        let path = self.files.path_of(sha256);
+        Box::pin(async move {
+            match tokio::fs::metadata(&path).await {
+                Ok(_) => Ok(LocalCopy::InPlace(path)),
+                Err(e) => Err(io::Error::new(e.kind(), format!("{}: {e}", path.display()))),
+            }
+        })
+    }
+
+    fn remove<'a>(&'a self, sha256: &'a str) -> BoxFuture<'a, io::Result<()>> {
+        let (files, sha) = (self.files.clone(), sha256.to_string());
+        blocking(move || files.remove(&sha))
+    }
+
+    fn list(&self) -> BoxFuture<'_, io::Result<Vec<String>>> {
+        let files = self.files.clone();
+        blocking(move || files.stored_hashes())
+    }
+
+    fn check(&self) -> BoxFuture<'_, io::Result<()>> {
+        let files = self.files.clone();
+        blocking(move || files.check_writable())
+    }
+
+    fn describe(&self) -> String {
+        format!("local {}", self.files.root().display())
+    }
+}
+
+/// Where and how to reach an S3-compatible store: `s3://bucket/prefix`, with the endpoint, region
+/// and credentials from the settings or the usual `AWS_*` environment.
+#[derive(Clone, Debug, PartialEq)]
+pub struct S3Location {
+    pub bucket: String,
+    /// Keys are `<prefix>/uploads/ab/abcdef…` (no leading or trailing slash; may be empty).
+    pub prefix: String,
+}
+
+impl S3Location {
+    /// Parses `s3://bucket[/prefix]`; the error says what is wrong.
+    pub fn parse(url: &str) -> Result<Self, String> {
+        let rest =
+            url.strip_prefix("s3://").ok_or_else(|| format!("`{url}`: an object store is s3://bucket/prefix"))?;
+        let (bucket, prefix) = rest.split_once('/').unwrap_or((rest, ""));
+        // S3's own bucket naming rule, so that a typo is caught here, not at the first upload.
+        let valid_bucket = (3..=63).contains(&bucket.len())
+            && bucket.chars().all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '-' || c == '.')
+            && bucket.starts_with(|c: char| c.is_ascii_alphanumeric())
+            && bucket.ends_with(|c: char| c.is_ascii_alphanumeric());
+        if !valid_bucket {
+            return Err(format!(
+                "`{url}`: the bucket `{bucket}` is not an S3 bucket name (3–63 of a–z, 0–9, '-' and '.', \
+                 starting and ending with a letter or digit)"
+            ));
+        }
+        let prefix = prefix.trim_matches('/');
+        if prefix.split('/').any(|p| p == "." || p == "..") {
+            return Err(format!("`{url}`: the prefix may not hold `.` or `..`"));
+        }
+        Ok(Self { bucket: bucket.into(), prefix: prefix.into() })
+    }
+}
+
+/// The settings an S3 store is opened with besides its location.
+#[derive(Clone, Debug, Default)]
+pub struct S3Settings {
+    /// `http://127.0.0.1:9000` for MinIO, moto and the like (path-style requests); None: AWS.
+    pub endpoint: Option<String>,
+    pub region: Option<String>,
+    /// An access key and its secret; None: the environment's (or the instance's role).
+    pub credentials: Option<(String, String)>,
+}
+
+/// Blobs in an S3-compatible object store (the `object_store` crate's client).
+pub struct S3Blobs {
+    store: Arc<dyn object_store::ObjectStore>,
+    location: S3Location,
+    /// Downloads for the workers go here (the data directory's `tmp/`).
+    tmp: PathBuf,
+}
+
+/// Parts of a multipart upload: S3 wants at least 5 MiB for every part but the last.
+const PART_BYTES: usize = 8 << 20;
+
+fn s3_error(e: object_store::Error) -> io::Error {
+    match e {
+        object_store::Error::NotFound { path, .. } => {
+            io::Error::new(io::ErrorKind::NotFound, format!("object store: {path}: not found"))
+        }
+        e => io::Error::other(format!("object store: {e}")),
+    }
+}
+
+impl S3Blobs {
+    /// Opens the store (no request is made: [`BlobStore::check`] is the first).
+    pub fn open(location: S3Location, settings: &S3Settings, tmp: &Path) -> io::Result<Self> {
+        use object_store::aws::AmazonS3Builder;
+        let mut builder = AmazonS3Builder::from_env().with_bucket_name(&location.bucket);
+        if let Some(region) = &settings.region {
+            builder = builder.with_region(region);
+        }
+        if let Some((key, secret)) = &settings.credentials {
+            builder = builder.with_access_key_id(key).with_secret_access_key(secret);
+        }
+        if let Some(endpoint) = &settings.endpoint {
+            builder = builder
+                .with_endpoint(endpoint)
+                .with_allow_http(endpoint.starts_with("http://"))
+                .with_virtual_hosted_style_request(false);
+        }
+        let store = builder.build().map_err(|e| io::Error::other(format!("object store: {e}")))?;
+        std::fs::create_dir_all(tmp)?;
+        Ok(Self { store: Arc::new(store), location, tmp: tmp.to_path_buf() })
+    }
+
+    fn key(&self, sha256: &str) -> object_store::path::Path {
+        let shard = sha256.get(..2).unwrap_or("00");
+        let key = format!("uploads/{shard}/{sha256}");
+        if self.location.prefix.is_empty() {
+            object_store::path::Path::from(key)
+        } else {
+            object_store::path::Path::from(format!("{}/{key}", self.location.prefix))
+        }
+    }
+
+    fn uploads_prefix(&self) -> object_store::path::Path {
+        if self.location.prefix.is_empty() {
+            object_store::path::Path::from("uploads")
+        } else {
+            object_store::path::Path::from(format!("{}/uploads", self.location.prefix))
+        }
+    }
+}
+
+impl BlobStore for S3Blobs {
+    fn put<'a>(&'a self, sha256: &'a str, staged: tempfile::NamedTempFile) -> BoxFuture<'a, io::Result<()>> {
+        Box::pin(async move {
+            use object_store::{ObjectStore, PutPayload, WriteMultipart};
+            use tokio::io::AsyncReadExt;
+            let key = self.key(sha256);
+            match self.store.head(&key).await {
+                Ok(_) => return Ok(()),
+                Err(object_store::Error::NotFound { .. }) => {}
+                Err(e) => return Err(s3_error(e)),
+            }
+            let mut file = tokio::fs::File::open(staged.path()).await?;
+            let size = file.metadata().await?.len();
+            // Read a part at a time: a bundle is never held whole in memory.
+            let mut buffer = vec![0u8; PART_BYTES];
+            if size as usize <= PART_BYTES {
+                let n = read_full(&mut file, &mut buffer).await?;
+                buffer.truncate(n);
+                self.store.put(&key, PutPayload::from(buffer)).await.map_err(s3_error)?;
+                return Ok(());
+            }
+            let upload = self.store.put_multipart(&key).await.map_err(s3_error)?;
+            let mut writer = WriteMultipart::new_with_chunk_size(upload, PART_BYTES);
+            loop {
+                let n = file.read(&mut buffer).await?;
+                if n == 0 {
+                    break;
+                }
+                writer.wait_for_capacity(2).await.map_err(s3_error)?;
+                writer.write(&buffer[..n]);
+            }
+            match writer.finish().await {
+                Ok(_) => Ok(()),
+                Err(e) => Err(s3_error(e)),
+            }
+        })
+    }
+
+    fn fetch<'a>(&'a self, sha256: &'a str) -> BoxFuture<'a, io::Result<LocalCopy>> {
+        Box::pin(async move {
+            use futures_util::StreamExt;
+            use object_store::ObjectStore;
+            use sha2::{Digest, Sha256};
+            use tokio::io::AsyncWriteExt;
+            let key = self.key(sha256);
+            let got = self.store.get(&key).await.map_err(s3_error)?;
+            let temp = tempfile::Builder::new().prefix("fetch-").tempfile_in(&self.tmp)?;
+            let (file, path) = temp.into_parts();
+            let mut file = tokio::fs::File::from_std(file);
+            let mut hasher = Sha256::new();
+            let mut stream = got.into_stream();
+            while let Some(chunk) = stream.next().await {
+                let chunk = chunk.map_err(s3_error)?;
+                hasher.update(&chunk);
+                file.write_all(&chunk).await?;
+            }
+            file.flush().await?;
+            let got_sha = hex::encode(hasher.finalize());
+            if got_sha != sha256 {
+                return Err(io::Error::new(
+                    io::ErrorKind::InvalidData,
+                    format!("object store: {key} holds bytes of sha256 {got_sha}, not {sha256}"),
+                ));
+            }
+            Ok(LocalCopy::Downloaded(path))
+        })
+    }
+
+    fn remove<'a>(&'a self, sha256: &'a str) -> BoxFuture<'a, io::Result<()>> {
+        Box::pin(async move {
+            use object_store::ObjectStore;
+            match self.store.delete(&self.key(sha256)).await {
+                Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
+                Err(e) => Err(s3_error(e)),
+            }
+        })
+    }
+
+    fn list(&self) -> BoxFuture<'_, io::Result<Vec<String>>> {
+        Box::pin(async move {
+            use futures_util::TryStreamExt;
+            use object_store::ObjectStore;
+            let prefix = self.uploads_prefix();
+            let objects: Vec<object_store::ObjectMeta> =
+                self.store.list(Some(&prefix)).try_collect().await.map_err(s3_error)?;
+            Ok(objects
+                .into_iter()
+                .filter_map(|o| o.location.filename().map(String::from))
+                .filter(|name| name.len() == 64 && name.bytes().all(|b| b.is_ascii_hexdigit()))
+                .collect())
+        })
+    }
+
+    fn check(&self) -> BoxFuture<'_, io::Result<()>> {
+        Box::pin(async move {
+            use object_store::{ObjectStore, PutPayload};
+            let probe = if self.location.prefix.is_empty() {
+                object_store::path::Path::from(format!("probe/{}", std::process::id()))
+            } else {
+                object_store::path::Path::from(format!("{}/probe/{}", self.location.prefix, std::process::id()))
+            };
+            self.store.put(&probe, PutPayload::from_static(b"probe")).await.map_err(s3_error)?;
+            match self.store.delete(&probe).await {
+                Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
+                Err(e) => Err(s3_error(e)),
+            }
+        })
+    }
+
+    fn describe(&self) -> String {
+        if self.location.prefix.is_empty() {
+            format!("s3://{}", self.location.bucket)
+        } else {
+            format!("s3://{}/{}", self.location.bucket, self.location.prefix)
+        }
+    }
+}
+
+/// Reads until `buffer` is full or the file ends; the bytes read.
+async fn read_full(file: &mut tokio::fs::File, buffer: &mut [u8]) -> io::Result<usize> {
+    use tokio::io::AsyncReadExt;
+    let mut n = 0;
+    while n < buffer.len() {
+        let got = file.read(&mut buffer[n..]).await?;
+        if got == 0 {
+            break;
+        }
+        n += got;
+    }
+    Ok(n)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_object_store_url_is_a_bucket_and_a_prefix() {
+        assert_eq!(
+            S3Location::parse("s3://plant-a/crestscan/").unwrap(),
+            S3Location { bucket: "plant-a".into(), prefix: "crestscan".into() }
+        );
+        assert_eq!(S3Location::parse("s3://plant-a").unwrap().prefix, "");
+        assert!(S3Location::parse("https://plant-a").unwrap_err().contains("s3://bucket/prefix"));
+        assert!(S3Location::parse("s3://Plant_A/x").unwrap_err().contains("not an S3 bucket name"));
+        assert!(S3Location::parse("s3://plant-a/../x").unwrap_err().contains("`..`"));
+    }
+
+    #[tokio::test]
+    async fn local_blobs_put_fetch_list_and_remove() {
+        let dir = tempfile::tempdir().unwrap();
+        let files = FileStore::open(&dir.path().join("uploads"), &dir.path().join("tmp")).unwrap();
+        let blobs = LocalBlobs::new(files.clone());
+        let bytes = b"a bundle's bytes";
+        let sha = super::super::files::sha256_hex(bytes);
+        let mut staged = files.temp_file().unwrap();
+        std::io::Write::write_all(&mut staged, bytes).unwrap();
+        files.prepare(&staged).unwrap();
+        blobs.put(&sha, staged).await.unwrap();
+        assert_eq!(std::fs::read(blobs.fetch(&sha).await.unwrap().path()).unwrap(), bytes);
+        assert_eq!(blobs.list().await.unwrap(), vec![sha.clone()]);
+        blobs.check().await.unwrap();
+        blobs.remove(&sha).await.unwrap();
+        assert!(blobs.list().await.unwrap().is_empty());
+        assert_eq!(blobs.fetch(&sha).await.err().unwrap().kind(), io::ErrorKind::NotFound);
+        blobs.remove(&sha).await.unwrap();
+    }
+}

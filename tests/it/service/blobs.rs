@@ -1,0 +1,107 @@
+//! Uploaded bundles in an S3-compatible object store (moto's server, a real S3 API on loopback):
+//! the blob store on its own (a multipart bundle, a corrupted object refused, removal), and the
+//! service keeping its uploads there end to end.
+
+use super::*;
+use crate::common::moto_endpoint;
+use crestscan::service::store::blobs::{BlobStore, S3Blobs, S3Location, S3Settings};
+
+fn s3_settings() -> S3Settings {
+    S3Settings {
+        endpoint: Some(moto_endpoint().into()),
+        region: None,
+        credentials: Some(("test".into(), "test".into())),
+    }
+}
+
+/// A staged file of `bytes` in `tmp`, as an upload leaves one.
+fn staged(tmp: &Path, bytes: &[u8]) -> tempfile::NamedTempFile {
+    let mut file = tempfile::NamedTempFile::new_in(tmp).unwrap();
+    std::io::Write::write_all(&mut file, bytes).unwrap();
+    file.as_file().sync_all().unwrap();
+    file
+}
+
+#[tokio::test]
+async fn s3_blobs_keep_a_multipart_bundle_and_refuse_bytes_that_are_not_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let location = S3Location::parse("s3://crestscan-it/blobs-roundtrip").unwrap();
+    let blobs = S3Blobs::open(location, &s3_settings(), dir.path()).unwrap();
+    blobs.check().await.unwrap();
+    // 20 MiB: three parts of a multipart upload (S3 wants ≥ 5 MiB for all but the last).
+    let bytes: Vec<u8> = (0..20u32 << 20).map(|i| (i.wrapping_mul(2654435761) >> 24) as u8).collect();
+    let sha = crestscan::service::store::files::sha256_hex(&bytes);
+    blobs.put(&sha, staged(dir.path(), &bytes)).await.unwrap();
+    // Put again: kept, not uploaded twice.
+    blobs.put(&sha, staged(dir.path(), &bytes)).await.unwrap();
+    assert_eq!(blobs.list().await.unwrap(), vec![sha.clone()]);
+    let copy = blobs.fetch(&sha).await.unwrap();
+    assert!(std::fs::read(copy.path()).unwrap() == bytes, "the fetched bytes are the uploaded ones");
+    let path = copy.path().to_path_buf();
+    drop(copy);
+    assert!(!path.exists(), "a download is removed with its copy");
+    // Bytes under the name that are not the blob's (a store that lost or mangled it): refused.
+    let key = format!("{}/crestscan-it/blobs-roundtrip/uploads/{}/{sha}", moto_endpoint(), &sha[..2]);
+    let put = std::process::Command::new("curl").args(["-sf", "-X", "PUT", "--data-binary", "other", &key]).status();
+    assert!(put.unwrap().success());
+    let err = blobs.fetch(&sha).await.err().expect("a corrupted blob is refused");
+    assert_eq!(err.kind(), std::io::ErrorKind::InvalidData);
+    assert!(err.to_string().contains(&sha), "{err}");
+    blobs.remove(&sha).await.unwrap();
+    assert!(blobs.list().await.unwrap().is_empty());
+    assert_eq!(blobs.fetch(&sha).await.err().unwrap().kind(), std::io::ErrorKind::NotFound);
+    // Removing what is not there is no error.
+    blobs.remove(&sha).await.unwrap();
+}
+
+/// The service with `object_store` set keeps each upload in the bucket, none in its data
+/// directory, and inspects it from there.
+#[tokio::test]
+async fn the_service_keeps_uploads_in_the_object_store() {
+    let app = spawn_app_with(|s| {
+        s.object_store = Some("s3://crestscan-it/service-end-to-end".into());
+        s.s3_endpoint = Some(moto_endpoint().into());
+        s.s3_access_key_id = Some("test".into());
+        s.s3_secret_access_key = Some("test".into());
+    })
+    .await;
+    let ready: Value = app.get("/readyz").await.json().await.unwrap();
+    assert_eq!(ready["status"], "ready", "{ready}");
+    let response = app.submit(ci_tar(), "").await;
+    assert_eq!(response.status(), StatusCode::ACCEPTED);
+    let id = response.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+    let done = app.wait(&id, Duration::from_secs(120)).await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    let location = S3Location::parse("s3://crestscan-it/service-end-to-end").unwrap();
+    let blobs = S3Blobs::open(location, &s3_settings(), &app.data.join("tmp")).unwrap();
+    assert_eq!(blobs.list().await.unwrap().len(), 1);
+    let local = app.data.join("uploads");
+    assert!(!local.exists() || walk(&local).is_empty(), "nothing kept in the data directory");
+    // The object under the prefix, read straight from the server.
+    let listing = std::process::Command::new("curl")
+        .args(["-sf", &format!("{}/crestscan-it?list-type=2&prefix=service-end-to-end/uploads/", moto_endpoint())])
+        .output()
+        .unwrap();
+    let listing = String::from_utf8_lossy(&listing.stdout);
+    assert_eq!(listing.matches("<Key>").count(), 1, "{listing}");
+    app.stop().await;
+}
+
+#[tokio::test]
+async fn the_service_does_not_start_on_an_object_store_it_cannot_write() {
+    let closed = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let dir = tempfile::tempdir().unwrap();
+    let mut settings = test_settings(dir.path());
+    settings.object_store = Some("s3://crestscan-it/nowhere".into());
+    settings.s3_endpoint = Some(format!("http://127.0.0.1:{closed}"));
+    settings.s3_access_key_id = Some("test".into());
+    settings.s3_secret_access_key = Some("test".into());
+    let err = crestscan::service::startup::Application::build(settings).await.err().expect("refused");
+    let text = err.to_string();
+    assert!(text.contains("object store s3://crestscan-it/nowhere"), "{text}");
+    // A malformed location is a settings error naming the field.
+    let mut settings = test_settings(dir.path());
+    settings.object_store = Some("s3://Not_A_Bucket".into());
+    let err = crestscan::service::startup::Application::build(settings).await.err().expect("refused");
+    assert!(err.to_string().contains("object_store"), "{err}");
+}
