@@ -119,13 +119,14 @@ pub fn moto_endpoint() -> &'static str {
             }
         }
         let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
-        let child = std::process::Command::new("moto_server")
-            .args(["-H", "127.0.0.1", "-p", &port.to_string()])
+        // As a module rather than the `moto_server` script, which pip may put off the PATH.
+        let child = std::process::Command::new("python3")
+            .args(["-m", "moto.server", "-H", "127.0.0.1", "-p", &port.to_string()])
             .stdout(std::process::Stdio::null())
             .stderr(std::process::Stdio::null())
             .spawn()
             .unwrap_or_else(|e| {
-                panic!("moto_server could not be started ({e}): python3 -m pip install 'moto[server]==5.2.1'")
+                panic!("moto's server could not be started ({e}): python3 -m pip install 'moto[server]==5.2.1'")
             });
         PID.store(child.id(), std::sync::atomic::Ordering::Relaxed);
         // SAFETY: registers a plain C function to run at exit.
@@ -141,7 +142,10 @@ pub fn moto_endpoint() -> &'static str {
             if put.status.success() {
                 break;
             }
-            assert!(start.elapsed() < std::time::Duration::from_secs(30), "moto_server did not answer on {endpoint}");
+            assert!(
+                start.elapsed() < std::time::Duration::from_secs(30),
+                "moto's server did not answer on {endpoint} (is `moto[server]` installed?)"
+            );
             std::thread::sleep(std::time::Duration::from_millis(200));
         }
         endpoint
