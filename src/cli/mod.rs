@@ -6,6 +6,7 @@ mod compare;
 mod connections;
 mod inspect;
 mod keys;
+mod migrate;
 mod pairs;
 mod progress;
 mod qualify;
@@ -59,6 +60,9 @@ enum Command {
     Serve(Box<serve::ServeArgs>),
     /// API keys of a service's data directory: create (the first admin key), list, revoke.
     Keys(keys::KeysArgs),
+    /// Copy a data directory's uploaded bundles into an S3-compatible object store, resumable and
+    /// verified, before serving it with --object-store.
+    MigrateStore(migrate::MigrateStoreArgs),
     /// Print a new webhook signing secret (whsec_…, 32 random bytes) for a `[[webhooks]]`
     /// endpoint's `secrets` or `callback_secrets`, and for the receiver that verifies them.
     WebhookSecret,
@@ -233,6 +237,7 @@ pub fn main() -> Result<()> {
         Command::Connections(args) => args.run(),
         Command::Serve(args) => args.run(),
         Command::Keys(args) => args.run(),
+        Command::MigrateStore(args) => args.run(),
         Command::WebhookSecret => {
             let secret = crestscan::service::webhooks::Secret::generate()
                 .map_err(|e| anyhow::anyhow!("the operating system gave no random bytes: {e}"))?;

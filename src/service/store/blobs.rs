@@ -203,42 +203,56 @@ impl S3Blobs {
     }
 }
 
+impl S3Blobs {
+    /// Uploads the file at `path` as the blob `sha256` unless it is there already (true: it was
+    /// uploaded). The file is left as it is: `migrate-store` copies a data directory's uploads so.
+    pub async fn copy_in(&self, sha256: &str, path: &Path) -> io::Result<bool> {
+        use object_store::{ObjectStore, PutPayload, WriteMultipart};
+        use tokio::io::AsyncReadExt;
+        let key = self.key(sha256);
+        match self.store.head(&key).await {
+            Ok(_) => return Ok(false),
+            Err(object_store::Error::NotFound { .. }) => {}
+            Err(e) => return Err(s3_error(e)),
+        }
+        let mut file = tokio::fs::File::open(path).await?;
+        let size = file.metadata().await?.len();
+        // Read a part at a time: a bundle is never held whole in memory.
+        let mut buffer = vec![0u8; PART_BYTES.min(size as usize + 1)];
+        if size as usize <= PART_BYTES {
+            let n = read_full(&mut file, &mut buffer).await?;
+            buffer.truncate(n);
+            self.store.put(&key, PutPayload::from(buffer)).await.map_err(s3_error)?;
+            return Ok(true);
+        }
+        let upload = self.store.put_multipart(&key).await.map_err(s3_error)?;
+        let mut writer = WriteMultipart::new_with_chunk_size(upload, PART_BYTES);
+        loop {
+            let n = file.read(&mut buffer).await?;
+            if n == 0 {
+                break;
+            }
+            writer.wait_for_capacity(2).await.map_err(s3_error)?;
+            writer.write(&buffer[..n]);
+        }
+        writer.finish().await.map_err(s3_error)?;
+        Ok(true)
+    }
+
+    /// The stored size of the blob `sha256`, bytes; None where it is not there.
+    pub async fn size_of(&self, sha256: &str) -> io::Result<Option<u64>> {
+        use object_store::ObjectStore;
+        match self.store.head(&self.key(sha256)).await {
+            Ok(meta) => Ok(Some(meta.size as u64)),
+            Err(object_store::Error::NotFound { .. }) => Ok(None),
+            Err(e) => Err(s3_error(e)),
+        }
+    }
+}
+
 impl BlobStore for S3Blobs {
     fn put<'a>(&'a self, sha256: &'a str, staged: tempfile::NamedTempFile) -> BoxFuture<'a, io::Result<()>> {
-        Box::pin(async move {
-            use object_store::{ObjectStore, PutPayload, WriteMultipart};
-            use tokio::io::AsyncReadExt;
-            let key = self.key(sha256);
-            match self.store.head(&key).await {
-                Ok(_) => return Ok(()),
-                Err(object_store::Error::NotFound { .. }) => {}
-                Err(e) => return Err(s3_error(e)),
-            }
-            let mut file = tokio::fs::File::open(staged.path()).await?;
-            let size = file.metadata().await?.len();
-            // Read a part at a time: a bundle is never held whole in memory.
-            let mut buffer = vec![0u8; PART_BYTES];
-            if size as usize <= PART_BYTES {
-                let n = read_full(&mut file, &mut buffer).await?;
-                buffer.truncate(n);
-                self.store.put(&key, PutPayload::from(buffer)).await.map_err(s3_error)?;
-                return Ok(());
-            }
-            let upload = self.store.put_multipart(&key).await.map_err(s3_error)?;
-            let mut writer = WriteMultipart::new_with_chunk_size(upload, PART_BYTES);
-            loop {
-                let n = file.read(&mut buffer).await?;
-                if n == 0 {
-                    break;
-                }
-                writer.wait_for_capacity(2).await.map_err(s3_error)?;
-                writer.write(&buffer[..n]);
-            }
-            match writer.finish().await {
-                Ok(_) => Ok(()),
-                Err(e) => Err(s3_error(e)),
-            }
-        })
+        Box::pin(async move { self.copy_in(sha256, staged.path()).await.map(|_| ()) })
     }
 
     fn fetch<'a>(&'a self, sha256: &'a str) -> BoxFuture<'a, io::Result<LocalCopy>> {

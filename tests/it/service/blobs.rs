@@ -105,3 +105,68 @@ async fn the_service_does_not_start_on_an_object_store_it_cannot_write() {
     let err = crestscan::service::startup::Application::build(settings).await.err().expect("refused");
     assert!(err.to_string().contains("object_store"), "{err}");
 }
+
+/// A data directory that started on the embedded default moves its uploads into the object store
+/// (`crestscan migrate-store`): resumable, verified, and served from there afterwards with the
+/// same answers.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_data_directory_moves_its_uploads_into_the_object_store() {
+    let local = |s: &mut Settings| {
+        s.object_store = None;
+        s.s3_endpoint = None;
+        s.s3_access_key_id = None;
+        s.s3_secret_access_key = None;
+    };
+    let app = spawn_app_with(local).await;
+    let id = app.submit(ci_tar(), "").await.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+    assert_eq!(app.wait(&id, Duration::from_secs(120)).await["status"], "succeeded");
+    let report_before = app.get(&format!("/v1/inspections/{id}/report")).await.bytes().await.unwrap();
+    let data = app.data.clone();
+    let dir = app.stop().await.expect("the data directory");
+
+    let migrate = || {
+        std::process::Command::new(env!("CARGO_BIN_EXE_crestscan"))
+            .args(["migrate-store", "--from"])
+            .arg(&data)
+            .args(["--object-store", "s3://crestscan-it/migrated", "--s3-endpoint", moto_endpoint()])
+            .args(["--s3-access-key-id", "test", "--s3-secret-access-key", "test", "--verify-hashes"])
+            .output()
+            .unwrap()
+    };
+    let first = migrate();
+    let stdout = String::from_utf8_lossy(&first.stdout);
+    assert!(first.status.success(), "{stdout}{}", String::from_utf8_lossy(&first.stderr));
+    assert!(
+        stdout.contains("1 live uploads: 1 copied, 0 already in") && stdout.contains("1 verified by size and sha256"),
+        "{stdout}"
+    );
+    // Again: nothing to copy, everything verified.
+    let again = migrate();
+    let stdout = String::from_utf8_lossy(&again.stdout);
+    assert!(again.status.success() && stdout.contains("0 copied, 1 already in"), "{stdout}");
+    // The local files gone, the service on the object store answers as before and inspects the
+    // moved bundle again from there.
+    std::fs::remove_dir_all(data.join("uploads")).unwrap();
+    let app = spawn_app_in(&data, |s| {
+        s.object_store = Some("s3://crestscan-it/migrated".into());
+        s.s3_endpoint = Some(moto_endpoint().into());
+        s.s3_access_key_id = Some("test".into());
+        s.s3_secret_access_key = Some("test".into());
+    })
+    .await;
+    let report_after = app.get(&format!("/v1/inspections/{id}/report")).await.bytes().await.unwrap();
+    assert!(report_before == report_after, "the report reads the same from the migrated store");
+    let rerun = app.submit(ci_tar(), "").await.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+    assert_eq!(app.wait(&rerun, Duration::from_secs(120)).await["status"], "succeeded");
+    app.stop().await;
+    // A store missing a live upload fails the verification, naming it.
+    let location = S3Location::parse("s3://crestscan-it/migrated").unwrap();
+    let blobs = S3Blobs::open(location, &s3_settings(), &data.join("tmp")).unwrap();
+    let sha = blobs.list().await.unwrap().pop().unwrap();
+    blobs.remove(&sha).await.unwrap();
+    let broken = migrate();
+    assert!(!broken.status.success());
+    let stderr = String::from_utf8_lossy(&broken.stderr);
+    assert!(stderr.contains(&sha) && stderr.contains("not in the store"), "{stderr}");
+    drop(dir);
+}
