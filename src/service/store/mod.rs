@@ -41,6 +41,12 @@ pub enum StoreError {
     Db(#[from] sqlx::Error),
     #[error("migrations: {0}")]
     Migrate(#[from] sqlx::migrate::MigrateError),
+    #[error(
+        "the database {database} was written by a newer crestscan: it has schema version {found}, this binary knows up \
+         to {known}. Run that newer version (or restore the backup taken before the upgrade); an older binary would \
+         misread it"
+    )]
+    SchemaNewer { database: String, found: i64, known: i64 },
     #[error("file store: {0}")]
     Io(#[from] std::io::Error),
 }
@@ -51,7 +57,9 @@ impl ErrorCode for StoreError {
             StoreError::NotFound => Code::NotFound,
             StoreError::IdempotencyConflict { .. } => Code::IdempotencyKeyReused,
             _ if self.is_storage_full() => Code::InsufficientStorage,
-            StoreError::Db(_) | StoreError::Migrate(_) | StoreError::Io(_) => Code::InternalError,
+            StoreError::Db(_) | StoreError::Migrate(_) | StoreError::Io(_) | StoreError::SchemaNewer { .. } => {
+                Code::InternalError
+            }
         }
     }
 
@@ -158,6 +166,15 @@ impl Store {
             .after_release(|conn, _| Box::pin(clean_on_release(conn)))
             .connect_with(options)
             .await?;
+        // A schema a newer binary wrote is refused by name before the migrator's own complaint.
+        let known = MIGRATOR.iter().map(|m| m.version).max().unwrap_or(0);
+        let applied: Option<i64> = sqlx::query_scalar("SELECT MAX(version) FROM _sqlx_migrations WHERE success")
+            .fetch_one(&pool)
+            .await
+            .unwrap_or(None);
+        if let Some(found) = applied.filter(|&v| v > known) {
+            return Err(StoreError::SchemaNewer { database: database.display().to_string(), found, known });
+        }
         MIGRATOR.run(&pool).await?;
         let files = FileStore::open(uploads, tmp)?;
         let (changes, _) = tokio::sync::broadcast::channel(256);

@@ -136,3 +136,21 @@ async fn an_api_node_and_a_worker_node_share_a_data_directory_and_failures_are_p
     worker.stop().await;
     api.stop().await;
 }
+
+/// A database a newer binary migrated is refused at start-up with what to do, not misread.
+#[tokio::test]
+async fn a_database_from_a_newer_binary_is_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = open_store(dir.path()).await;
+    sqlx::query(
+        "INSERT INTO _sqlx_migrations (version, description, success, checksum, execution_time) \
+         VALUES (999999, 'from the future', 1, X'00', 0)",
+    )
+    .execute(&store.pool)
+    .await
+    .unwrap();
+    store.pool.close().await;
+    let err = crestscan::service::startup::Application::build(test_settings(dir.path())).await.err().expect("refused");
+    let text = err.to_string();
+    assert!(text.contains("newer crestscan") && text.contains("999999"), "{text}");
+}
