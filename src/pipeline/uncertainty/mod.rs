@@ -248,8 +248,8 @@ pub fn heights(
     // 4.3.7).
     // A learned correction's term and the failed path's two read the same thing, the corrected
     // heights' error, from two sides (the card's measured effect; the heights' own dispersion and
-    // distance from nominal): the larger is taken, not both. Summed, U covered more than 99% of
-    // the errors at 11 of the 13 corrected medium and coarse check stations (docs/models.md).
+    // distance from nominal): the larger is taken, not both; summed, they over-cover
+    // (docs/models.md, "Choosing when it runs").
     let expanded_of = |noise_mm: f64, from_nominal_mm: f64, model_mm: f64| {
         let read_off = along_mm.powi(2) + from_nominal_mm.powi(2) / 3.0;
         k * (noise_mm.powi(2)
