@@ -1,7 +1,8 @@
-"""What the service proofs under scripts/ share: the release build, the ci bundle as a tar, and a
-server on a loopback port. Imported by kill-storm, schemathesis, mixed-load, priority-check and
-hostile-peak (each runs from any directory)."""
-import os, shutil, subprocess, tarfile
+"""What the service proofs under scripts/ share: the release build, the ci bundle as a tar, a
+server on a loopback port, an HTTP call, and moto's S3 server. Imported by kill-storm,
+schemathesis, mixed-load, priority-check, hostile-peak, soak-processes and scale-workers (each runs
+from any directory)."""
+import os, shutil, socket, subprocess, sys, tarfile, time, urllib.request
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 BIN = os.path.join(ROOT, "target", "release", "crestscan")
@@ -41,3 +42,36 @@ def serve(data, *extra, stderr=subprocess.DEVNULL):
         proc.kill()
         raise SystemExit(f"server did not start: {line!r}")
     return proc, line.strip().split()[-1]
+
+
+def http(method, url, body=None, headers=None, timeout=60):
+    """One request; its status and body (an HTTP error status raises urllib's HTTPError)."""
+    request = urllib.request.Request(url, data=body, method=method, headers=headers or {})
+    with urllib.request.urlopen(request, timeout=timeout) as response:
+        return response.status, response.read()
+
+
+def moto(bucket):
+    """Starts moto's S3 server (`pip install 'moto[server]'`) on a free loopback port with `bucket`
+    created; returns the process and its endpoint URL."""
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    proc = subprocess.Popen([sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    endpoint = f"http://127.0.0.1:{port}"
+    for _ in range(150):
+        try:
+            http("PUT", f"{endpoint}/{bucket}")
+            return proc, endpoint
+        except OSError:
+            time.sleep(0.2)
+    proc.kill()
+    raise SystemExit(f"moto's server did not answer on {endpoint} (is `moto[server]` installed?)")
+
+
+def s3_flags(bucket, prefix, endpoint):
+    """`serve`'s flags for uploads in moto's `bucket` under `prefix` (moto takes any key)."""
+    return ["--object-store", f"s3://{bucket}/{prefix}", "--s3-endpoint", endpoint,
+            "--s3-access-key-id", "test", "--s3-secret-access-key", "test"]

@@ -6,7 +6,8 @@
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use crestscan::service::store::blobs::{BlobStore, S3Blobs, S3Location, S3Settings};
+use crestscan::service::config::Settings;
+use crestscan::service::store::blobs::{BlobStore, S3Blobs};
 use std::path::PathBuf;
 
 #[derive(Args)]
@@ -17,18 +18,8 @@ pub struct MigrateStoreArgs {
     /// The object store, s3://bucket/prefix (what `serve --object-store` will be given).
     #[arg(long, env = "CRESTSCAN_OBJECT_STORE")]
     object_store: String,
-    /// The store's endpoint for a store other than AWS (http://minio:9000).
-    #[arg(long, env = "CRESTSCAN_S3_ENDPOINT")]
-    s3_endpoint: Option<String>,
-    /// The store's region [default: AWS_REGION, else us-east-1].
-    #[arg(long, env = "CRESTSCAN_S3_REGION")]
-    s3_region: Option<String>,
-    /// The store's access key [default: AWS_ACCESS_KEY_ID].
-    #[arg(long, env = "CRESTSCAN_S3_ACCESS_KEY_ID")]
-    s3_access_key_id: Option<String>,
-    /// Its secret [default: AWS_SECRET_ACCESS_KEY].
-    #[arg(long, env = "CRESTSCAN_S3_SECRET_ACCESS_KEY", hide_env_values = true)]
-    s3_secret_access_key: Option<String>,
+    #[command(flatten)]
+    s3: super::object_store::S3Args,
     /// Also download every copied object and check its sha256 (reads the whole store back).
     #[arg(long)]
     verify_hashes: bool,
@@ -40,21 +31,22 @@ impl MigrateStoreArgs {
     }
 
     async fn migrate(self) -> Result<()> {
-        let database = self.from.join("crestscan.db");
+        // The data directory and the store read as `serve` would read them, checked the same way.
+        let mut settings = Settings {
+            data_dir: self.from.clone(),
+            object_store: Some(self.object_store.clone()),
+            ..Settings::default()
+        };
+        self.s3.apply(&mut settings);
+        settings.validate()?;
+        let database = settings.database_path();
         if !database.is_file() {
             bail!("{}: no crestscan.db here; --from is a service's data directory", self.from.display());
         }
-        let store =
-            crestscan::service::store::Store::open(&database, &self.from.join("uploads"), &self.from.join("tmp"))
-                .await
-                .with_context(|| format!("opening {}", database.display()))?;
-        let location = S3Location::parse(&self.object_store).map_err(|e| anyhow::anyhow!("--object-store {e}"))?;
-        let settings = S3Settings {
-            endpoint: self.s3_endpoint,
-            region: self.s3_region,
-            credentials: self.s3_access_key_id.zip(self.s3_secret_access_key),
-        };
-        let blobs = S3Blobs::open(location, &settings, &self.from.join("tmp"))?;
+        let store = crestscan::service::store::Store::open(&database, &settings.uploads_dir(), &settings.tmp_dir())
+            .await
+            .with_context(|| format!("opening {}", database.display()))?;
+        let blobs = S3Blobs::open_url(&self.object_store, &settings.s3(), &settings.tmp_dir())?;
         blobs.check().await.with_context(|| format!("the object store {} does not take a write", blobs.describe()))?;
         let live: Vec<(String, i64)> =
             sqlx::query_as("SELECT sha256, size_bytes FROM uploads WHERE purged_at IS NULL ORDER BY sha256")

@@ -7,6 +7,7 @@ mod connections;
 mod inspect;
 mod keys;
 mod migrate;
+mod object_store;
 mod pairs;
 mod progress;
 mod qualify;

@@ -165,18 +165,8 @@ pub struct ServeArgs {
     /// data directory (credentials from AWS_ACCESS_KEY_ID / AWS_SECRET_ACCESS_KEY) [default: none].
     #[arg(long, env = "CRESTSCAN_OBJECT_STORE")]
     object_store: Option<String>,
-    /// The object store's endpoint for a store other than AWS, e.g. http://minio:9000.
-    #[arg(long, env = "CRESTSCAN_S3_ENDPOINT")]
-    s3_endpoint: Option<String>,
-    /// The object store's region [default: AWS_REGION, else us-east-1].
-    #[arg(long, env = "CRESTSCAN_S3_REGION")]
-    s3_region: Option<String>,
-    /// The object store's access key [default: AWS_ACCESS_KEY_ID].
-    #[arg(long, env = "CRESTSCAN_S3_ACCESS_KEY_ID")]
-    s3_access_key_id: Option<String>,
-    /// Its secret [default: AWS_SECRET_ACCESS_KEY]; prefer the environment to the command line.
-    #[arg(long, env = "CRESTSCAN_S3_SECRET_ACCESS_KEY", hide_env_values = true)]
-    s3_secret_access_key: Option<String>,
+    #[command(flatten)]
+    s3: super::object_store::S3Args,
 }
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
@@ -264,21 +254,8 @@ impl ServeArgs {
                 RoleArg::All => crestscan::service::config::Role::All,
             };
         }
-        if let Some(url) = self.object_store {
-            s.object_store = Some(url);
-        }
-        if let Some(url) = self.s3_endpoint {
-            s.s3_endpoint = Some(url);
-        }
-        if let Some(region) = self.s3_region {
-            s.s3_region = Some(region);
-        }
-        if let Some(key) = self.s3_access_key_id {
-            s.s3_access_key_id = Some(key);
-        }
-        if let Some(secret) = self.s3_secret_access_key {
-            s.s3_secret_access_key = Some(secret);
-        }
+        s.object_store = self.object_store.or(s.object_store.take());
+        self.s3.apply(&mut s);
         if let Some(auth) = self.auth {
             s.auth = match auth {
                 AuthArg::Off => crestscan::service::config::AuthMode::Off,

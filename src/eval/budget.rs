@@ -374,27 +374,15 @@ fn surface_by_thread(map: &UnrolledMap, model: &PartModel) -> std::collections::
     by_thread
 }
 
-/// The RMS of the profile model's change to the heights (reported − classical, over the bins both
-/// have), µm; None where no profile model ran.
+/// The RMS of the profile model's change to the heights over the bins the report's
+/// `profile_correction` counted, µm; None where no profile model ran.
 fn correction_rms_um(inspection: &Inspection) -> Option<f64> {
-    let report = &inspection.report;
-    let corrected = report
-        .provenance
-        .as_ref()
-        .is_some_and(|p| p.models.iter().any(|m| m.role == crate::learned::ModelRole::ProfileCorrection));
-    if !corrected {
-        return None;
-    }
-    let mut changes = Vec::new();
-    for t in &report.threads {
-        let Some(classical) = inspection.threads.iter().find(|m| m.index == t.index) else { continue };
-        for (bin, reported) in classical.bins.iter().zip(&t.height_mm.values) {
-            if let (Some(c), Some(r)) = (bin.height_mm, reported) {
-                changes.push(1e3 * (r - c));
-            }
-        }
-    }
-    (!changes.is_empty()).then(|| (changes.iter().map(|c| c * c).sum::<f64>() / changes.len() as f64).sqrt())
+    let choice = inspection.report.profile_correction.as_ref().filter(|c| c.run)?;
+    let (sum_sq, bins) = choice
+        .change_by_thread
+        .iter()
+        .fold((0.0, 0usize), |(s, n), t| (s + t.rms_um * t.rms_um * t.bins as f64, n + t.bins));
+    (bins > 0).then(|| (sum_sq / bins as f64).sqrt())
 }
 
 fn variant_budget(variant: Variant, inspection: &Inspection, truth: &Truth) -> VariantBudget {

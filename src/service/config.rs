@@ -407,6 +407,15 @@ impl Settings {
         Ok(())
     }
 
+    /// What reaches the object store besides its location ([`Settings::object_store`]).
+    pub fn s3(&self) -> crate::service::store::blobs::S3Settings {
+        crate::service::store::blobs::S3Settings {
+            endpoint: self.s3_endpoint.clone(),
+            region: self.s3_region.clone(),
+            credentials: self.s3_access_key_id.clone().zip(self.s3_secret_access_key.clone()),
+        }
+    }
+
     pub fn database_path(&self) -> PathBuf {
         self.data_dir.join("crestscan.db")
     }

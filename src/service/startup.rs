@@ -47,14 +47,8 @@ impl Application {
         store.files = store.files.with_free_floor(settings.min_free_disk_mb.saturating_mul(1 << 20));
         store.max_interruptions = settings.max_interruptions as i64;
         if let Some(url) = &settings.object_store {
-            use crate::service::store::blobs::{BlobStore, S3Blobs, S3Location, S3Settings};
-            let location = S3Location::parse(url).map_err(|e| StoreError::Io(std::io::Error::other(e)))?;
-            let s3 = S3Settings {
-                endpoint: settings.s3_endpoint.clone(),
-                region: settings.s3_region.clone(),
-                credentials: settings.s3_access_key_id.clone().zip(settings.s3_secret_access_key.clone()),
-            };
-            let blobs = S3Blobs::open(location, &s3, &settings.tmp_dir()).map_err(StoreError::Io)?;
+            use crate::service::store::blobs::{BlobStore, S3Blobs};
+            let blobs = S3Blobs::open_url(url, &settings.s3(), &settings.tmp_dir()).map_err(StoreError::Io)?;
             // Refuse to start against a store that does not take a write, rather than accept
             // uploads that cannot be kept.
             blobs.check().await.map_err(|e| {

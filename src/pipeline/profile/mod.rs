@@ -263,6 +263,8 @@ pub struct ThreadChange {
     pub thread: u32,
     /// The RMS change of its heights, µm.
     pub rms_um: f64,
+    /// The bins it is over (those with a height before and after).
+    pub bins: usize,
 }
 
 /// Whether the profile correction runs for a part of `family` at a station of `object_pixel_mm`,
@@ -332,6 +334,7 @@ pub fn change_by_thread(classical: &[ThreadMeasure], corrected: &[ThreadMeasure]
             (!changes.is_empty()).then(|| ThreadChange {
                 thread: t.index,
                 rms_um: 1e3 * (changes.iter().map(|c| c * c).sum::<f64>() / changes.len() as f64).sqrt(),
+                bins: changes.len(),
             })
         })
         .collect()

@@ -163,6 +163,13 @@ fn s3_error(e: object_store::Error) -> io::Error {
 }
 
 impl S3Blobs {
+    /// [`S3Blobs::open`] at `s3://bucket/prefix`; a malformed one is an `InvalidInput` error that
+    /// says what is wrong.
+    pub fn open_url(url: &str, settings: &S3Settings, tmp: &Path) -> io::Result<Self> {
+        let location = S3Location::parse(url).map_err(|e| io::Error::new(io::ErrorKind::InvalidInput, e))?;
+        Self::open(location, settings, tmp)
+    }
+
     /// Opens the store (no request is made: [`BlobStore::check`] is the first).
     pub fn open(location: S3Location, settings: &S3Settings, tmp: &Path) -> io::Result<Self> {
         use object_store::aws::AmazonS3Builder;
@@ -184,26 +191,20 @@ impl S3Blobs {
         Ok(Self { store: Arc::new(store), location, tmp: tmp.to_path_buf() })
     }
 
+    /// `rest` under the location's prefix.
+    fn under_prefix(&self, rest: &str) -> object_store::path::Path {
+        if self.location.prefix.is_empty() {
+            object_store::path::Path::from(rest)
+        } else {
+            object_store::path::Path::from(format!("{}/{rest}", self.location.prefix))
+        }
+    }
+
     fn key(&self, sha256: &str) -> object_store::path::Path {
         let shard = sha256.get(..2).unwrap_or("00");
-        let key = format!("uploads/{shard}/{sha256}");
-        if self.location.prefix.is_empty() {
-            object_store::path::Path::from(key)
-        } else {
-            object_store::path::Path::from(format!("{}/{key}", self.location.prefix))
-        }
+        self.under_prefix(&format!("uploads/{shard}/{sha256}"))
     }
 
-    fn uploads_prefix(&self) -> object_store::path::Path {
-        if self.location.prefix.is_empty() {
-            object_store::path::Path::from("uploads")
-        } else {
-            object_store::path::Path::from(format!("{}/uploads", self.location.prefix))
-        }
-    }
-}
-
-impl S3Blobs {
     /// Uploads the file at `path` as the blob `sha256` unless it is there already (true: it was
     /// uploaded). The file is left as it is: `migrate-store` copies a data directory's uploads so.
     pub async fn copy_in(&self, sha256: &str, path: &Path) -> io::Result<bool> {
@@ -299,7 +300,7 @@ impl BlobStore for S3Blobs {
         Box::pin(async move {
             use futures_util::TryStreamExt;
             use object_store::ObjectStore;
-            let prefix = self.uploads_prefix();
+            let prefix = self.under_prefix("uploads");
             let objects: Vec<object_store::ObjectMeta> =
                 self.store.list(Some(&prefix)).try_collect().await.map_err(s3_error)?;
             Ok(objects
@@ -313,11 +314,7 @@ impl BlobStore for S3Blobs {
     fn check(&self) -> BoxFuture<'_, io::Result<()>> {
         Box::pin(async move {
             use object_store::{ObjectStore, PutPayload};
-            let probe = if self.location.prefix.is_empty() {
-                object_store::path::Path::from(format!("probe/{}", std::process::id()))
-            } else {
-                object_store::path::Path::from(format!("{}/probe/{}", self.location.prefix, std::process::id()))
-            };
+            let probe = self.under_prefix(&format!("probe/{}", std::process::id()));
             self.store.put(&probe, PutPayload::from_static(b"probe")).await.map_err(s3_error)?;
             match self.store.delete(&probe).await {
                 Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
