@@ -139,7 +139,7 @@ async fn the_cli_key_works_against_the_served_binary_and_the_audit_names_it() {
 
     let (mut child, base) =
         start_binary(dir.path(), &["--auth", "required", "--workers", "0", "--submissions-per-minute", "2"]);
-    let client = reqwest::Client::new();
+    let client = super::client();
     let list = client.get(format!("{base}/v1/inspections")).send().await.unwrap();
     assert_eq!(list.status(), StatusCode::UNAUTHORIZED);
     let list = client.get(format!("{base}/v1/inspections")).bearer_auth(&mes).send().await.unwrap();

@@ -134,7 +134,7 @@ async fn thirty_two_trickles_from_four_addresses_leave_room_for_a_normal_upload(
     // Every place is taken, and each trickle has run long enough to be judged.
     tokio::time::sleep(Duration::from_millis(1500)).await;
     let normal =
-        reqwest::Client::builder().local_address("127.0.0.5".parse::<std::net::IpAddr>().unwrap()).build().unwrap();
+        super::client_builder().local_address("127.0.0.5".parse::<std::net::IpAddr>().unwrap()).build().unwrap();
     let response = normal
         .post(app.url("/v1/inspections"))
         .header("content-type", "application/x-tar")

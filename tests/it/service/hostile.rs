@@ -394,7 +394,7 @@ async fn slow_uploads_are_cut_off_and_others_are_served() {
     assert_eq!(refused.json::<Value>().await.unwrap()["code"], "too_many_uploads");
     // Another client (another loopback address) is served meanwhile.
     let other =
-        reqwest::Client::builder().local_address("127.0.0.2".parse::<std::net::IpAddr>().unwrap()).build().unwrap();
+        super::client_builder().local_address("127.0.0.2".parse::<std::net::IpAddr>().unwrap()).build().unwrap();
     let served = other
         .post(app.url("/v1/inspections"))
         .header("content-type", "application/x-tar")

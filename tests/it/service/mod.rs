@@ -170,14 +170,18 @@ pub async fn spawn_app_in(data: &Path, edit: impl FnOnce(&mut Settings)) -> Test
         .await
         .unwrap();
     });
-    TestApp {
-        base,
-        client: reqwest::Client::new(),
-        data: data.to_path_buf(),
-        dir: None,
-        stop: Some(tx),
-        server: Some(server),
-    }
+    TestApp { base, client: client(), data: data.to_path_buf(), dir: None, stop: Some(tx), server: Some(server) }
+}
+
+/// An HTTP client as the service asks its clients to be: a pooled connection idles at most half
+/// `header_timeout_seconds` (10 s in tests), so it is never reused in the instant the server
+/// closes it, which a POST would meet as a broken pipe mid-body (docs/service.md, "Connections").
+pub fn client_builder() -> reqwest::ClientBuilder {
+    reqwest::Client::builder().pool_idle_timeout(Duration::from_secs(5))
+}
+
+pub fn client() -> reqwest::Client {
+    client_builder().build().unwrap()
 }
 
 pub async fn spawn_app() -> TestApp {

@@ -44,7 +44,7 @@ async fn kill_9_loses_no_accepted_inspection() {
     let start = |data: &Path| {
         start_binary(data, &["--lease-seconds", "1", "--heartbeat-seconds", "0.2", "--poll-interval-ms", "50"])
     };
-    let client = reqwest::Client::new();
+    let client = super::client();
     let (mut child, base) = start(data.path());
     let mut ids = Vec::new();
     for _ in 0..3 {

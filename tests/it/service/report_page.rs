@@ -105,7 +105,7 @@ pub(super) fn quiet_and_local(log: &str, net_log: &Value, origin: &str) -> Vec<S
 async fn the_dashboard_and_the_report_page_work_in_a_real_browser() {
     let served = serve_binary();
     let base = served.base.clone();
-    let client = reqwest::Client::new();
+    let client = super::client();
     let id = submit_ci_to(&client, &base).await;
     // The long poll answers at each change of status or stage: ask again until it has ended.
     let deadline = std::time::Instant::now() + Duration::from_secs(300);

@@ -6,7 +6,7 @@ use super::*;
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_api_process_accepts_and_a_worker_process_runs_the_job() {
     let dir = tempfile::tempdir().unwrap();
-    let client = reqwest::Client::new();
+    let client = super::client();
     let (mut api, api_base) = start_binary(dir.path(), &["--role", "api"]);
     let id = submit_ci_to(&client, &api_base).await;
     // The API process runs nothing: the job waits for a worker.

@@ -40,7 +40,7 @@ async fn traces_reach_an_otlp_collector() {
     let data = tempfile::tempdir().unwrap();
     let endpoint = format!("{collector}/v1/traces");
     let (mut child, base) = start_binary(data.path(), &["--otlp-endpoint", &endpoint, "--poll-interval-ms", "50"]);
-    let client = reqwest::Client::new();
+    let client = super::client();
     let id = submit_ci_to(&client, &base).await;
     let deadline = Instant::now() + Duration::from_secs(300);
     loop {

@@ -158,7 +158,7 @@ async fn webhooks_survive_kill_9_signed_and_only_to_allowed_destinations() {
     .unwrap();
     let config = config.to_str().unwrap().to_string();
     let args = ["--config", &config, "--lease-seconds", "1", "--heartbeat-seconds", "0.2", "--poll-interval-ms", "50"];
-    let client = reqwest::Client::new();
+    let client = super::client();
     let (mut service, mut base) = start(&data.path().join("service"), &args);
 
     let submit = |base: &str, callback: &str| {
