@@ -8,6 +8,7 @@ COPY Cargo.toml Cargo.lock ./
 COPY src ./src
 COPY data ./data
 COPY migrations ./migrations
+COPY migrations-pg ./migrations-pg
 COPY openapi ./openapi
 # The learned models are compiled into the binary; ONNX Runtime comes from its PyPI wheel.
 COPY models ./models

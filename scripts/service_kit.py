@@ -75,3 +75,36 @@ def s3_flags(bucket, prefix, endpoint):
     """`serve`'s flags for uploads in moto's `bucket` under `prefix` (moto takes any key)."""
     return ["--object-store", f"s3://{bucket}/{prefix}", "--s3-endpoint", endpoint,
             "--s3-access-key-id", "test", "--s3-secret-access-key", "test"]
+
+
+def postgres(work):
+    """Starts a PostgreSQL 15 server of its own (Debian's `postgresql-15`) under work/pg on a free
+    loopback port, as the `postgres` user when run as root (initdb refuses root); returns a stop
+    function and the server's URL without a database (`postgres://postgres@127.0.0.1:PORT`)."""
+    bindir = "/usr/lib/postgresql/15/bin"
+    pg = os.path.join(work, "pg")
+    shutil.rmtree(pg, ignore_errors=True)
+    os.makedirs(pg)
+    as_user = []
+    if os.geteuid() == 0:
+        shutil.chown(pg, "postgres")
+        as_user = ["runuser", "-u", "postgres", "--"]
+
+    def run(program, *args):
+        path = os.path.join(bindir, program)
+        subprocess.run([*as_user, path if os.path.exists(path) else program, *args], check=True, cwd=pg,
+                       stdout=subprocess.DEVNULL)
+
+    run("initdb", "-D", os.path.join(pg, "data"), "-A", "trust", "-U", "postgres", "-E", "UTF8",
+        "--locale=C.UTF-8", "--no-sync")
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    # A server as a plant would run one (fsync on): the proofs measure crestscan on it.
+    run("pg_ctl", "-D", os.path.join(pg, "data"), "-l", os.path.join(pg, "log"), "-w", "-o",
+        f"-p {port} -c listen_addresses=127.0.0.1 -k {pg} -c max_connections=300", "start")
+
+    def stop():
+        run("pg_ctl", "-D", os.path.join(pg, "data"), "-m", "fast", "stop")
+    return stop, f"postgres://postgres@127.0.0.1:{port}"

@@ -42,19 +42,25 @@ struct DataDir {
     /// The service's data directory (its database) [default: ./crestscan-data].
     #[arg(long, env = "CRESTSCAN_DATA_DIR")]
     data_dir: Option<PathBuf>,
+    /// The service's PostgreSQL, where it keeps its records there (`serve --database-url`).
+    #[arg(long, env = "CRESTSCAN_DATABASE_URL", hide_env_values = true)]
+    database_url: Option<String>,
 }
 
 impl DataDir {
     async fn store(&self) -> Result<crestscan::service::store::Store> {
         let settings = crestscan::service::config::Settings {
             data_dir: self.data_dir.clone().unwrap_or_else(|| crestscan::service::config::Settings::default().data_dir),
+            database_url: self.database_url.clone(),
             ..Default::default()
         };
+        settings.validate()?;
         std::fs::create_dir_all(&settings.data_dir)
             .with_context(|| format!("creating {}", settings.data_dir.display()))?;
-        crestscan::service::store::Store::open(&settings.database_path(), &settings.uploads_dir(), &settings.tmp_dir())
+        let database = settings.database();
+        crestscan::service::store::Store::connect(&database, &settings.uploads_dir(), &settings.tmp_dir())
             .await
-            .with_context(|| format!("opening the database in {}", settings.data_dir.display()))
+            .with_context(|| format!("opening the database {}", database.describe()))
     }
 }
 

@@ -1,13 +1,17 @@
-//! `crestscan migrate-store`: a single-node data directory's uploaded bundles copied into an
-//! S3-compatible object store, resumable (what is there already is skipped) and verified (every
-//! live upload present with its size, and with `--verify-hashes` its bytes' sha256), so that the
-//! service can then run with `--object-store` on the same data directory and keep its history.
-//! The records stay in the data directory's SQLite file (PostgreSQL is not built yet).
+//! `crestscan migrate-store`: a single-node data directory moved into the distributed backends,
+//! so that a plant that started small keeps its history:
+//! - `--to postgres://…`: its records (inspections, the queue, results, CMM data, keys, audit,
+//!   webhooks, stations) copied table by table, each verified by count and digest;
+//! - `--object-store s3://…`: its uploaded bundles copied, each verified by size (and with
+//!   `--verify-hashes` by its bytes' sha256).
+//!
+//! Both are resumable: what the target has already is skipped, so an interrupted run is run again.
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use crestscan::service::config::Settings;
 use crestscan::service::store::blobs::{BlobStore, S3Blobs};
+use crestscan::service::store::{Database, Store};
 use std::path::PathBuf;
 
 #[derive(Args)]
@@ -15,9 +19,14 @@ pub struct MigrateStoreArgs {
     /// The service's data directory (its crestscan.db and uploads/).
     #[arg(long)]
     from: PathBuf,
-    /// The object store, s3://bucket/prefix (what `serve --object-store` will be given).
+    /// PostgreSQL to copy the records into, postgres://user:password@host:5432/crestscan (what
+    /// `serve --database-url` will be given); created and migrated if new.
+    #[arg(long, env = "CRESTSCAN_DATABASE_URL", hide_env_values = true)]
+    to: Option<String>,
+    /// The object store to copy the uploads into, s3://bucket/prefix (what `serve --object-store`
+    /// will be given).
     #[arg(long, env = "CRESTSCAN_OBJECT_STORE")]
-    object_store: String,
+    object_store: Option<String>,
     #[command(flatten)]
     s3: super::object_store::S3Args,
     /// Also download every copied object and check its sha256 (reads the whole store back).
@@ -32,9 +41,15 @@ impl MigrateStoreArgs {
 
     async fn migrate(self) -> Result<()> {
         // The data directory and the store read as `serve` would read them, checked the same way.
+        if self.to.is_none() && self.object_store.is_none() {
+            bail!(
+                "nothing to move: give --to postgres://… (the records), --object-store s3://… (the uploads), or both"
+            );
+        }
         let mut settings = Settings {
             data_dir: self.from.clone(),
-            object_store: Some(self.object_store.clone()),
+            database_url: self.to.clone(),
+            object_store: self.object_store.clone(),
             ..Settings::default()
         };
         self.s3.apply(&mut settings);
@@ -46,56 +61,99 @@ impl MigrateStoreArgs {
         let store = crestscan::service::store::Store::open(&database, &settings.uploads_dir(), &settings.tmp_dir())
             .await
             .with_context(|| format!("opening {}", database.display()))?;
-        let blobs = S3Blobs::open_url(&self.object_store, &settings.s3(), &settings.tmp_dir())?;
-        blobs.check().await.with_context(|| format!("the object store {} does not take a write", blobs.describe()))?;
-        let live: Vec<(String, i64)> =
-            sqlx::query_as("SELECT sha256, size_bytes FROM uploads WHERE purged_at IS NULL ORDER BY sha256")
-                .fetch_all(&store.pool)
-                .await?;
-        let (mut copied, mut present) = (0usize, 0usize);
-        for (sha, _) in &live {
-            let path = store.files.path_of(sha);
-            if !path.is_file() {
-                // Already moved and the local copy deleted, or lost: the check below says which.
-                continue;
-            }
-            if blobs.copy_in(sha, &path).await.with_context(|| format!("copying {}", path.display()))? {
-                copied += 1;
-            } else {
-                present += 1;
-            }
+        let mut flags = Vec::new();
+        if let Some(url) = &self.to {
+            copy_records(&store, url, &settings).await?;
+            flags.push(format!("--database-url {}", crestscan::service::store::redact_url(url)));
         }
-        // Verified: every live upload in the store with its size (and, asked, its bytes' hash).
-        let mut problems = Vec::new();
-        for (sha, size) in &live {
-            match blobs.size_of(sha).await? {
-                None => problems.push(format!("{sha}: not in the store (and not in {})", store.files.root().display())),
-                Some(stored) if stored != *size as u64 => {
-                    problems.push(format!("{sha}: {stored} bytes in the store, {size} recorded"))
-                }
-                Some(_) if self.verify_hashes => {
-                    if let Err(e) = blobs.fetch(sha).await {
-                        problems.push(format!("{sha}: {e}"));
-                    }
-                }
-                Some(_) => {}
-            }
+        if let Some(url) = &self.object_store {
+            copy_uploads(&store, url, &settings, self.verify_hashes).await?;
+            flags.push(format!("--object-store {url}"));
         }
-        println!(
-            "{} live uploads: {copied} copied, {present} already in {}; {} verified{}",
-            live.len(),
-            blobs.describe(),
-            live.len() - problems.len(),
-            if self.verify_hashes { " by size and sha256" } else { " by size" }
-        );
-        if !problems.is_empty() {
-            bail!("{} upload(s) not in the store as recorded:\n{}", problems.len(), problems.join("\n"));
+        println!("Start the service with {} on this data directory.", flags.join(" "));
+        if self.object_store.is_some() {
+            println!("The files under {} can then be deleted.", store.files.root().display());
         }
-        println!(
-            "Start the service with --object-store {} on this data directory; the files under {} can then be deleted.",
-            self.object_store,
-            store.files.root().display()
-        );
         Ok(())
     }
+}
+
+/// Copies the uploads into the object store at `url` and checks every live one is there.
+async fn copy_uploads(store: &Store, url: &str, settings: &Settings, verify_hashes: bool) -> Result<()> {
+    let blobs = S3Blobs::open_url(url, &settings.s3(), &settings.tmp_dir())?;
+    blobs.check().await.with_context(|| format!("the object store {} does not take a write", blobs.describe()))?;
+    let live = store.live_uploads().await?;
+    let (mut copied, mut present) = (0usize, 0usize);
+    for (sha, _) in &live {
+        let path = store.files.path_of(sha);
+        if !path.is_file() {
+            // Already moved and the local copy deleted, or lost: the check below says which.
+            continue;
+        }
+        if blobs.copy_in(sha, &path).await.with_context(|| format!("copying {}", path.display()))? {
+            copied += 1;
+        } else {
+            present += 1;
+        }
+    }
+    // Verified: every live upload in the store with its size (and, asked, its bytes' hash).
+    let mut problems = Vec::new();
+    for (sha, size) in &live {
+        match blobs.size_of(sha).await? {
+            None => problems.push(format!("{sha}: not in the store (and not in {})", store.files.root().display())),
+            Some(stored) if stored != *size as u64 => {
+                problems.push(format!("{sha}: {stored} bytes in the store, {size} recorded"))
+            }
+            Some(_) if verify_hashes => {
+                if let Err(e) = blobs.fetch(sha).await {
+                    problems.push(format!("{sha}: {e}"));
+                }
+            }
+            Some(_) => {}
+        }
+    }
+    println!(
+        "{} live uploads: {copied} copied, {present} already in {}; {} verified{}",
+        live.len(),
+        blobs.describe(),
+        live.len() - problems.len(),
+        if verify_hashes { " by size and sha256" } else { " by size" }
+    );
+    if !problems.is_empty() {
+        bail!("{} upload(s) not in the store as recorded:\n{}", problems.len(), problems.join("\n"));
+    }
+    Ok(())
+}
+
+/// Copies the records into PostgreSQL at `url` and checks every table came over whole.
+async fn copy_records(store: &Store, url: &str, settings: &Settings) -> Result<()> {
+    let shown = crestscan::service::store::redact_url(url);
+    let target = Store::connect(&Database::Postgres(url.to_string()), &settings.uploads_dir(), &settings.tmp_dir())
+        .await
+        .with_context(|| format!("opening {shown}"))?;
+    let copies = store
+        .copy_records_into(&target, |c| {
+            println!(
+                "{:<20} {:>9} rows, {:>9} copied now, {:>9} in the target, {}",
+                c.table,
+                c.rows,
+                c.inserted,
+                c.target_rows,
+                if c.identical { "identical" } else { "DIFFERENT" }
+            )
+        })
+        .await
+        .with_context(|| format!("copying the records into {shown}"))?;
+    target.close().await;
+    let different: Vec<&str> = copies.iter().filter(|c| !c.identical).map(|c| c.table).collect();
+    if !different.is_empty() {
+        bail!(
+            "these tables differ between the data directory and {shown}: {} (rows the target had before that the \
+             source lacks, or rows changed since a first run: a target for one data directory only)",
+            different.join(", ")
+        );
+    }
+    let rows: u64 = copies.iter().map(|c| c.rows).sum();
+    println!("{} tables, {rows} rows: identical in {shown} (counted, and digested row by row)", copies.len());
+    Ok(())
 }

@@ -161,6 +161,10 @@ pub struct ServeArgs {
     /// http://collector:4318/v1/traces [default: none].
     #[arg(long, env = "CRESTSCAN_OTLP_ENDPOINT")]
     otlp_endpoint: Option<String>,
+    /// Keep the records in PostgreSQL, postgres://user:password@host:5432/crestscan, instead of the
+    /// data directory's SQLite file (created if the server lacks it) [default: none].
+    #[arg(long, env = "CRESTSCAN_DATABASE_URL", hide_env_values = true)]
+    database_url: Option<String>,
     /// Keep uploaded bundles in an S3-compatible object store, s3://bucket/prefix, instead of the
     /// data directory (credentials from AWS_ACCESS_KEY_ID / AWS_SECRET_ACCESS_KEY) [default: none].
     #[arg(long, env = "CRESTSCAN_OBJECT_STORE")]
@@ -254,6 +258,7 @@ impl ServeArgs {
                 RoleArg::All => crestscan::service::config::Role::All,
             };
         }
+        s.database_url = self.database_url.or(s.database_url.take());
         s.object_store = self.object_store.or(s.object_store.take());
         self.s3.apply(&mut s);
         if let Some(auth) = self.auth {

@@ -117,6 +117,12 @@ pub struct Settings {
     /// An OpenTelemetry collector's OTLP/HTTP traces URL (`http://collector:4318/v1/traces`):
     /// spans of requests and inspection runs are exported there; none by default.
     pub otlp_endpoint: Option<String>,
+    /// Keep the records in PostgreSQL, `postgres://user:password@host:port/database`, instead of
+    /// the data directory's SQLite file: API and worker processes on several machines then share
+    /// them (docs/operations.md, "Beyond one machine"). The database is created if the server
+    /// lacks it. Never logged with its password. None by default.
+    #[serde(skip_serializing)]
+    pub database_url: Option<String>,
     /// Keep uploaded bundles in an S3-compatible object store, `s3://bucket/prefix`, instead of
     /// the data directory's `uploads/` (docs/operations.md, "Beyond one machine"); credentials
     /// from the usual `AWS_ACCESS_KEY_ID` / `AWS_SECRET_ACCESS_KEY`. None by default.
@@ -223,6 +229,7 @@ impl Default for Settings {
             webhook_max_attempts: 15,
             webhook_retry_seconds: 5.0,
             otlp_endpoint: None,
+            database_url: None,
             object_store: None,
             s3_endpoint: None,
             s3_region: None,
@@ -382,6 +389,11 @@ impl Settings {
         {
             return invalid("otlp_endpoint", e);
         }
+        if let Some(url) = &self.database_url
+            && let Err(e) = check_database_url(url)
+        {
+            return invalid("database_url", e);
+        }
         if let Some(url) = &self.object_store
             && let Err(e) = crate::service::store::blobs::S3Location::parse(url)
         {
@@ -418,6 +430,14 @@ impl Settings {
 
     pub fn database_path(&self) -> PathBuf {
         self.data_dir.join("crestscan.db")
+    }
+
+    /// Where the records live: PostgreSQL at `database_url`, else the data directory's SQLite file.
+    pub fn database(&self) -> crate::service::store::Database {
+        match &self.database_url {
+            Some(url) => crate::service::store::Database::Postgres(url.clone()),
+            None => crate::service::store::Database::Sqlite(self.database_path()),
+        }
     }
     pub fn uploads_dir(&self) -> PathBuf {
         self.data_dir.join("uploads")
@@ -564,4 +584,21 @@ mod tests {
             assert!(bad.validate().is_err(), "{bad:?}");
         }
     }
+}
+
+/// A PostgreSQL URL this build can connect to: `postgres://` or `postgresql://`, with a host.
+fn check_database_url(url: &str) -> Result<(), String> {
+    let parsed = reqwest::Url::parse(url)
+        .map_err(|e| format!("not a URL ({e}): postgres://user:password@host:5432/crestscan"))?;
+    if !matches!(parsed.scheme(), "postgres" | "postgresql") {
+        return Err(format!(
+            "scheme {:?} is not PostgreSQL: postgres://user:password@host:5432/crestscan (leave it unset for the \
+             data directory's SQLite file)",
+            parsed.scheme()
+        ));
+    }
+    if parsed.host_str().is_none_or(str::is_empty) {
+        return Err("has no host: postgres://user:password@host:5432/crestscan".into());
+    }
+    Ok(())
 }

@@ -43,7 +43,7 @@ impl Application {
         }
         let webhooks =
             crate::service::webhooks::client(&settings).map_err(|e| StartupError::Webhooks(e.to_string()))?;
-        let mut store = Store::open(&settings.database_path(), &settings.uploads_dir(), &settings.tmp_dir()).await?;
+        let mut store = Store::connect(&settings.database(), &settings.uploads_dir(), &settings.tmp_dir()).await?;
         store.files = store.files.with_free_floor(settings.min_free_disk_mb.saturating_mul(1 << 20));
         store.max_interruptions = settings.max_interruptions as i64;
         if let Some(url) = &settings.object_store {
@@ -117,6 +117,12 @@ impl Application {
         let (stop_tx, stop_rx) = (self.stop, self.state.stopping.clone());
         let workers = tokio::spawn(worker::run(self.worker.clone(), stop_rx.clone()));
         let sweeper = tokio::spawn(retention_sweep(self.state.clone(), stop_rx.clone()));
+        // PostgreSQL: other processes' changes and queued uploads, by LISTEN/NOTIFY.
+        let listener = {
+            let store = self.state.store.clone();
+            let (wake, stop) = (self.state.wake.clone(), stop_rx.clone());
+            tokio::spawn(async move { store.listen(wake, stop).await })
+        };
         let webhooks = tokio::spawn(crate::service::webhooks::run(
             self.state.store.clone(),
             self.webhooks,
@@ -143,6 +149,7 @@ impl Application {
         // A delivery cut off here is attempted again by the next process (its lease lapses).
         webhooks.abort();
         sweeper.abort();
+        listener.abort();
         signal.abort();
         tracing::info!("stopped");
         Ok(())

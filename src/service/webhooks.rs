@@ -154,6 +154,8 @@ pub async fn run(store: Store, client: reqwest::Client, settings: Arc<Settings>,
     // Long enough for an attempt at its timeout; a process that dies holding one lets it lapse.
     let lease = Duration::from_secs_f64(2.0 * settings.webhook_timeout_seconds + 5.0);
     let poll = Duration::from_millis(settings.poll_interval_ms.max(10));
+    // Woken at once when an inspection ends (under PostgreSQL in any process), polling besides.
+    let mut changes = store.changes.subscribe();
     loop {
         if *stop.borrow() {
             return;
@@ -170,9 +172,17 @@ pub async fn run(store: Store, client: reqwest::Client, settings: Arc<Settings>,
             Ok(_) => {}
             Err(e) => tracing::warn!(error = %e, "webhooks: claiming deliveries failed"),
         }
-        tokio::select! {
-            _ = tokio::time::sleep(poll) => {}
-            _ = stop.changed() => {}
+        let nap = tokio::time::sleep(poll);
+        tokio::pin!(nap);
+        loop {
+            tokio::select! {
+                _ = &mut nap => break,
+                _ = stop.changed() => break,
+                change = changes.recv() => match change {
+                    Ok(row) if !row.status().is_terminal() => continue,
+                    _ => break,
+                },
+            }
         }
     }
 }

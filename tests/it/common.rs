@@ -151,3 +151,100 @@ pub fn moto_endpoint() -> &'static str {
         endpoint
     })
 }
+
+/// A PostgreSQL server for the tests: Debian's `postgresql-15` (which `.ci/run` installs; the
+/// README's test command says how), a cluster of its own initialised in a temporary directory and
+/// started once per test process on a free loopback port, stopped and removed when the process
+/// exits. `initdb` refuses root, so as root the cluster is the `postgres` user's. Its URL without
+/// a database (`postgres://postgres@127.0.0.1:PORT`); each caller names its own database, which
+/// the store creates.
+pub fn postgres_url() -> &'static str {
+    static URL: OnceLock<String> = OnceLock::new();
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    URL.get_or_init(|| {
+        extern "C" fn stop_postgres() {
+            if let Some(dir) = DIR.get() {
+                let _ = pg_command("pg_ctl", dir)
+                    .args(["-D", &dir.join("data").to_string_lossy(), "-m", "immediate", "stop"])
+                    .stdout(std::process::Stdio::null())
+                    .stderr(std::process::Stdio::null())
+                    .status();
+                let _ = std::fs::remove_dir_all(dir);
+            }
+        }
+        let dir = std::env::temp_dir().join(format!("crestscan-pg-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        // SAFETY: geteuid only reads the process's user id.
+        if unsafe { libc::geteuid() } == 0 {
+            let chown = std::process::Command::new("chown").args(["postgres:"]).arg(&dir).status();
+            assert!(chown.is_ok_and(|s| s.success()), "chown postgres {} (is postgresql-15 installed?)", dir.display());
+        }
+        let data = dir.join("data");
+        let init = pg_command("initdb", &dir)
+            .args(["-D", &data.to_string_lossy(), "-A", "trust", "-U", "postgres", "-E", "UTF8", "--locale=C.UTF-8"])
+            .arg("--no-sync")
+            .output()
+            .unwrap_or_else(|e| panic!("initdb could not run ({e}): apt-get install postgresql-15"));
+        assert!(init.status.success(), "initdb failed: {}", String::from_utf8_lossy(&init.stderr));
+        let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+        // fsync off: the tests kill crestscan's processes, never this server.
+        let options = format!(
+            "-p {port} -c listen_addresses=127.0.0.1 -k {} -c max_connections=400 -c fsync=off \
+             -c synchronous_commit=off -c full_page_writes=off",
+            dir.display()
+        );
+        let start = pg_command("pg_ctl", &dir)
+            .args(["-D", &data.to_string_lossy(), "-o", &options, "-l", &dir.join("log").to_string_lossy(), "-w"])
+            .arg("start")
+            .output()
+            .unwrap();
+        assert!(
+            start.status.success(),
+            "pg_ctl start failed: {}{}",
+            String::from_utf8_lossy(&start.stderr),
+            std::fs::read_to_string(dir.join("log")).unwrap_or_default()
+        );
+        DIR.set(dir).unwrap();
+        // SAFETY: registers a plain C function to run at exit.
+        unsafe { libc::atexit(stop_postgres) };
+        format!("postgres://postgres@127.0.0.1:{port}")
+    })
+}
+
+/// A PostgreSQL program (Debian keeps them off the PATH, under /usr/lib/postgresql/15/bin), run as
+/// the `postgres` user when this process is root, from `dir` (which that user can read).
+fn pg_command(program: &str, dir: &Path) -> std::process::Command {
+    let debian = Path::new("/usr/lib/postgresql/15/bin").join(program);
+    let program = if debian.is_file() { debian.to_string_lossy().into_owned() } else { program.to_string() };
+    // SAFETY: geteuid only reads the process's user id.
+    let mut command = if unsafe { libc::geteuid() } == 0 {
+        let mut c = std::process::Command::new("runuser");
+        c.args(["-u", "postgres", "--", &program]);
+        c
+    } else {
+        std::process::Command::new(program)
+    };
+    command.current_dir(dir);
+    command
+}
+
+/// The test suite's backend for the service's records: PostgreSQL ([`postgres_url`]) where
+/// `CRESTSCAN_TEST_DATABASE=postgres` (`.ci/run` runs the service suite a third time so), else
+/// the embedded SQLite file. Under PostgreSQL each data directory has a database of its own,
+/// named from its path, so that processes started on one directory share it.
+pub fn test_database_url(data: &Path) -> Option<String> {
+    match std::env::var("CRESTSCAN_TEST_DATABASE").as_deref() {
+        Ok("postgres") => Some(database_for(data)),
+        Ok("sqlite") | Ok("") | Err(_) => None,
+        Ok(other) => panic!("CRESTSCAN_TEST_DATABASE={other}: postgres or sqlite"),
+    }
+}
+
+/// A PostgreSQL database of the test server for `data`: `cs_` and a hash of its path.
+pub fn database_for(data: &Path) -> String {
+    use std::hash::{Hash, Hasher};
+    let mut h = std::collections::hash_map::DefaultHasher::new();
+    data.hash(&mut h);
+    format!("{}/cs_{:016x}", postgres_url(), h.finish())
+}

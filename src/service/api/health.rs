@@ -44,6 +44,8 @@ pub struct Readiness {
     pub role: String,
     /// Where uploaded bundles are kept: `local <dir>` or `s3://bucket/prefix`.
     pub blobs: String,
+    /// Where the records are kept: `sqlite:<file>` or `postgres://user:***@host:port/database`.
+    pub records: String,
 }
 
 /// Readiness: the database answers and commits a write, the data directory takes writes and has
@@ -105,6 +107,7 @@ pub async fn readyz(State(state): State<AppState>) -> Result<Json<Readiness>, Ap
         running,
         role: state.settings.role.as_str().into(),
         blobs: state.store.blobs.describe(),
+        records: state.store.database.describe(),
     }))
 }
 

@@ -50,16 +50,25 @@ pub async fn get_inspection(
     let id = InspectionId::parse(&id)?;
     let fetch =
         || async { state.store.inspection(&id.0).await.map_err(|e| super::common::missing_inspection(e, &id.0)) };
+    // Subscribed before the first read, so no change after it is missed.
+    let mut changes = state.store.changes.subscribe();
     let mut row = fetch().await?;
-    // Long-poll by re-reading the row: the worker may be another process on the same database,
-    // so an in-process notification would miss its changes.
+    // Long-poll: woken by the change feed (this process's writes; every process's under
+    // PostgreSQL, by NOTIFY), and re-reading the row every WAIT_POLL besides, for a worker in
+    // another process on a shared SQLite file.
     let seen = watched(&row);
     let deadline = tokio::time::Instant::now() + wait;
     let mut stopping = state.stopping.clone();
+    let mut poll = tokio::time::interval_at(tokio::time::Instant::now() + WAIT_POLL, WAIT_POLL);
     while !finished(&row) && tokio::time::Instant::now() < deadline && !*stopping.borrow() {
         tokio::select! {
-            _ = tokio::time::sleep(WAIT_POLL.min(deadline - tokio::time::Instant::now())) => {}
+            _ = poll.tick() => {}
+            _ = tokio::time::sleep_until(deadline) => {}
             _ = stopping.changed() => {}
+            change = changes.recv() => match change {
+                Ok(changed) if changed.id != id.0 => continue,
+                _ => {}
+            },
         }
         row = fetch().await?;
         if watched(&row) != seen {

@@ -3,8 +3,9 @@
 
 use super::*;
 
-/// An inspection as stored, joined with its upload's summary.
-#[derive(Clone, Debug, sqlx::FromRow)]
+/// An inspection as stored, joined with its upload's summary (serialised only as the change feed's
+/// message between processes).
+#[derive(Clone, Debug, sqlx::FromRow, Serialize, serde::Deserialize)]
 pub struct InspectionRow {
     pub id: String,
     pub status: String,
@@ -96,151 +97,167 @@ pub struct ListFilter {
 
 impl Store {
     pub async fn inspection(&self, id: &str) -> Result<InspectionRow, StoreError> {
-        sqlx::query_as::<_, InspectionRow>(&format!("{SELECT_INSPECTION} WHERE i.id = ?"))
-            .bind(id)
-            .fetch_optional(&self.pool)
-            .await?
-            .ok_or(StoreError::NotFound)
+        on_db!(self.db, |pool, d| {
+            sqlx::query_as::<_, InspectionRow>(&d.sql(&format!("{SELECT_INSPECTION} WHERE i.id = ?")))
+                .bind(id)
+                .fetch_optional(pool)
+                .await?
+        })
+        .ok_or(StoreError::NotFound)
     }
 
     pub async fn by_idempotency_key(&self, key: &str) -> Result<Option<InspectionRow>, StoreError> {
-        Ok(sqlx::query_as::<_, InspectionRow>(&format!("{SELECT_INSPECTION} WHERE i.idempotency_key = ?"))
-            .bind(key)
-            .fetch_optional(&self.pool)
-            .await?)
+        Ok(on_db!(self.db, |pool, d| {
+            sqlx::query_as::<_, InspectionRow>(&d.sql(&format!("{SELECT_INSPECTION} WHERE i.idempotency_key = ?")))
+                .bind(key)
+                .fetch_optional(pool)
+                .await?
+        }))
     }
 
     /// Records an accepted upload and its queued inspection in one transaction, placing the
-    /// (prepared, i.e. fsynced) upload file under its hash while the transaction holds the write
-    /// lock: the retention sweep deletes files under the same lock, so a committed row always has
-    /// its file.
+    /// (prepared, i.e. fsynced) upload file under its hash while the transaction holds the lock
+    /// the retention sweep deletes files under (SQLite's write lock, PostgreSQL's lock on the
+    /// hash): a committed row always has its file.
     pub async fn insert_inspection(
         &self,
         new: &NewInspection,
         file: tempfile::NamedTempFile,
     ) -> Result<Inserted, StoreError> {
         let now = now_ms();
-        let mut tx = self.pool.begin().await?;
-        // A write first, so the transaction holds the write lock before it reads the key.
-        sqlx::query(
-            "INSERT INTO uploads (sha256, size_bytes, views, frames, created_at) VALUES (?, ?, ?, ?, ?) \
-             ON CONFLICT (sha256) DO UPDATE SET purged_at = NULL",
-        )
-        .bind(&new.upload.sha256)
-        .bind(new.upload.size_bytes as i64)
-        .bind(new.upload.views as i64)
-        .bind(new.upload.frames as i64)
-        .bind(now)
-        .execute(&mut *tx)
-        .await?;
-        if let Some(key) = &new.idempotency_key {
-            let existing: Option<(String, String)> =
-                sqlx::query_as("SELECT id, request_sha256 FROM inspections WHERE idempotency_key = ?")
-                    .bind(key)
-                    .fetch_optional(&mut *tx)
-                    .await?;
-            if let Some((id, hash)) = existing {
-                tx.rollback().await?;
-                return if hash == new.request_sha256 {
-                    Ok(Inserted::Replayed(self.inspection(&id).await?))
-                } else {
-                    Err(StoreError::IdempotencyConflict { existing_id: id })
-                };
+        on_db!(self.db, |pool, d| {
+            let mut tx = pool.begin().await?;
+            if let Some(lock) = d.lock_key() {
+                sqlx::query(lock).bind(&new.upload.sha256).execute(&mut *tx).await?;
             }
-        }
-        self.blobs.put(&new.upload.sha256, file).await?;
-        sqlx::query(
-            "INSERT INTO inspections (id, status, upload_sha256, serial, connection, client_reference, options_json, \
-             created_at, updated_at, max_attempts, available_at, idempotency_key, request_sha256, station) \
-             VALUES (?, 'queued', ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-        )
-        .bind(&new.id)
-        .bind(&new.upload.sha256)
-        .bind(&new.serial)
-        .bind(&new.connection)
-        .bind(&new.client_reference)
-        .bind(&new.options_json)
-        .bind(now)
-        .bind(now)
-        .bind(new.max_attempts as i64)
-        .bind(now)
-        .bind(&new.idempotency_key)
-        .bind(&new.request_sha256)
-        .bind(&new.station)
-        .execute(&mut *tx)
-        .await?;
-        // Read inside the transaction: after the commit a worker may already have claimed it, and
-        // the answer to the submission is the inspection as created (queued).
-        let row = sqlx::query_as::<_, InspectionRow>(&format!("{SELECT_INSPECTION} WHERE i.id = ?"))
-            .bind(&new.id)
-            .fetch_one(&mut *tx)
+            // A write first, so the transaction holds the write lock before it reads the key.
+            sqlx::query(&d.sql(
+                "INSERT INTO uploads (sha256, size_bytes, views, frames, created_at) VALUES (?, ?, ?, ?, ?) \
+                 ON CONFLICT (sha256) DO UPDATE SET purged_at = NULL",
+            ))
+            .bind(&new.upload.sha256)
+            .bind(new.upload.size_bytes as i64)
+            .bind(new.upload.views as i64)
+            .bind(new.upload.frames as i64)
+            .bind(now)
+            .execute(&mut *tx)
             .await?;
-        tx.commit().await?;
-        Ok(Inserted::Created(row))
+            if let Some(key) = &new.idempotency_key {
+                let existing: Option<(String, String)> =
+                    sqlx::query_as(&d.sql("SELECT id, request_sha256 FROM inspections WHERE idempotency_key = ?"))
+                        .bind(key)
+                        .fetch_optional(&mut *tx)
+                        .await?;
+                if let Some((id, hash)) = existing {
+                    tx.rollback().await?;
+                    return if hash == new.request_sha256 {
+                        Ok(Inserted::Replayed(self.inspection(&id).await?))
+                    } else {
+                        Err(StoreError::IdempotencyConflict { existing_id: id })
+                    };
+                }
+            }
+            self.blobs.put(&new.upload.sha256, file).await?;
+            sqlx::query(&d.sql(
+                "INSERT INTO inspections (id, status, upload_sha256, serial, connection, client_reference, options_json, \
+                 created_at, updated_at, max_attempts, available_at, idempotency_key, request_sha256, station) \
+                 VALUES (?, 'queued', ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            ))
+            .bind(&new.id)
+            .bind(&new.upload.sha256)
+            .bind(&new.serial)
+            .bind(&new.connection)
+            .bind(&new.client_reference)
+            .bind(&new.options_json)
+            .bind(now)
+            .bind(now)
+            .bind(new.max_attempts as i64)
+            .bind(now)
+            .bind(&new.idempotency_key)
+            .bind(&new.request_sha256)
+            .bind(&new.station)
+            .execute(&mut *tx)
+            .await?;
+            // Read inside the transaction: after the commit a worker may already have claimed it, and
+            // the answer to the submission is the inspection as created (queued).
+            let row = sqlx::query_as::<_, InspectionRow>(&d.sql(&format!("{SELECT_INSPECTION} WHERE i.id = ?")))
+                .bind(&new.id)
+                .fetch_one(&mut *tx)
+                .await?;
+            if d == Dialect::Postgres {
+                // Delivered at the commit, to every process's listener: idle workers wake.
+                sqlx::query("SELECT pg_notify($1, $2)").bind(QUEUE_CHANNEL).bind(&new.id).execute(&mut *tx).await?;
+            }
+            tx.commit().await?;
+            Ok(Inserted::Created(row))
+        })
     }
 
     pub async fn list(&self, filter: &ListFilter) -> Result<Vec<InspectionRow>, StoreError> {
-        let mut q: QueryBuilder<Sqlite> = QueryBuilder::new(SELECT_INSPECTION);
-        q.push(" WHERE 1 = 1");
-        if let Some(s) = filter.status {
-            q.push(" AND i.status = ").push_bind(s.as_str());
-        }
-        if let Some(v) = &filter.verdict {
-            q.push(" AND i.verdict = ").push_bind(v.clone());
-        }
-        if let Some(v) = filter.review_required {
-            q.push(" AND i.review_required = ").push_bind(v);
-        }
-        if let Some(v) = &filter.serial {
-            q.push(" AND i.serial = ").push_bind(v.clone());
-        }
-        if let Some(v) = &filter.connection {
-            q.push(" AND i.connection = ").push_bind(v.clone());
-        }
-        if let Some(v) = &filter.client_reference {
-            q.push(" AND i.client_reference = ").push_bind(v.clone());
-        }
-        if let Some(v) = &filter.station {
-            q.push(" AND i.station = ").push_bind(v.clone());
-        }
-        if let Some(t) = filter.created_after_ms {
-            q.push(" AND i.created_at > ").push_bind(t);
-        }
-        if let Some(t) = filter.created_before_ms {
-            q.push(" AND i.created_at < ").push_bind(t);
-        }
-        if let Some(t) = filter.finished_after_ms {
-            q.push(" AND i.finished_at > ").push_bind(t);
-        }
-        if let Some(id) = &filter.before_id {
-            q.push(" AND i.id < ").push_bind(id.clone());
-        }
-        q.push(" ORDER BY i.id DESC LIMIT ").push_bind(filter.limit as i64);
-        Ok(q.build_query_as::<InspectionRow>().fetch_all(&self.pool).await?)
+        Ok(on_db!(self.db, |pool, d| {
+            let mut q = QueryBuilder::new(SELECT_INSPECTION);
+            q.push(" WHERE 1 = 1");
+            if let Some(s) = filter.status {
+                q.push(" AND i.status = ").push_bind(s.as_str());
+            }
+            if let Some(v) = &filter.verdict {
+                q.push(" AND i.verdict = ").push_bind(v.clone());
+            }
+            if let Some(v) = filter.review_required {
+                q.push(" AND i.review_required = ").push_bind(v);
+            }
+            if let Some(v) = &filter.serial {
+                q.push(" AND i.serial = ").push_bind(v.clone());
+            }
+            if let Some(v) = &filter.connection {
+                q.push(" AND i.connection = ").push_bind(v.clone());
+            }
+            if let Some(v) = &filter.client_reference {
+                q.push(" AND i.client_reference = ").push_bind(v.clone());
+            }
+            if let Some(v) = &filter.station {
+                q.push(" AND i.station = ").push_bind(v.clone());
+            }
+            if let Some(t) = filter.created_after_ms {
+                q.push(" AND i.created_at > ").push_bind(t);
+            }
+            if let Some(t) = filter.created_before_ms {
+                q.push(" AND i.created_at < ").push_bind(t);
+            }
+            if let Some(t) = filter.finished_after_ms {
+                q.push(" AND i.finished_at > ").push_bind(t);
+            }
+            if let Some(id) = &filter.before_id {
+                q.push(" AND i.id < ").push_bind(id.clone());
+            }
+            q.push(" ORDER BY i.id DESC LIMIT ").push_bind(filter.limit as i64);
+            q.build_query_as::<InspectionRow>().fetch_all(pool).await?
+        }))
     }
 
     /// Cancels a queued inspection at once, or asks a running one to stop (its worker sees the
     /// flag at the next heartbeat). Terminal ones are returned unchanged.
     pub async fn request_cancel(&self, id: &str) -> Result<InspectionRow, StoreError> {
         let now = now_ms();
-        sqlx::query(
-            "UPDATE inspections SET status = 'canceled', finished_at = ?, updated_at = ?, lease_owner = NULL, \
-             lease_expires_at = NULL WHERE id = ? AND status = 'queued'",
-        )
-        .bind(now)
-        .bind(now)
-        .bind(id)
-        .execute(&self.pool)
-        .await?;
-        sqlx::query("UPDATE inspections SET cancel_requested = 1, updated_at = ? WHERE id = ? AND status = 'running'")
+        on_db!(self.db, |pool, d| {
+            sqlx::query(&d.sql(
+                "UPDATE inspections SET status = 'canceled', finished_at = ?, updated_at = ?, lease_owner = NULL, \
+                 lease_expires_at = NULL WHERE id = ? AND status = 'queued'",
+            ))
+            .bind(now)
             .bind(now)
             .bind(id)
-            .execute(&self.pool)
+            .execute(pool)
             .await?;
-        let row = self.inspection(id).await?;
-        if self.changes.receiver_count() > 0 {
-            let _ = self.changes.send(std::sync::Arc::new(row.clone()));
-        }
-        Ok(row)
+            sqlx::query(&d.sql(
+                "UPDATE inspections SET cancel_requested = TRUE, updated_at = ? WHERE id = ? AND status = 'running'",
+            ))
+            .bind(now)
+            .bind(id)
+            .execute(pool)
+            .await?;
+        });
+        self.publish(id).await;
+        self.inspection(id).await
     }
 }

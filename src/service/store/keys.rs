@@ -54,57 +54,71 @@ impl Store {
             created_at: now_ms(),
             revoked_at: None,
         };
-        sqlx::query("INSERT INTO api_keys (id, name, scopes, secret_sha256, created_at) VALUES (?, ?, ?, ?, ?)")
+        on_db!(self.db, |pool, d| {
+            sqlx::query(
+                &d.sql("INSERT INTO api_keys (id, name, scopes, secret_sha256, created_at) VALUES (?, ?, ?, ?, ?)"),
+            )
             .bind(&row.id)
             .bind(&row.name)
             .bind(&row.scopes)
             .bind(&row.secret_sha256)
             .bind(row.created_at)
-            .execute(&self.pool)
+            .execute(pool)
             .await?;
+        });
         Ok((row, key.token))
     }
 
     pub async fn key(&self, id: &str) -> Result<KeyRow, StoreError> {
-        sqlx::query_as("SELECT id, name, scopes, secret_sha256, created_at, revoked_at FROM api_keys WHERE id = ?")
+        on_db!(self.db, |pool, d| {
+            sqlx::query_as(
+                &d.sql("SELECT id, name, scopes, secret_sha256, created_at, revoked_at FROM api_keys WHERE id = ?"),
+            )
             .bind(id)
-            .fetch_optional(&self.pool)
+            .fetch_optional(pool)
             .await?
-            .ok_or(StoreError::NotFound)
+        })
+        .ok_or(StoreError::NotFound)
     }
 
     /// Every key, oldest first (revoked ones too).
     pub async fn keys(&self) -> Result<Vec<KeyRow>, StoreError> {
-        Ok(sqlx::query_as(
-            "SELECT id, name, scopes, secret_sha256, created_at, revoked_at FROM api_keys ORDER BY created_at, id",
-        )
-        .fetch_all(&self.pool)
-        .await?)
+        Ok(on_db!(self.db, |pool, d| {
+            sqlx::query_as(
+                "SELECT id, name, scopes, secret_sha256, created_at, revoked_at FROM api_keys ORDER BY created_at, id",
+            )
+            .fetch_all(pool)
+            .await?
+        }))
     }
 
     /// Revokes a key (a revoked key stays listed); NotFound when there is none.
     pub async fn revoke_key(&self, id: &str) -> Result<KeyRow, StoreError> {
-        sqlx::query("UPDATE api_keys SET revoked_at = ? WHERE id = ? AND revoked_at IS NULL")
-            .bind(now_ms())
-            .bind(id)
-            .execute(&self.pool)
-            .await?;
+        on_db!(self.db, |pool, d| {
+            sqlx::query(&d.sql("UPDATE api_keys SET revoked_at = ? WHERE id = ? AND revoked_at IS NULL"))
+                .bind(now_ms())
+                .bind(id)
+                .execute(pool)
+                .await?;
+        });
         self.key(id).await
     }
 
     pub async fn audit(&self, e: &AuditEntry) -> Result<(), StoreError> {
-        sqlx::query(
-            "INSERT INTO audit (at, key_id, key_name, client, action, target, status) VALUES (?, ?, ?, ?, ?, ?, ?)",
-        )
-        .bind(now_ms())
-        .bind(&e.key_id)
-        .bind(&e.key_name)
-        .bind(&e.client)
-        .bind(&e.action)
-        .bind(&e.target)
-        .bind(e.status as i64)
-        .execute(&self.pool)
-        .await?;
+        on_db!(self.db, |pool, d| {
+            sqlx::query(&d.sql(
+                "INSERT INTO audit (at, key_id, key_name, client, action, target, status) VALUES (?, ?, ?, ?, ?, ?, ?)",
+            ))
+            .bind(now_ms())
+            .bind(&e.key_id)
+            .bind(&e.key_name)
+            .bind(&e.client)
+            .bind(&e.action)
+            .bind(&e.target)
+            .bind(e.status as i64)
+            .execute(pool)
+            .await?;
+        });
         Ok(())
     }
 
@@ -115,14 +129,16 @@ impl Store {
         before_seq: Option<i64>,
         target: Option<&str>,
     ) -> Result<Vec<AuditRow>, StoreError> {
-        Ok(sqlx::query_as(
-            "SELECT seq, at, key_id, key_name, client, action, target, status FROM audit \
-             WHERE (?1 IS NULL OR seq < ?1) AND (?2 IS NULL OR target = ?2) ORDER BY seq DESC LIMIT ?3",
-        )
-        .bind(before_seq)
-        .bind(target)
-        .bind(limit)
-        .fetch_all(&self.pool)
-        .await?)
+        Ok(on_db!(self.db, |pool, d| {
+            sqlx::query_as(&d.sql(
+                "SELECT seq, at, key_id, key_name, client, action, target, status FROM audit \
+                 WHERE (?1 IS NULL OR seq < ?1) AND (?2 IS NULL OR target = ?2) ORDER BY seq DESC LIMIT ?3",
+            ))
+            .bind(before_seq)
+            .bind(target)
+            .bind(limit)
+            .fetch_all(pool)
+            .await?
+        }))
     }
 }

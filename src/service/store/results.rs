@@ -55,40 +55,48 @@ pub struct HeightRow {
 
 impl Store {
     pub async fn report(&self, id: &str) -> Result<(String, String), StoreError> {
-        sqlx::query_as("SELECT report_json, etag FROM reports WHERE inspection_id = ?")
-            .bind(id)
-            .fetch_optional(&self.pool)
-            .await?
-            .ok_or(StoreError::NotFound)
+        on_db!(self.db, |pool, d| {
+            sqlx::query_as(&d.sql("SELECT report_json, etag FROM reports WHERE inspection_id = ?"))
+                .bind(id)
+                .fetch_optional(pool)
+                .await?
+        })
+        .ok_or(StoreError::NotFound)
     }
 
     pub async fn artifact(&self, id: &str, kind: &str) -> Result<StoredArtifact, StoreError> {
-        sqlx::query_as("SELECT content_type, body, etag FROM artifacts WHERE inspection_id = ? AND kind = ?")
+        on_db!(self.db, |pool, d| {
+            sqlx::query_as(
+                &d.sql("SELECT content_type, body, etag FROM artifacts WHERE inspection_id = ? AND kind = ?"),
+            )
             .bind(id)
             .bind(kind)
-            .fetch_optional(&self.pool)
+            .fetch_optional(pool)
             .await?
-            .ok_or(StoreError::NotFound)
+        })
+        .ok_or(StoreError::NotFound)
     }
 
     pub async fn threads(&self, id: &str) -> Result<(Vec<ThreadRow>, Vec<HeightRow>), StoreError> {
-        let threads = sqlx::query_as::<_, ThreadRow>(
-            "SELECT thread_index, crest_z_start_mm, crest_z_end_mm, min_height_mm, mean_height_mm, max_height_mm, \
-             bins_measured, black_crest_length_mm, black_crest_arcs_json, mean_height_uncertainty_mm, height_finding \
-             FROM threads WHERE inspection_id = ? \
-             ORDER BY thread_index",
-        )
-        .bind(id)
-        .fetch_all(&self.pool)
-        .await?;
-        let heights = sqlx::query_as::<_, HeightRow>(
-            "SELECT thread_index, angle_deg, height_mm, uncertainty_mm FROM thread_heights WHERE inspection_id = ? \
-             ORDER BY thread_index, angle_deg",
-        )
-        .bind(id)
-        .fetch_all(&self.pool)
-        .await?;
-        Ok((threads, heights))
+        Ok(on_db!(self.db, |pool, d| {
+            let threads = sqlx::query_as::<_, ThreadRow>(&d.sql(
+                "SELECT thread_index, crest_z_start_mm, crest_z_end_mm, min_height_mm, mean_height_mm, max_height_mm, \
+                 bins_measured, black_crest_length_mm, black_crest_arcs_json, mean_height_uncertainty_mm, height_finding \
+                 FROM threads WHERE inspection_id = ? \
+                 ORDER BY thread_index",
+            ))
+            .bind(id)
+            .fetch_all(pool)
+            .await?;
+            let heights = sqlx::query_as::<_, HeightRow>(&d.sql(
+                "SELECT thread_index, angle_deg, height_mm, uncertainty_mm FROM thread_heights WHERE inspection_id = ? \
+                 ORDER BY thread_index, angle_deg",
+            ))
+            .bind(id)
+            .fetch_all(pool)
+            .await?;
+            (threads, heights)
+        }))
     }
 
     /// Deletes the meshes and images of inspections that finished before `cutoff_ms`, keeping
@@ -96,62 +104,86 @@ impl Store {
     /// the freed pages for new results, so the database stops growing by them (the file itself
     /// shrinks only with VACUUM).
     pub async fn purge_artifacts(&self, cutoff_ms: i64) -> Result<usize, StoreError> {
-        let mut tx = self.pool.begin().await?;
-        // A write first: a transaction that read first could not take the write lock if another
-        // connection wrote in between (SQLite answers "database is locked" at once, whatever the
-        // busy timeout).
-        let due: Vec<(String,)> = sqlx::query_as(
-            "UPDATE inspections SET artifacts_purged_at = ? WHERE finished_at < ? AND artifacts_purged_at IS NULL \
-             AND EXISTS (SELECT 1 FROM artifacts a WHERE a.inspection_id = inspections.id) RETURNING id",
-        )
-        .bind(now_ms())
-        .bind(cutoff_ms)
-        .fetch_all(&mut *tx)
-        .await?;
-        for (id,) in &due {
-            sqlx::query("DELETE FROM artifacts WHERE inspection_id = ?").bind(id).execute(&mut *tx).await?;
-        }
-        tx.commit().await?;
-        Ok(due.len())
+        Ok(on_db!(self.db, |pool, d| {
+            let mut tx = pool.begin().await?;
+            // A write first: a transaction that read first could not take the write lock if another
+            // connection wrote in between (SQLite answers "database is locked" at once, whatever the
+            // busy timeout).
+            let due: Vec<(String,)> = sqlx::query_as(&d.sql(
+                "UPDATE inspections SET artifacts_purged_at = ? WHERE finished_at < ? AND artifacts_purged_at IS NULL \
+                 AND EXISTS (SELECT 1 FROM artifacts a WHERE a.inspection_id = inspections.id) RETURNING id",
+            ))
+            .bind(now_ms())
+            .bind(cutoff_ms)
+            .fetch_all(&mut *tx)
+            .await?;
+            for (id,) in &due {
+                sqlx::query(&d.sql("DELETE FROM artifacts WHERE inspection_id = ?")).bind(id).execute(&mut *tx).await?;
+            }
+            tx.commit().await?;
+            due.len()
+        }))
     }
 
     /// When the retention deleted this inspection's meshes and images, if it did.
     pub async fn artifacts_purged_at(&self, id: &str) -> Result<Option<i64>, StoreError> {
-        let row: Option<(Option<i64>,)> = sqlx::query_as("SELECT artifacts_purged_at FROM inspections WHERE id = ?")
-            .bind(id)
-            .fetch_optional(&self.pool)
-            .await?;
+        let row: Option<(Option<i64>,)> = on_db!(self.db, |pool, d| {
+            sqlx::query_as(&d.sql("SELECT artifacts_purged_at FROM inspections WHERE id = ?"))
+                .bind(id)
+                .fetch_optional(pool)
+                .await?
+        });
         Ok(row.and_then(|r| r.0))
+    }
+
+    /// Every upload whose bytes are kept (not purged), by hash: its sha256 and size.
+    pub async fn live_uploads(&self) -> Result<Vec<(String, i64)>, StoreError> {
+        Ok(on_db!(self.db, |pool, d| {
+            sqlx::query_as("SELECT sha256, size_bytes FROM uploads WHERE purged_at IS NULL ORDER BY sha256")
+                .fetch_all(pool)
+                .await?
+        }))
     }
 
     /// Deletes uploaded bundles whose inspections all finished before `cutoff_ms`.
     pub async fn purge_uploads(&self, cutoff_ms: i64) -> Result<usize, StoreError> {
-        let due: Vec<(String,)> = sqlx::query_as(
-            "SELECT u.sha256 FROM uploads u WHERE u.purged_at IS NULL AND NOT EXISTS (SELECT 1 FROM inspections i \
-             WHERE i.upload_sha256 = u.sha256 AND (i.finished_at IS NULL OR i.finished_at >= ?))",
-        )
-        .bind(cutoff_ms)
-        .fetch_all(&self.pool)
-        .await?;
+        let due: Vec<(String,)> = on_db!(self.db, |pool, d| {
+            sqlx::query_as(&d.sql(
+                "SELECT u.sha256 FROM uploads u WHERE u.purged_at IS NULL AND NOT EXISTS (SELECT 1 FROM inspections i \
+                 WHERE i.upload_sha256 = u.sha256 AND (i.finished_at IS NULL OR i.finished_at >= ?))",
+            ))
+            .bind(cutoff_ms)
+            .fetch_all(pool)
+            .await?
+        });
         let mut purged = 0;
         for (sha,) in &due {
-            // Re-checked and deleted under the write lock: an upload of the same bundle accepted
-            // since the SELECT keeps its file (it places it under the same lock).
-            let mut tx = self.pool.begin().await?;
-            let marked = sqlx::query(
-                "UPDATE uploads SET purged_at = ? WHERE sha256 = ? AND purged_at IS NULL AND NOT EXISTS (SELECT 1 \
-                 FROM inspections i WHERE i.upload_sha256 = uploads.sha256 AND (i.finished_at IS NULL OR i.finished_at >= ?))",
-            )
-            .bind(now_ms())
-            .bind(sha)
-            .bind(cutoff_ms)
-            .execute(&mut *tx)
-            .await?;
-            if marked.rows_affected() == 1 {
-                self.blobs.remove(sha).await?;
-                purged += 1;
-            }
-            tx.commit().await?;
+            // Re-checked and deleted under the lock a submission places its file under (SQLite's
+            // write lock, PostgreSQL's lock on the hash): an upload of the same bundle accepted
+            // since the SELECT keeps its file.
+            purged += on_db!(self.db, |pool, d| {
+                let mut tx = pool.begin_with(d.begin_write()).await?;
+                if let Some(lock) = d.lock_key() {
+                    sqlx::query(lock).bind(sha).execute(&mut *tx).await?;
+                }
+                let marked = sqlx::query(&d.sql(
+                    "UPDATE uploads SET purged_at = ? WHERE sha256 = ? AND purged_at IS NULL AND NOT EXISTS (SELECT 1 \
+                     FROM inspections i WHERE i.upload_sha256 = uploads.sha256 AND (i.finished_at IS NULL OR \
+                     i.finished_at >= ?))",
+                ))
+                .bind(now_ms())
+                .bind(sha)
+                .bind(cutoff_ms)
+                .execute(&mut *tx)
+                .await?
+                .rows_affected()
+                    == 1;
+                if marked {
+                    self.blobs.remove(sha).await?;
+                }
+                tx.commit().await?;
+                usize::from(marked)
+            });
         }
         Ok(purged)
     }

@@ -121,6 +121,12 @@ async fn the_cli_key_works_against_the_served_binary_and_the_audit_names_it() {
         let out = std::process::Command::new(env!("CARGO_BIN_EXE_crestscan"))
             .args(["keys", "create", "--name", name, "--scopes", scopes, "--data-dir"])
             .arg(dir.path())
+            .args(
+                crate::common::test_database_url(dir.path())
+                    .map(|url| ["--database-url".to_string(), url])
+                    .iter()
+                    .flatten(),
+            )
             .output()
             .unwrap();
         assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));

@@ -112,6 +112,7 @@ async fn the_service_does_not_start_on_an_object_store_it_cannot_write() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_data_directory_moves_its_uploads_into_the_object_store() {
     let local = |s: &mut Settings| {
+        s.database_url = None;
         s.object_store = None;
         s.s3_endpoint = None;
         s.s3_access_key_id = None;
@@ -148,6 +149,7 @@ async fn a_data_directory_moves_its_uploads_into_the_object_store() {
     // moved bundle again from there.
     std::fs::remove_dir_all(data.join("uploads")).unwrap();
     let app = spawn_app_in(&data, |s| {
+        s.database_url = None;
         s.object_store = Some("s3://crestscan-it/migrated".into());
         s.s3_endpoint = Some(moto_endpoint().into());
         s.s3_access_key_id = Some("test".into());

@@ -131,6 +131,12 @@ async fn insert(store: &Store, bytes: &[u8], options_json: String, key: Option<&
     })
 }
 
+/// The data directory's SQLite file, whichever backend the suite runs the service on: the tests
+/// that use it check SQLite's own behaviour (its write lock, its WAL on a full disk).
+async fn open_sqlite(data: &Path) -> Store {
+    Store::open(&data.join("crestscan.db"), &data.join("uploads"), &data.join("tmp")).await.unwrap()
+}
+
 fn created(inserted: Inserted) -> String {
     match inserted {
         Inserted::Created(row) => row.id,
@@ -148,7 +154,7 @@ fn created(inserted: Inserted) -> String {
 async fn a_commit_that_fails_for_space_leaves_no_transaction_behind() {
     let disk = Tmpfs::mount(16);
     let data = disk.path().join("d");
-    let store = open_store(&data).await;
+    let store = open_sqlite(&data).await;
     let first = created(insert(&store, b"first upload", "{}".into(), None).await.unwrap());
 
     // Options of 2 MiB: the row fits the page cache, and its WAL frames cannot be written.
@@ -186,16 +192,19 @@ async fn a_commit_that_fails_for_space_leaves_no_transaction_behind() {
         sqlx::raw_sql("BEGIN IMMEDIATE; ROLLBACK").execute(&mut other).await.expect("the write lock is free");
         other.close().await.unwrap();
     }
-    store.pool.close().await;
+    store.close().await;
     drop(store);
 
-    let reopened = open_store(&data).await;
+    let reopened = open_sqlite(&data).await;
     for id in &ids {
         reopened.inspection(id).await.unwrap_or_else(|e| panic!("inspection {id} accepted but not stored: {e}"));
     }
-    let stored: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM inspections").fetch_one(&reopened.pool).await.unwrap();
+    let stored: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM inspections")
+        .fetch_one(reopened.sqlite_pool().unwrap())
+        .await
+        .unwrap();
     assert_eq!(stored, ids.len() as i64, "only the accepted inspections are stored");
-    reopened.pool.close().await;
+    reopened.close().await;
 }
 
 /// A connection handed back with a transaction open (here begun by hand, behind sqlx's back) is
@@ -203,17 +212,17 @@ async fn a_commit_that_fails_for_space_leaves_no_transaction_behind() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_pool_closes_a_connection_returned_inside_a_transaction() {
     let dir = tempfile::tempdir().unwrap();
-    let store = open_store(dir.path()).await;
+    let store = open_sqlite(dir.path()).await;
     {
-        let mut conn = store.pool.acquire().await.unwrap();
+        let mut conn = store.sqlite_pool().unwrap().acquire().await.unwrap();
         sqlx::raw_sql("BEGIN IMMEDIATE").execute(&mut *conn).await.unwrap();
     }
     store.probe_write().await.unwrap();
     let id = created(insert(&store, b"after", "{}".into(), None).await.unwrap());
-    store.pool.close().await;
-    let reopened = open_store(dir.path()).await;
+    store.close().await;
+    let reopened = open_sqlite(dir.path()).await;
     reopened.inspection(&id).await.expect("committed");
-    reopened.pool.close().await;
+    reopened.close().await;
 }
 
 /// The reproduction over HTTP, three rounds in a row: with the disk full every upload is
@@ -314,14 +323,13 @@ async fn a_full_disk_answers_507_and_every_202_survives_recovery_and_restart() {
     }
     // Every upload file has its row (one bundle, so one file), and no row lacks its file.
     let store = app.store().await;
-    let live: Vec<String> =
-        sqlx::query_scalar("SELECT sha256 FROM uploads WHERE purged_at IS NULL").fetch_all(&store.pool).await.unwrap();
+    let live: Vec<String> = store.live_uploads().await.unwrap().into_iter().map(|(sha, _)| sha).collect();
     let stored = store.blobs.list().await.unwrap();
     assert_eq!(stored.len(), live.len(), "upload files without a row, or rows without a file");
     for sha in &live {
         assert!(stored.contains(sha), "row {sha} has no file");
     }
-    store.pool.close().await;
+    store.close().await;
     app.stop().await;
 }
 
@@ -340,7 +348,7 @@ async fn upload_files_without_a_row_are_removed_at_start_up() {
     std::io::Write::write_all(&mut staged, b"an upload whose commit failed").unwrap();
     store.blobs.put(&orphan_sha, staged).await.unwrap();
     assert!(store.blobs.list().await.unwrap().contains(&orphan_sha));
-    store.pool.close().await;
+    store.close().await;
     // Not ours: names of another shape are left alone.
     std::fs::create_dir_all(dir.path().join("uploads")).unwrap();
     let stranger = dir.path().join("uploads").join("README");
@@ -352,6 +360,6 @@ async fn upload_files_without_a_row_are_removed_at_start_up() {
     assert!(!stored.contains(&orphan_sha), "the orphan upload is still there");
     assert!(stranger.exists());
     assert!(stored.contains(&kept_sha), "the upload with its row was removed");
-    store.pool.close().await;
+    store.close().await;
     app.stop().await;
 }

@@ -8,6 +8,7 @@ mod caps;
 mod disk_full;
 mod hostile;
 mod inspections;
+mod migrate;
 mod models;
 mod openapi;
 mod queue;
@@ -126,18 +127,19 @@ pub fn test_settings(data: &Path) -> Settings {
         s3_secret_access_key: object_store.as_ref().map(|_| "test".into()),
         object_store,
         s3_endpoint,
+        database_url: crate::common::test_database_url(data),
         ..Settings::default()
     }
 }
 
-/// The store of a data directory as the app opens it: its SQLite file, and its blobs where the
-/// tests keep them ([`test_object_store`]).
+/// The store of a data directory as the app opens it: its records where the tests keep them
+/// (its SQLite file, or a PostgreSQL database: [`crate::common::test_database_url`]), and its
+/// blobs likewise ([`test_object_store`]).
 pub async fn open_store(data: &Path) -> crestscan::service::store::Store {
     use crestscan::service::store::blobs::{S3Blobs, S3Location, S3Settings};
+    let database = test_settings(data).database();
     let mut store =
-        crestscan::service::store::Store::open(&data.join("crestscan.db"), &data.join("uploads"), &data.join("tmp"))
-            .await
-            .unwrap();
+        crestscan::service::store::Store::connect(&database, &data.join("uploads"), &data.join("tmp")).await.unwrap();
     if let Some((url, endpoint)) = test_object_store(data) {
         let s3 =
             S3Settings { endpoint: Some(endpoint), region: None, credentials: Some(("test".into(), "test".into())) };
@@ -197,9 +199,12 @@ pub fn start_binary(data: &Path, extra: &[&str]) -> (std::process::Child, String
             [vec!["--object-store".into(), url, "--s3-endpoint".into(), endpoint], key.to_vec()].concat()
         })
         .unwrap_or_default();
+    let records: Vec<String> =
+        crate::common::test_database_url(data).map(|url| vec!["--database-url".into(), url]).unwrap_or_default();
     let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_crestscan"))
         .args(["serve", "--bind", "127.0.0.1:0", "--log", "warn"])
         .args(&blobs)
+        .args(&records)
         .args(extra)
         .arg("--data-dir")
         .arg(data)

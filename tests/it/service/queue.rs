@@ -85,14 +85,14 @@ async fn kill_9_loses_no_accepted_inspection() {
     child.wait().unwrap();
     // Exactly once: one report and one set of thread rows per inspection.
     let store = open_store(data.path()).await;
-    let (reports,): (i64,) = sqlx::query_as("SELECT COUNT(*) FROM reports").fetch_one(&store.pool).await.unwrap();
+    let reports = store.count("SELECT COUNT(*) FROM reports").await.unwrap();
     assert_eq!(reports, 3);
-    let (dupes,): (i64,) = sqlx::query_as(
-        "SELECT COUNT(*) FROM (SELECT inspection_id, thread_index FROM threads GROUP BY 1, 2 HAVING COUNT(*) > 1)",
-    )
-    .fetch_one(&store.pool)
-    .await
-    .unwrap();
+    let dupes = store
+        .count(
+            "SELECT COUNT(*) FROM (SELECT inspection_id, thread_index FROM threads GROUP BY 1, 2 HAVING COUNT(*) > 1) d",
+        )
+        .await
+        .unwrap();
     assert_eq!(dupes, 0);
 }
 
@@ -142,14 +142,21 @@ async fn an_api_node_and_a_worker_node_share_a_data_directory_and_failures_are_p
 async fn a_database_from_a_newer_binary_is_refused_by_name() {
     let dir = tempfile::tempdir().unwrap();
     let store = open_store(dir.path()).await;
-    sqlx::query(
-        "INSERT INTO _sqlx_migrations (version, description, success, checksum, execution_time) \
-         VALUES (999999, 'from the future', 1, X'00', 0)",
-    )
-    .execute(&store.pool)
-    .await
-    .unwrap();
-    store.pool.close().await;
+    // What the newer binary's migrator would have recorded, on whichever backend.
+    let future = "INSERT INTO _sqlx_migrations (version, description, success, checksum, execution_time) \
+                  VALUES (999999, 'from the future', TRUE, '\\x00', 0)";
+    match test_settings(dir.path()).database() {
+        crestscan::service::store::Database::Sqlite(_) => {
+            let pool = store.sqlite_pool().unwrap();
+            sqlx::query(&future.replace("'\\x00'", "X'00'")).execute(pool).await.unwrap();
+        }
+        crestscan::service::store::Database::Postgres(url) => {
+            let pool = sqlx::PgPool::connect(&url).await.unwrap();
+            sqlx::query(future).execute(&pool).await.unwrap();
+            pool.close().await;
+        }
+    }
+    store.close().await;
     let err = crestscan::service::startup::Application::build(test_settings(dir.path())).await.err().expect("refused");
     let text = err.to_string();
     assert!(text.contains("newer crestscan") && text.contains("999999"), "{text}");
