@@ -2,7 +2,7 @@
 server on a loopback port, an HTTP call, and moto's S3 server. Imported by kill-storm,
 schemathesis, mixed-load, priority-check, hostile-peak, soak-processes and scale-workers (each runs
 from any directory)."""
-import os, shutil, socket, subprocess, sys, tarfile, time, urllib.request
+import os, shutil, socket, subprocess, sys, tarfile, threading, time, urllib.request
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 BIN = os.path.join(ROOT, "target", "release", "crestscan")
@@ -41,6 +41,8 @@ def serve(data, *extra, stderr=subprocess.DEVNULL):
     if "listening on" not in line:
         proc.kill()
         raise SystemExit(f"server did not start: {line!r}")
+    # Its logs go on to stdout: read and dropped, or a full pipe would stop the server mid-write.
+    threading.Thread(target=lambda: sum(0 for _ in proc.stdout), daemon=True).start()
     return proc, line.strip().split()[-1]
 
 
@@ -88,6 +90,8 @@ def postgres(work):
     as_user = []
     if os.geteuid() == 0:
         shutil.chown(pg, "postgres")
+        # mkdtemp's directories are root's alone: the postgres user must pass through.
+        os.chmod(work, os.stat(work).st_mode | 0o711)
         as_user = ["runuser", "-u", "postgres", "--"]
 
     def run(program, *args):

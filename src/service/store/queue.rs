@@ -232,16 +232,7 @@ impl Store {
                     .execute(&mut *tx)
                     .await?;
                 }
-                // 5 parameters a row; SQLite allows 32 766 per statement, PostgreSQL 65 535.
-                for chunk in rows.chunks(2000) {
-                    let mut q = QueryBuilder::new(
-                        "INSERT INTO thread_heights (inspection_id, thread_index, angle_deg, height_mm, uncertainty_mm) ",
-                    );
-                    q.push_values(chunk, |mut b, (t, a, h, u)| {
-                        b.push_bind(id).push_bind(*t as i64).push_bind(*a).push_bind(*h).push_bind(*u);
-                    });
-                    q.build().execute(&mut *tx).await?;
-                }
+                tx.insert_heights(id, &rows).await?;
                 tx.commit().await?;
                 true
             }
@@ -328,5 +319,59 @@ impl Store {
             .fetch_one(pool)
             .await?
         }))
+    }
+}
+
+/// One inspection's per-bin heights (thread, angle, height, uncertainty), inserted as each backend
+/// takes them fastest.
+trait InsertHeights {
+    async fn insert_heights(
+        &mut self,
+        id: &str,
+        rows: &[(u32, f64, Option<f64>, Option<f64>)],
+    ) -> Result<(), sqlx::Error>;
+}
+
+impl InsertHeights for sqlx::Transaction<'_, sqlx::Sqlite> {
+    async fn insert_heights(
+        &mut self,
+        id: &str,
+        rows: &[(u32, f64, Option<f64>, Option<f64>)],
+    ) -> Result<(), sqlx::Error> {
+        // 5 parameters a row; SQLite allows 32 766 per statement.
+        for chunk in rows.chunks(2000) {
+            let mut q = QueryBuilder::<sqlx::Sqlite>::new(
+                "INSERT INTO thread_heights (inspection_id, thread_index, angle_deg, height_mm, uncertainty_mm) ",
+            );
+            q.push_values(chunk, |mut b, (t, a, h, u)| {
+                b.push_bind(id).push_bind(*t as i64).push_bind(*a).push_bind(*h).push_bind(*u);
+            });
+            q.build().execute(&mut **self).await?;
+        }
+        Ok(())
+    }
+}
+
+impl InsertHeights for sqlx::Transaction<'_, sqlx::Postgres> {
+    async fn insert_heights(
+        &mut self,
+        id: &str,
+        rows: &[(u32, f64, Option<f64>, Option<f64>)],
+    ) -> Result<(), sqlx::Error> {
+        // One statement of four arrays: a statement of thousands of parameters cost PostgreSQL
+        // tens of ms to parse and plan, each time.
+        sqlx::query(
+            "INSERT INTO thread_heights (inspection_id, thread_index, angle_deg, height_mm, uncertainty_mm) \
+             SELECT $1, * FROM UNNEST($2::BIGINT[], $3::DOUBLE PRECISION[], $4::DOUBLE PRECISION[], \
+             $5::DOUBLE PRECISION[])",
+        )
+        .bind(id)
+        .bind(rows.iter().map(|r| r.0 as i64).collect::<Vec<i64>>())
+        .bind(rows.iter().map(|r| r.1).collect::<Vec<f64>>())
+        .bind(rows.iter().map(|r| r.2).collect::<Vec<Option<f64>>>())
+        .bind(rows.iter().map(|r| r.3).collect::<Vec<Option<f64>>>())
+        .execute(&mut **self)
+        .await?;
+        Ok(())
     }
 }

@@ -161,3 +161,89 @@ async fn a_database_from_a_newer_binary_is_refused_by_name() {
     let text = err.to_string();
     assert!(text.contains("newer crestscan") && text.contains("999999"), "{text}");
 }
+
+/// Eight claimers on two pools (as two processes would hold them) drain a queue of 40 jobs
+/// together: each job is claimed exactly once (PostgreSQL: `FOR UPDATE SKIP LOCKED`; SQLite: its
+/// write lock), and a claimed job is not claimed again while its lease holds.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn concurrent_claimers_take_each_job_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let stores = [open_store(dir.path()).await, open_store(dir.path()).await];
+    let mut queued = std::collections::BTreeSet::new();
+    for k in 0..40 {
+        queued.insert(queue_one(&stores[0], &format!("bundle {k}")).await);
+    }
+    let claimers = (0..8).map(|c| {
+        let store = stores[c % 2].clone();
+        tokio::spawn(async move {
+            let mut mine = Vec::new();
+            while let Some(job) = store.claim(&format!("claimer-{c}"), Duration::from_secs(600)).await.unwrap() {
+                mine.push(job.id);
+            }
+            mine
+        })
+    });
+    let mut claimed = Vec::new();
+    for c in claimers {
+        claimed.extend(c.await.unwrap());
+    }
+    let distinct: std::collections::BTreeSet<String> = claimed.iter().cloned().collect();
+    assert_eq!(claimed.len(), 40, "claims: {} for 40 jobs", claimed.len());
+    assert_eq!(distinct, queued, "every job claimed exactly once");
+    assert!(stores[1].claim("late", Duration::from_secs(600)).await.unwrap().is_none());
+    for s in &stores {
+        s.close().await;
+    }
+}
+
+/// Queues an inspection of a one-file "bundle" `text` straight in the store; its id.
+async fn queue_one(store: &crestscan::service::store::Store, text: &str) -> String {
+    use crestscan::service::store::{NewInspection, UploadInfo};
+    let mut file = store.files.temp_file().unwrap();
+    std::io::Write::write_all(&mut file, text.as_bytes()).unwrap();
+    store.files.prepare(&file).unwrap();
+    let sha256 = crestscan::service::store::files::sha256_hex(text.as_bytes());
+    let new = NewInspection {
+        id: uuid::Uuid::now_v7().to_string(),
+        upload: UploadInfo { sha256: sha256.clone(), size_bytes: text.len() as u64, views: 1, frames: 3 },
+        serial: None,
+        connection: None,
+        client_reference: None,
+        station: None,
+        request_sha256: sha256,
+        options_json: "{}".into(),
+        idempotency_key: None,
+        max_attempts: 3,
+    };
+    store.insert_inspection(&new, file).await.unwrap();
+    new.id
+}
+
+/// Under PostgreSQL a claim passes over a job another transaction holds (a claimer mid-claim in
+/// another process) and takes the next, without waiting: `SKIP LOCKED`. Without it the claim
+/// would wait for the holder and then take the same job again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_postgres_claim_skips_a_job_another_claimer_holds() {
+    use crestscan::service::store::{Database, Store};
+    let dir = tempfile::tempdir().unwrap();
+    let url = crate::common::database_for(dir.path());
+    let store = Store::connect(&Database::Postgres(url.clone()), &dir.path().join("uploads"), &dir.path().join("tmp"))
+        .await
+        .unwrap();
+    let first = queue_one(&store, "first").await;
+    let second = queue_one(&store, "second").await;
+    let other = sqlx::PgPool::connect(&url).await.unwrap();
+    let mut held = other.begin().await.unwrap();
+    sqlx::query("SELECT id FROM inspections WHERE id = $1 FOR UPDATE").bind(&first).execute(&mut *held).await.unwrap();
+    let claimed = tokio::time::timeout(Duration::from_secs(5), store.claim("w", Duration::from_secs(60)))
+        .await
+        .expect("the claim waited on the held job")
+        .unwrap()
+        .expect("a job");
+    assert_eq!(claimed.id, second);
+    held.rollback().await.unwrap();
+    assert_eq!(store.claim("w", Duration::from_secs(60)).await.unwrap().unwrap().id, first);
+    assert!(store.claim("w", Duration::from_secs(60)).await.unwrap().is_none());
+    other.close().await;
+    store.close().await;
+}
