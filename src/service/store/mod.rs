@@ -559,13 +559,17 @@ async fn open_sqlite(database: &Path) -> Result<SqlitePool, StoreError> {
 async fn open_postgres(url: &str) -> Result<PgPool, StoreError> {
     use sqlx::migrate::MigrateDatabase;
     let options = PgConnectOptions::from_str(url)?;
-    if !sqlx::Postgres::database_exists(url).await? {
-        match sqlx::Postgres::create_database(url).await {
+    // Checked through the server's maintenance database; a role that may not read it connects
+    // straight to its own database, which must then exist.
+    match sqlx::Postgres::database_exists(url).await {
+        Ok(true) => {}
+        Ok(false) => match sqlx::Postgres::create_database(url).await {
             Ok(()) => tracing::info!(database = %redact_url(url), "created the PostgreSQL database"),
             // Another process created it in between.
             Err(sqlx::Error::Database(e)) if e.code().as_deref() == Some("42P04") => {}
             Err(e) => return Err(e.into()),
-        }
+        },
+        Err(e) => tracing::debug!(error = %e, "could not check whether the database exists; connecting to it"),
     }
     Ok(PgPoolOptions::new().max_connections(16).acquire_timeout(Duration::from_secs(10)).connect_with(options).await?)
 }
