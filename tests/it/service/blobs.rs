@@ -111,14 +111,7 @@ async fn the_service_does_not_start_on_an_object_store_it_cannot_write() {
 /// same answers.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_data_directory_moves_its_uploads_into_the_object_store() {
-    let local = |s: &mut Settings| {
-        s.database_url = None;
-        s.object_store = None;
-        s.s3_endpoint = None;
-        s.s3_access_key_id = None;
-        s.s3_secret_access_key = None;
-    };
-    let app = spawn_app_with(local).await;
+    let app = spawn_app_with(single_node).await;
     let id = app.submit(ci_tar(), "").await.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
     assert_eq!(app.wait(&id, Duration::from_secs(120)).await["status"], "succeeded");
     let report_before = app.get(&format!("/v1/inspections/{id}/report")).await.bytes().await.unwrap();

@@ -18,14 +18,7 @@ fn crestscan(args: &[&str], succeeds: bool) -> String {
 /// own is refused as different.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_data_directory_moves_into_postgres_and_the_object_store_with_identical_answers() {
-    let single = |s: &mut Settings| {
-        s.database_url = None;
-        s.object_store = None;
-        s.s3_endpoint = None;
-        s.s3_access_key_id = None;
-        s.s3_secret_access_key = None;
-    };
-    let app = spawn_app_with(single).await;
+    let app = spawn_app_with(single_node).await;
     let data = app.data.clone();
     let mut ids = Vec::new();
     for reference in ["first", "second"] {

@@ -132,6 +132,16 @@ pub fn test_settings(data: &Path) -> Settings {
     }
 }
 
+/// Settings edited back to the embedded default, whichever backends the suite runs on: the records
+/// in the data directory's SQLite file, the uploads under it (a single node before a move).
+pub fn single_node(s: &mut Settings) {
+    s.database_url = None;
+    s.object_store = None;
+    s.s3_endpoint = None;
+    s.s3_access_key_id = None;
+    s.s3_secret_access_key = None;
+}
+
 /// The store of a data directory as the app opens it: its records where the tests keep them
 /// (its SQLite file, or a PostgreSQL database: [`crate::common::test_database_url`]), and its
 /// blobs likewise ([`test_object_store`]).
