@@ -73,6 +73,22 @@ def moto(bucket):
     raise SystemExit(f"moto's server did not answer on {endpoint} (is `moto[server]` installed?)")
 
 
+def list_keys(endpoint, bucket, prefix):
+    """Every key under `prefix` in `bucket`, page by page (S3 answers at most 1000 a request)."""
+    import urllib.parse
+    keys, token = [], None
+    while True:
+        query = {"list-type": "2", "prefix": prefix}
+        if token:
+            query["continuation-token"] = token
+        _, body = http("GET", f"{endpoint}/{bucket}?{urllib.parse.urlencode(query)}")
+        text = body.decode()
+        keys += [k.split("</Key>")[0] for k in text.split("<Key>")[1:]]
+        if "<NextContinuationToken>" not in text:
+            return keys
+        token = text.split("<NextContinuationToken>")[1].split("</NextContinuationToken>")[0]
+
+
 def s3_flags(bucket, prefix, endpoint):
     """`serve`'s flags for uploads in moto's `bucket` under `prefix` (moto takes any key)."""
     return ["--object-store", f"s3://{bucket}/{prefix}", "--s3-endpoint", endpoint,

@@ -3,7 +3,8 @@
 //! - `--to postgres://…`: its records (inspections, the queue, results, CMM data, keys, audit,
 //!   webhooks, stations) copied table by table, each verified by count and digest;
 //! - `--object-store s3://…`: its uploaded bundles copied, each verified by size (and with
-//!   `--verify-hashes` by its bytes' sha256).
+//!   `--verify-hashes` by its bytes' sha256); with `--to` as well, its meshes and images move
+//!   out of the rows into the object store on the way, each verified the same way.
 //!
 //! Both are resumable: what the target has already is skipped, so an interrupted run is run again.
 
@@ -63,7 +64,7 @@ impl MigrateStoreArgs {
             .with_context(|| format!("opening {}", database.display()))?;
         let mut flags = Vec::new();
         if let Some(url) = &self.to {
-            copy_records(&store, url, &settings).await?;
+            copy_records(&store, url, &settings, self.verify_hashes).await?;
             flags.push(format!("--database-url {}", crestscan::service::store::redact_url(url)));
         }
         if let Some(url) = &self.object_store {
@@ -126,11 +127,16 @@ async fn copy_uploads(store: &Store, url: &str, settings: &Settings, verify_hash
 }
 
 /// Copies the records into PostgreSQL at `url` and checks every table came over whole.
-async fn copy_records(store: &Store, url: &str, settings: &Settings) -> Result<()> {
+async fn copy_records(store: &Store, url: &str, settings: &Settings, verify_hashes: bool) -> Result<()> {
     let shown = crestscan::service::store::redact_url(url);
-    let target = Store::connect(&Database::Postgres(url.to_string()), &settings.uploads_dir(), &settings.tmp_dir())
+    let mut target = Store::connect(&Database::Postgres(url.to_string()), &settings.uploads_dir(), &settings.tmp_dir())
         .await
         .with_context(|| format!("opening {shown}"))?;
+    if let Some(objects) = &settings.object_store {
+        let blobs = S3Blobs::open_url(objects, &settings.s3(), &settings.tmp_dir())?;
+        blobs.check().await.with_context(|| format!("the object store {} does not take a write", blobs.describe()))?;
+        target.artifact_objects = Some(std::sync::Arc::new(blobs));
+    }
     let copies = store
         .copy_records_into(&target, |c| {
             println!(
@@ -144,7 +150,18 @@ async fn copy_records(store: &Store, url: &str, settings: &Settings) -> Result<(
         })
         .await
         .with_context(|| format!("copying the records into {shown}"))?;
+    let (objects, problems) = target.verify_artifact_objects(verify_hashes).await?;
     target.close().await;
+    if objects > 0 {
+        println!(
+            "{objects} meshes and images in the object store: {} verified{}",
+            objects - problems.len(),
+            if verify_hashes { " by sha256" } else { " by presence" }
+        );
+    }
+    if !problems.is_empty() {
+        bail!("{} artifact(s) not in the object store as recorded:\n{}", problems.len(), problems.join("\n"));
+    }
     let different: Vec<&str> = copies.iter().filter(|c| !c.identical).map(|c| c.table).collect();
     if !different.is_empty() {
         bail!(

@@ -127,6 +127,10 @@ pub struct ServeArgs {
     /// Days meshes and images of finished inspections are kept; 0 keeps them [default: 0].
     #[arg(long, env = "CRESTSCAN_ARTIFACT_RETENTION_DAYS")]
     artifact_retention_days: Option<f64>,
+    /// Seconds an artifact object no inspection names is kept before the sweep deletes it
+    /// [default: 3600].
+    #[arg(long, env = "CRESTSCAN_ORPHAN_GRACE_SECONDS")]
+    orphan_grace_seconds: Option<f64>,
     /// Log filter [default: info].
     #[arg(long, env = "CRESTSCAN_LOG")]
     log: Option<String>,
@@ -240,6 +244,7 @@ impl ServeArgs {
             poll_interval_ms,
             upload_retention_days,
             artifact_retention_days,
+            orphan_grace_seconds,
             log,
             submissions_per_minute,
             callback_origins,

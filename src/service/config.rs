@@ -88,6 +88,10 @@ pub struct Settings {
     /// Meshes and images of finished inspections are deleted after this many days (0: kept); the
     /// reports and thread tables stay.
     pub artifact_retention_days: f64,
+    /// Artifact objects (an object store's meshes and images) that no record names are deleted
+    /// once written longer ago than this: a worker uploads its results just before the commit
+    /// that names them.
+    pub orphan_grace_seconds: f64,
     /// Tracing filter (`info`, `crestscan=debug,tower_http=info`, ...).
     pub log: String,
     /// Log lines as text (colours only on a terminal) or as one JSON object each (for a log
@@ -218,6 +222,7 @@ impl Default for Settings {
             poll_interval_ms: 500,
             upload_retention_days: 30.0,
             artifact_retention_days: 0.0,
+            orphan_grace_seconds: 3600.0,
             log: "info".into(),
             log_format: LogFormat::Text,
             auth: AuthMode::Off,
@@ -304,6 +309,9 @@ impl Settings {
         }
         if !(self.shutdown_grace_seconds >= 0.0) {
             return invalid("shutdown_grace_seconds", "must be non-negative");
+        }
+        if !(self.orphan_grace_seconds >= 0.0) {
+            return invalid("orphan_grace_seconds", "must be non-negative");
         }
         if !(self.artifact_retention_days >= 0.0) {
             return invalid("artifact_retention_days", "must be non-negative (0 keeps them)");

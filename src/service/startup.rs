@@ -54,8 +54,10 @@ impl Application {
             blobs.check().await.map_err(|e| {
                 StoreError::Io(std::io::Error::new(e.kind(), format!("object store {}: {e}", blobs.describe())))
             })?;
-            tracing::info!(blobs = %blobs.describe(), "uploads are kept in the object store");
-            store.blobs = Arc::new(blobs);
+            tracing::info!(blobs = %blobs.describe(), "uploads, meshes and images are kept in the object store");
+            let blobs = Arc::new(blobs);
+            store.blobs = blobs.clone();
+            store.artifact_objects = Some(blobs);
         }
         let cleared = store.files.clear_temporaries(Duration::from_secs(6 * 3600)).map_err(StoreError::Io)?;
         if cleared > 0 {
@@ -64,6 +66,10 @@ impl Application {
         let orphans = store.remove_orphan_uploads().await?;
         if orphans > 0 {
             tracing::info!(orphans, "removed upload files no inspection names (a submission that failed to commit)");
+        }
+        let orphans = store.remove_orphan_artifacts(orphan_cutoff_ms(&settings)).await?;
+        if orphans > 0 {
+            tracing::info!(orphans, "removed artifact objects no inspection names (a completion that did not commit)");
         }
         let listener = TcpListener::bind(settings.bind)
             .await
@@ -250,7 +256,17 @@ async fn retention_sweep(state: AppState, mut stop: watch::Receiver<bool>) {
             Ok(n) => tracing::info!(removed = n, "retention: deleted upload files no inspection names"),
             Err(e) => tracing::warn!(error = %e, "orphan upload sweep failed"),
         }
+        match state.store.remove_orphan_artifacts(orphan_cutoff_ms(&state.settings)).await {
+            Ok(0) => {}
+            Ok(n) => tracing::info!(removed = n, "retention: deleted artifact objects no inspection names"),
+            Err(e) => tracing::warn!(error = %e, "orphan artifact sweep failed"),
+        }
     }
+}
+
+/// Artifact objects no record names and written before this are orphans (`orphan_grace_seconds`).
+fn orphan_cutoff_ms(settings: &Settings) -> i64 {
+    now_ms() - (settings.orphan_grace_seconds * 1000.0) as i64
 }
 
 /// Resolves on Ctrl-C or SIGTERM.

@@ -188,11 +188,16 @@ pub fn postgres_url() -> &'static str {
             .unwrap_or_else(|e| panic!("initdb could not run ({e}): apt-get install postgresql-15"));
         assert!(init.status.success(), "initdb failed: {}", String::from_utf8_lossy(&init.stderr));
         let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+        // TLS with a certificate of its own for 127.0.0.1 (openssl comes with postgresql-15):
+        // sqlx prefers TLS where the server offers it, so every test connection is encrypted.
+        let (_, cert, key) = self_signed(&dir, "server");
         // fsync off: the tests kill crestscan's processes, never this server.
         let options = format!(
             "-p {port} -c listen_addresses=127.0.0.1 -k {} -c max_connections=400 -c fsync=off \
-             -c synchronous_commit=off -c full_page_writes=off",
-            dir.display()
+             -c synchronous_commit=off -c full_page_writes=off -c ssl=on -c ssl_cert_file={} -c ssl_key_file={}",
+            dir.display(),
+            cert.display(),
+            key.display()
         );
         let start = pg_command("pg_ctl", &dir)
             .args(["-D", &data.to_string_lossy(), "-o", &options, "-l", &dir.join("log").to_string_lossy(), "-w"])
@@ -210,6 +215,84 @@ pub fn postgres_url() -> &'static str {
         unsafe { libc::atexit(stop_postgres) };
         format!("postgres://postgres@127.0.0.1:{port}")
     })
+}
+
+/// The authority that signed the test server's TLS certificate (for 127.0.0.1): the root a client
+/// that verifies the server (`sslmode=verify-full&sslrootcert=…`) is given.
+pub fn postgres_tls_root() -> PathBuf {
+    postgres_url();
+    std::env::temp_dir().join(format!("crestscan-pg-{}", std::process::id())).join("server-ca.crt")
+}
+
+/// A certificate authority of its own and, signed by it, a certificate and key for 127.0.0.1,
+/// under `dir`: (`NAME-ca.crt`, `NAME.crt`, `NAME.key`), readable by the server (owned by
+/// `postgres` when this process is root; the key 0600). A leaf apart from its root, as rustls
+/// accepts no CA certificate as the server's own.
+pub fn self_signed(dir: &Path, name: &str) -> (PathBuf, PathBuf, PathBuf) {
+    let path = |suffix: &str| dir.join(format!("{name}{suffix}"));
+    let (ca_key, ca, key, csr, cert, ext) =
+        (path("-ca.key"), path("-ca.crt"), path(".key"), path(".csr"), path(".crt"), path(".ext"));
+    std::fs::write(&ext, "basicConstraints=CA:FALSE\nsubjectAltName=IP:127.0.0.1\n").unwrap();
+    let openssl = |args: &[&std::ffi::OsStr]| {
+        let out = std::process::Command::new("openssl")
+            .args(args)
+            .output()
+            .unwrap_or_else(|e| panic!("openssl could not run ({e}): apt-get install openssl"));
+        assert!(out.status.success(), "openssl {args:?}: {}", String::from_utf8_lossy(&out.stderr));
+    };
+    let os = |s: &'static str| std::ffi::OsStr::new(s);
+    openssl(&[
+        os("req"),
+        os("-x509"),
+        os("-newkey"),
+        os("rsa:2048"),
+        os("-nodes"),
+        os("-days"),
+        os("2"),
+        os("-subj"),
+        os("/CN=crestscan test CA"),
+        os("-keyout"),
+        ca_key.as_os_str(),
+        os("-out"),
+        ca.as_os_str(),
+    ]);
+    openssl(&[
+        os("req"),
+        os("-newkey"),
+        os("rsa:2048"),
+        os("-nodes"),
+        os("-subj"),
+        os("/CN=127.0.0.1"),
+        os("-keyout"),
+        key.as_os_str(),
+        os("-out"),
+        csr.as_os_str(),
+    ]);
+    openssl(&[
+        os("x509"),
+        os("-req"),
+        os("-in"),
+        csr.as_os_str(),
+        os("-CA"),
+        ca.as_os_str(),
+        os("-CAkey"),
+        ca_key.as_os_str(),
+        os("-CAcreateserial"),
+        os("-days"),
+        os("2"),
+        os("-extfile"),
+        ext.as_os_str(),
+        os("-out"),
+        cert.as_os_str(),
+    ]);
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::set_permissions(&key, std::fs::Permissions::from_mode(0o600)).unwrap();
+    // SAFETY: geteuid only reads the process's user id.
+    if unsafe { libc::geteuid() } == 0 {
+        let chown = std::process::Command::new("chown").arg("postgres:").args([&cert, &key]).status();
+        assert!(chown.is_ok_and(|s| s.success()), "chown postgres {}", key.display());
+    }
+    (ca, cert, key)
 }
 
 /// A PostgreSQL program (Debian keeps them off the PATH, under /usr/lib/postgresql/15/bin), run as

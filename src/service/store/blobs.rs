@@ -29,6 +29,33 @@ pub trait BlobStore: Send + Sync {
     fn describe(&self) -> String;
 }
 
+/// Meshes and images held as objects (`artifacts/<inspection>/<kind>/<sha256>`), where an object
+/// store is configured; the embedded default keeps them in the records instead, so that one
+/// backup of the database holds them with their reports. The sha256 in the key is the body's:
+/// a worker that lost its lease and uploads the same result again writes the same key, and
+/// bytes that no record names are found by the orphan sweep.
+pub trait ArtifactStore: Send + Sync {
+    /// Stores `body`, durably, before the record that names it commits.
+    fn put_artifact<'a>(&'a self, key: &'a ArtifactKey, body: Vec<u8>) -> BoxFuture<'a, io::Result<()>>;
+    /// The body, checked against its sha256.
+    fn get_artifact<'a>(&'a self, key: &'a ArtifactKey) -> BoxFuture<'a, io::Result<Vec<u8>>>;
+    /// The stored size, bytes; None where it is not there.
+    fn artifact_size<'a>(&'a self, key: &'a ArtifactKey) -> BoxFuture<'a, io::Result<Option<u64>>>;
+    /// Deletes one; one that is not there is no error.
+    fn remove_artifact<'a>(&'a self, key: &'a ArtifactKey) -> BoxFuture<'a, io::Result<()>>;
+    /// Every stored artifact with the time it was written (ms since the epoch).
+    fn list_artifacts(&self) -> BoxFuture<'_, io::Result<Vec<(ArtifactKey, i64)>>>;
+    fn describe(&self) -> String;
+}
+
+/// Which artifact object: an inspection's result of one kind, by its bytes' sha256.
+#[derive(Clone, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct ArtifactKey {
+    pub inspection_id: String,
+    pub kind: String,
+    pub sha256: String,
+}
+
 /// A blob as a local file: the stored file itself, or a download removed when this is dropped.
 pub enum LocalCopy {
     InPlace(PathBuf),
@@ -329,6 +356,84 @@ impl BlobStore for S3Blobs {
         } else {
             format!("s3://{}/{}", self.location.bucket, self.location.prefix)
         }
+    }
+}
+
+impl S3Blobs {
+    fn artifact_path(&self, key: &ArtifactKey) -> object_store::path::Path {
+        self.under_prefix(&format!("artifacts/{}/{}/{}", key.inspection_id, key.kind, key.sha256))
+    }
+}
+
+impl ArtifactStore for S3Blobs {
+    fn put_artifact<'a>(&'a self, key: &'a ArtifactKey, body: Vec<u8>) -> BoxFuture<'a, io::Result<()>> {
+        Box::pin(async move {
+            use object_store::{ObjectStore, PutPayload};
+            // Results are a few MB: one request (S3's single PUT takes up to 5 GB).
+            self.store.put(&self.artifact_path(key), PutPayload::from(body)).await.map_err(s3_error)?;
+            Ok(())
+        })
+    }
+
+    fn get_artifact<'a>(&'a self, key: &'a ArtifactKey) -> BoxFuture<'a, io::Result<Vec<u8>>> {
+        Box::pin(async move {
+            use object_store::ObjectStore;
+            use sha2::{Digest, Sha256};
+            let path = self.artifact_path(key);
+            let got = self.store.get(&path).await.map_err(s3_error)?;
+            let body = got.bytes().await.map_err(s3_error)?;
+            let got_sha = hex::encode(Sha256::digest(&body));
+            if got_sha != key.sha256 {
+                return Err(io::Error::new(
+                    io::ErrorKind::InvalidData,
+                    format!("object store: {path} holds bytes of sha256 {got_sha}, not {}", key.sha256),
+                ));
+            }
+            Ok(body.to_vec())
+        })
+    }
+
+    fn artifact_size<'a>(&'a self, key: &'a ArtifactKey) -> BoxFuture<'a, io::Result<Option<u64>>> {
+        Box::pin(async move {
+            use object_store::ObjectStore;
+            match self.store.head(&self.artifact_path(key)).await {
+                Ok(meta) => Ok(Some(meta.size as u64)),
+                Err(object_store::Error::NotFound { .. }) => Ok(None),
+                Err(e) => Err(s3_error(e)),
+            }
+        })
+    }
+
+    fn remove_artifact<'a>(&'a self, key: &'a ArtifactKey) -> BoxFuture<'a, io::Result<()>> {
+        Box::pin(async move {
+            use object_store::ObjectStore;
+            match self.store.delete(&self.artifact_path(key)).await {
+                Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
+                Err(e) => Err(s3_error(e)),
+            }
+        })
+    }
+
+    fn list_artifacts(&self) -> BoxFuture<'_, io::Result<Vec<(ArtifactKey, i64)>>> {
+        Box::pin(async move {
+            use futures_util::TryStreamExt;
+            use object_store::ObjectStore;
+            let prefix = self.under_prefix("artifacts");
+            let objects: Vec<object_store::ObjectMeta> =
+                self.store.list(Some(&prefix)).try_collect().await.map_err(s3_error)?;
+            Ok(objects
+                .into_iter()
+                .filter_map(|o| {
+                    let parts: Vec<_> = o.location.prefix_match(&prefix)?.map(|p| p.as_ref().to_string()).collect();
+                    let [id, kind, sha] = <[String; 3]>::try_from(parts).ok()?;
+                    Some((ArtifactKey { inspection_id: id, kind, sha256: sha }, o.last_modified.timestamp_millis()))
+                })
+                .collect())
+        })
+    }
+
+    fn describe(&self) -> String {
+        BlobStore::describe(self)
     }
 }
 

@@ -1,7 +1,9 @@
 //! Moving a single node's records into PostgreSQL (`crestscan migrate-store --to`): every table,
 //! in the order its foreign keys need, row by row as the target's schema types them; resumable
 //! (a row the target has already is left alone) and verified (each table's rows counted and
-//! digested on both sides, independent of order).
+//! digested on both sides, independent of order). Where the target has an object store, meshes
+//! and images move out of the rows into it on the way ([`canonical`] digests a row alike either
+//! way).
 
 use super::*;
 use futures_util::TryStreamExt;
@@ -172,6 +174,13 @@ impl Store {
             let names = columns.iter().map(|c| c.0.as_str()).collect::<Vec<_>>().join(", ");
             let select = format!("SELECT {names} FROM {table}");
 
+            let moving = table == "artifacts" && target.artifact_objects.is_some();
+            // A resumed copy uploads again only what the target lacks.
+            let present: std::collections::HashSet<(String, String)> = if moving {
+                sqlx::query_as("SELECT inspection_id, kind FROM artifacts").fetch_all(pg).await?.into_iter().collect()
+            } else {
+                Default::default()
+            };
             let mut source_digest = RowsDigest::default();
             let mut inserted = 0u64;
             let mut batch: Vec<Vec<Value>> = Vec::with_capacity(BATCH_ROWS);
@@ -179,12 +188,15 @@ impl Store {
             loop {
                 let next = rows.try_next().await?;
                 if let Some(row) = &next {
-                    let values = kinds
+                    let mut values = kinds
                         .iter()
                         .enumerate()
                         .map(|(i, k)| Value::read(row, i, *k))
                         .collect::<Result<Vec<_>, _>>()?;
-                    source_digest.add(&values);
+                    source_digest.add(&canonical(table, &columns, &values));
+                    if moving {
+                        target.move_out_of_row(&columns, &mut values, &present).await?;
+                    }
                     batch.push(values);
                 }
                 if batch.len() == BATCH_ROWS || (next.is_none() && !batch.is_empty()) {
@@ -210,7 +222,7 @@ impl Store {
             while let Some(row) = rows.try_next().await? {
                 let values =
                     kinds.iter().enumerate().map(|(i, k)| Value::read(&row, i, *k)).collect::<Result<Vec<_>, _>>()?;
-                target_digest.add(&values);
+                target_digest.add(&canonical(table, &columns, &values));
             }
             let copy = TableCopy {
                 table,
@@ -224,6 +236,83 @@ impl Store {
         }
         Ok(copies)
     }
+}
+
+impl Store {
+    /// An artifact row's body uploaded to this store's object store, the row left naming it
+    /// (an empty body and its sha256), unless it names an object already or the target holds
+    /// the row (`present`: a resumed copy).
+    async fn move_out_of_row(
+        &self,
+        columns: &[(String, String)],
+        values: &mut [Value],
+        present: &std::collections::HashSet<(String, String)>,
+    ) -> Result<(), StoreError> {
+        let at = |name: &str| columns.iter().position(|c| c.0 == name).expect("the artifacts table's columns");
+        let (id, kind, body, sha) = (at("inspection_id"), at("kind"), at("body"), at("object_sha256"));
+        let (Value::Text(Some(id)), Value::Text(Some(kind))) = (&values[id], &values[kind]) else { return Ok(()) };
+        let (Value::Bytes(Some(bytes)), Value::Text(None)) = (&values[body], &values[sha]) else { return Ok(()) };
+        let key = blobs::ArtifactKey {
+            inspection_id: id.clone(),
+            kind: kind.clone(),
+            sha256: super::files::sha256_hex(bytes),
+        };
+        if !present.contains(&(key.inspection_id.clone(), key.kind.clone())) {
+            let objects = self.artifact_objects.as_ref().expect("moving only with an object store");
+            objects.put_artifact(&key, bytes.clone()).await?;
+        }
+        values[body] = Value::Bytes(Some(Vec::new()));
+        values[sha] = Value::Text(Some(key.sha256));
+        Ok(())
+    }
+
+    /// Every artifact row that names an object, checked against the object store: there with its
+    /// size (the body's length is not kept, so: there and non-empty), and with `hashes` its bytes'
+    /// sha256. The problems found, one line each.
+    pub async fn verify_artifact_objects(&self, hashes: bool) -> Result<(usize, Vec<String>), StoreError> {
+        let Some(objects) = &self.artifact_objects else { return Ok((0, Vec::new())) };
+        let named: Vec<(String, String, String)> = on_db!(self.db, |pool, d| {
+            sqlx::query_as(
+                "SELECT inspection_id, kind, object_sha256 FROM artifacts WHERE object_sha256 IS NOT NULL \
+                 ORDER BY inspection_id, kind",
+            )
+            .fetch_all(pool)
+            .await?
+        });
+        let mut problems = Vec::new();
+        for (inspection_id, kind, sha256) in &named {
+            let key =
+                blobs::ArtifactKey { inspection_id: inspection_id.clone(), kind: kind.clone(), sha256: sha256.clone() };
+            let found = if hashes {
+                objects.get_artifact(&key).await.map(|b| Some(b.len() as u64))
+            } else {
+                objects.artifact_size(&key).await
+            };
+            match found {
+                Ok(Some(n)) if n > 0 => {}
+                Ok(Some(_)) => problems.push(format!("{inspection_id} {kind}: an empty object")),
+                Ok(None) => problems.push(format!("{inspection_id} {kind}: not in {}", objects.describe())),
+                Err(e) => problems.push(format!("{inspection_id} {kind}: {e}")),
+            }
+        }
+        Ok((named.len(), problems))
+    }
+}
+
+/// A row as it is digested: an artifact's body as its sha256, whether the row holds the bytes or
+/// names their object, so a copy that moved them compares equal to its source.
+fn canonical(table: &str, columns: &[(String, String)], values: &[Value]) -> Vec<Value> {
+    let mut values = values.to_vec();
+    if table == "artifacts" {
+        let at = |name: &str| columns.iter().position(|c| c.0 == name);
+        if let (Some(body), Some(sha)) = (at("body"), at("object_sha256")) {
+            if let (Value::Bytes(Some(bytes)), Value::Text(None)) = (&values[body], &values[sha]) {
+                values[sha] = Value::Text(Some(super::files::sha256_hex(bytes)));
+            }
+            values[body] = Value::Bytes(None);
+        }
+    }
+    values
 }
 
 /// Inserts `batch` into `table` (columns `names`), skipping rows whose key the table has; how

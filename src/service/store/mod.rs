@@ -320,6 +320,8 @@ pub struct Store {
     pub files: FileStore,
     /// Where uploaded bundles' bytes live ([`blobs::LocalBlobs`] over `files`, or an object store).
     pub blobs: std::sync::Arc<dyn blobs::BlobStore>,
+    /// Where meshes and images go when an object store is configured; None: in the records.
+    pub artifact_objects: Option<std::sync::Arc<dyn blobs::ArtifactStore>>,
     /// Deaths of the worker's process while running one job before that job is failed as
     /// poisonous ([`queue`]).
     pub max_interruptions: i64,
@@ -362,7 +364,7 @@ impl Store {
         let files = FileStore::open(uploads, tmp)?;
         let (changes, _) = tokio::sync::broadcast::channel(256);
         let blobs = std::sync::Arc::new(blobs::LocalBlobs::new(files.clone()));
-        Ok(Self { db, database: database.clone(), files, blobs, max_interruptions: 5, changes })
+        Ok(Self { db, database: database.clone(), files, blobs, artifact_objects: None, max_interruptions: 5, changes })
     }
 
     /// Which backend holds the records.

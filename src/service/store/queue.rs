@@ -172,6 +172,21 @@ impl Store {
                     .map(move |k| (t.index, h.angles_deg[k], h.values[k], h.uncertainty_mm.get(k).copied().flatten()))
             })
             .collect();
+        // Where an object store holds meshes and images, they are uploaded before the commit that
+        // names them, so that a committed row never points at nothing; an upload whose commit
+        // does not follow is an orphan the retention pass deletes.
+        let mut object_sha256 = vec![None; results.artifacts.len()];
+        if let Some(store) = &self.artifact_objects {
+            for (a, sha) in results.artifacts.iter().zip(&mut object_sha256) {
+                let key = blobs::ArtifactKey {
+                    inspection_id: id.into(),
+                    kind: a.kind.into(),
+                    sha256: super::files::sha256_hex(&a.body),
+                };
+                store.put_artifact(&key, a.body.clone()).await?;
+                *sha = Some(key.sha256);
+            }
+        }
         let done = on_db!(self.db, |pool, d| {
             let mut tx = pool.begin().await?;
             let updated = sqlx::query(&d.sql(
@@ -198,15 +213,17 @@ impl Store {
                     .bind(etag_of(results.report_json.as_bytes()))
                     .execute(&mut *tx)
                     .await?;
-                for a in &results.artifacts {
+                for (a, sha) in results.artifacts.iter().zip(&object_sha256) {
                     sqlx::query(&d.sql(
-                        "INSERT INTO artifacts (inspection_id, kind, content_type, body, etag) VALUES (?, ?, ?, ?, ?)",
+                        "INSERT INTO artifacts (inspection_id, kind, content_type, body, etag, object_sha256) \
+                         VALUES (?, ?, ?, ?, ?, ?)",
                     ))
                     .bind(id)
                     .bind(a.kind)
                     .bind(a.content_type)
-                    .bind(&a.body)
+                    .bind(if sha.is_some() { &[][..] } else { &a.body[..] })
                     .bind(etag_of(&a.body))
+                    .bind(sha.as_deref())
                     .execute(&mut *tx)
                     .await?;
                 }

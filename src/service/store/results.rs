@@ -65,16 +65,26 @@ impl Store {
     }
 
     pub async fn artifact(&self, id: &str, kind: &str) -> Result<StoredArtifact, StoreError> {
-        on_db!(self.db, |pool, d| {
-            sqlx::query_as(
-                &d.sql("SELECT content_type, body, etag FROM artifacts WHERE inspection_id = ? AND kind = ?"),
-            )
+        let row: Option<(String, Vec<u8>, String, Option<String>)> = on_db!(self.db, |pool, d| {
+            sqlx::query_as(&d.sql(
+                "SELECT content_type, body, etag, object_sha256 FROM artifacts WHERE inspection_id = ? AND kind = ?",
+            ))
             .bind(id)
             .bind(kind)
             .fetch_optional(pool)
             .await?
-        })
-        .ok_or(StoreError::NotFound)
+        });
+        let (content_type, body, etag, object_sha256) = row.ok_or(StoreError::NotFound)?;
+        let Some(sha256) = object_sha256 else { return Ok(StoredArtifact { content_type, body, etag }) };
+        let objects = self.artifact_objects.as_ref().ok_or_else(|| {
+            StoreError::Io(std::io::Error::other(format!(
+                "the {kind} of {id} is kept in an object store, and this process has none configured \
+                 (start it with the --object-store the workers have)"
+            )))
+        })?;
+        let key = blobs::ArtifactKey { inspection_id: id.into(), kind: kind.into(), sha256 };
+        let body = objects.get_artifact(&key).await?;
+        Ok(StoredArtifact { content_type, body, etag })
     }
 
     pub async fn threads(&self, id: &str) -> Result<(Vec<ThreadRow>, Vec<HeightRow>), StoreError> {
@@ -104,7 +114,7 @@ impl Store {
     /// the freed pages for new results, so the database stops growing by them (the file itself
     /// shrinks only with VACUUM).
     pub async fn purge_artifacts(&self, cutoff_ms: i64) -> Result<usize, StoreError> {
-        Ok(on_db!(self.db, |pool, d| {
+        let (purged, objects): (usize, Vec<blobs::ArtifactKey>) = on_db!(self.db, |pool, d| {
             let mut tx = pool.begin().await?;
             // A write first: a transaction that read first could not take the write lock if another
             // connection wrote in between (SQLite answers "database is locked" at once, whatever the
@@ -117,12 +127,60 @@ impl Store {
             .bind(cutoff_ms)
             .fetch_all(&mut *tx)
             .await?;
+            let mut objects = Vec::new();
             for (id,) in &due {
-                sqlx::query(&d.sql("DELETE FROM artifacts WHERE inspection_id = ?")).bind(id).execute(&mut *tx).await?;
+                let gone: Vec<(String, Option<String>)> = sqlx::query_as(
+                    &d.sql("DELETE FROM artifacts WHERE inspection_id = ? RETURNING kind, object_sha256"),
+                )
+                .bind(id)
+                .fetch_all(&mut *tx)
+                .await?;
+                objects.extend(gone.into_iter().filter_map(|(kind, sha)| {
+                    sha.map(|sha256| blobs::ArtifactKey { inspection_id: id.clone(), kind, sha256 })
+                }));
             }
             tx.commit().await?;
-            due.len()
-        }))
+            (due.len(), objects)
+        });
+        // After the commit: an object whose deletion fails here is one no record names, which
+        // the orphan sweep deletes on its next pass.
+        if let Some(store) = &self.artifact_objects {
+            for key in &objects {
+                if let Err(e) = store.remove_artifact(key).await {
+                    tracing::warn!(error = %e, inspection = %key.inspection_id, "deleting a purged artifact's object");
+                }
+            }
+        }
+        Ok(purged)
+    }
+
+    /// Deletes artifact objects that no record names and that were written before `written_before_ms`:
+    /// a worker's results whose completion did not commit (its lease lost, its process killed
+    /// between upload and commit), or a purge's deletion that failed. The objects are listed
+    /// before the records are read, so an object whose record commits meanwhile is either seen
+    /// named or younger than the cutoff (its upload came just before its commit).
+    pub async fn remove_orphan_artifacts(&self, written_before_ms: i64) -> Result<usize, StoreError> {
+        let Some(store) = &self.artifact_objects else { return Ok(0) };
+        let stored = store.list_artifacts().await?;
+        if stored.is_empty() {
+            return Ok(0);
+        }
+        let named: std::collections::HashSet<(String, String, String)> = on_db!(self.db, |pool, d| {
+            sqlx::query_as("SELECT inspection_id, kind, object_sha256 FROM artifacts WHERE object_sha256 IS NOT NULL")
+                .fetch_all(pool)
+                .await?
+        })
+        .into_iter()
+        .collect();
+        let mut removed = 0;
+        for (key, written_ms) in stored {
+            let is_named = named.contains(&(key.inspection_id.clone(), key.kind.clone(), key.sha256.clone()));
+            if !is_named && written_ms < written_before_ms {
+                store.remove_artifact(&key).await?;
+                removed += 1;
+            }
+        }
+        Ok(removed)
     }
 
     /// When the retention deleted this inspection's meshes and images, if it did.

@@ -4,7 +4,7 @@
 
 use super::*;
 use crate::common::moto_endpoint;
-use crestscan::service::store::blobs::{BlobStore, S3Blobs, S3Location, S3Settings};
+use crestscan::service::store::blobs::{ArtifactKey, ArtifactStore, BlobStore, S3Blobs, S3Location, S3Settings};
 
 fn s3_settings() -> S3Settings {
     S3Settings {
@@ -84,6 +84,70 @@ async fn the_service_keeps_uploads_in_the_object_store() {
         .unwrap();
     let listing = String::from_utf8_lossy(&listing.stdout);
     assert_eq!(listing.matches("<Key>").count(), 1, "{listing}");
+    app.stop().await;
+}
+
+/// The keys under `prefix/` in moto's bucket, read straight from the server.
+fn listed(prefix: &str) -> Vec<String> {
+    let listing = std::process::Command::new("curl")
+        .args(["-sf", &format!("{}/crestscan-it?list-type=2&prefix={prefix}/", moto_endpoint())])
+        .output()
+        .unwrap();
+    let listing = String::from_utf8_lossy(&listing.stdout);
+    listing.split("<Key>").skip(1).map(|k| k.split("</Key>").next().unwrap().to_string()).collect()
+}
+
+/// With an object store, a finished inspection's meshes and images are objects named by their
+/// rows (which keep an empty body), served from there byte for byte; an object no row names is
+/// swept once older than the grace, a named one is kept; the retention deletes the objects with
+/// the rows.
+#[tokio::test]
+async fn meshes_and_images_live_in_the_object_store_and_leave_no_orphans() {
+    let prefix = format!("artifacts-{}", std::process::id());
+    let url = format!("s3://crestscan-it/{prefix}");
+    let app = spawn_app_with(|s| {
+        s.object_store = Some(url.clone());
+        s.s3_endpoint = Some(moto_endpoint().into());
+        s.s3_access_key_id = Some("test".into());
+        s.s3_secret_access_key = Some("test".into());
+    })
+    .await;
+    let id = app.submit(ci_tar(), "").await.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+    assert_eq!(app.wait(&id, Duration::from_secs(120)).await["status"], "succeeded");
+    let objects = listed(&format!("{prefix}/artifacts"));
+    let mut store = open_store(&app.data).await;
+    let blobs =
+        std::sync::Arc::new(S3Blobs::open(S3Location::parse(&url).unwrap(), &s3_settings(), &app.data).unwrap());
+    store.artifact_objects = Some(blobs.clone());
+    let rows = store.count("SELECT COUNT(*) FROM artifacts WHERE object_sha256 IS NOT NULL AND length(body) = 0").await;
+    assert_eq!(rows.unwrap(), 5, "mesh.ply, mesh.stl, two PNGs and the pitch profiles, each an object");
+    assert_eq!(store.count("SELECT COUNT(*) FROM artifacts").await.unwrap(), 5);
+    assert_eq!(objects.len(), 5, "{objects:?}");
+    let mesh = app.get(&format!("/v1/inspections/{id}/mesh")).await;
+    assert_eq!(mesh.status(), StatusCode::OK);
+    let sha = crestscan::service::store::files::sha256_hex(&mesh.bytes().await.unwrap());
+    assert!(objects.contains(&format!("{prefix}/artifacts/{id}/mesh.ply/{sha}")), "{sha} {objects:?}");
+
+    // A worker's upload whose completion never committed.
+    let stray = ArtifactKey { inspection_id: id.clone(), kind: "mesh.ply".into(), sha256: "0".repeat(64) };
+    blobs.put_artifact(&stray, b"not this inspection's mesh".to_vec()).await.unwrap();
+    let now = crestscan::service::store::now_ms();
+    assert_eq!(store.remove_orphan_artifacts(now - 60_000).await.unwrap(), 0, "within the grace: kept");
+    assert_eq!(store.remove_orphan_artifacts(now + 1000).await.unwrap(), 1, "only the stray is an orphan");
+    assert_eq!(listed(&format!("{prefix}/artifacts")), objects);
+    let again = app.get(&format!("/v1/inspections/{id}/mesh")).await;
+    assert_eq!(crestscan::service::store::files::sha256_hex(&again.bytes().await.unwrap()), sha);
+
+    // Bytes under a row's key that are not its own are refused, not served.
+    let key = ArtifactKey { inspection_id: id.clone(), kind: "mesh.ply".into(), sha256: sha.clone() };
+    blobs.put_artifact(&key, b"mangled".to_vec()).await.unwrap();
+    let refused = app.get(&format!("/v1/inspections/{id}/mesh")).await;
+    assert_eq!(refused.status(), StatusCode::INTERNAL_SERVER_ERROR);
+
+    // The retention takes the objects with their rows.
+    assert_eq!(store.purge_artifacts(now + 1000).await.unwrap(), 1);
+    assert!(listed(&format!("{prefix}/artifacts")).is_empty());
+    assert_eq!(app.get(&format!("/v1/inspections/{id}/mesh")).await.status(), StatusCode::GONE);
     app.stop().await;
 }
 

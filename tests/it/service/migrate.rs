@@ -1,5 +1,6 @@
 //! A single node's data directory moved into PostgreSQL and the object store
-//! (`crestscan migrate-store --to … --object-store …`), then served from there.
+//! (`crestscan migrate-store --to … --object-store …`), its meshes and images out of the rows
+//! into objects on the way, then served from there.
 
 use super::*;
 use crate::common::{database_for, moto_endpoint};
@@ -95,6 +96,24 @@ async fn a_data_directory_moves_into_postgres_and_the_object_store_with_identica
     assert!(first.contains("1 live uploads: 1 copied"), "{first}");
     let inspections = first.lines().find(|l| l.starts_with("inspections ")).unwrap();
     assert!(inspections.contains("2 rows") && inspections.contains("2 copied now"), "{first}");
+    // The meshes and images left the rows for the object store on the way.
+    assert!(first.contains("10 meshes and images in the object store: 10 verified"), "{first}");
+    let moved = crestscan::service::store::Store::connect(
+        &crestscan::service::store::Database::Postgres(url.clone()),
+        &data.join("uploads"),
+        &data.join("tmp"),
+    )
+    .await
+    .unwrap();
+    let named = "SELECT COUNT(*) FROM artifacts WHERE object_sha256 IS NOT NULL AND length(body) = 0";
+    assert_eq!(moved.count(named).await.unwrap(), 10);
+    moved.close().await;
+    let bucket_prefix = prefix.trim_start_matches("s3://crestscan-it/");
+    let listing = std::process::Command::new("curl")
+        .args(["-sf", &format!("{}/crestscan-it?list-type=2&prefix={bucket_prefix}/artifacts/", moto_endpoint())])
+        .output()
+        .unwrap();
+    assert_eq!(String::from_utf8_lossy(&listing.stdout).matches("<Key>").count(), 10);
     // Resumed: nothing left to copy, everything still identical.
     let again = migrate(true);
     assert!(

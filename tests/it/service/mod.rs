@@ -16,6 +16,7 @@ mod report_page;
 mod results;
 mod roles;
 mod stations;
+mod tls;
 mod traces;
 mod webhooks;
 
@@ -153,8 +154,10 @@ pub async fn open_store(data: &Path) -> crestscan::service::store::Store {
     if let Some((url, endpoint)) = test_object_store(data) {
         let s3 =
             S3Settings { endpoint: Some(endpoint), region: None, credentials: Some(("test".into(), "test".into())) };
-        store.blobs =
+        let blobs =
             std::sync::Arc::new(S3Blobs::open(S3Location::parse(&url).unwrap(), &s3, &data.join("tmp")).unwrap());
+        store.blobs = blobs.clone();
+        store.artifact_objects = Some(blobs);
     }
     store
 }
