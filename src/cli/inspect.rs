@@ -15,8 +15,9 @@ use std::sync::atomic::AtomicBool;
 #[derive(clap::Args)]
 pub struct InspectArgs {
     bundle: PathBuf,
-    /// Write report.json, report.html (the report as one self-contained page), height-map.png,
-    /// all-in-focus.png, mesh.ply, mesh.stl and mesh.glb here.
+    /// Write report.json, report.html (the report as one self-contained page), report.qif (the
+    /// results as a QIF 3.0 document), height-map.png, all-in-focus.png, mesh.ply, mesh.stl and
+    /// mesh.glb here.
     #[arg(long)]
     out: Option<PathBuf>,
     /// Print the report as JSON instead of the summary.
@@ -142,7 +143,10 @@ impl InspectArgs {
                     ..Default::default()
                 },
             );
+            let qif =
+                crestscan::export::qif::document(&inspection.report, &crestscan::export::qif::QifInputs::default());
             for (name, bytes) in [
+                ("report.qif", qif.as_bytes()),
                 ("height-map.png", &height_map[..]),
                 ("all-in-focus.png", &mosaic[..]),
                 ("report.html", html.as_bytes()),
@@ -165,7 +169,7 @@ impl InspectArgs {
             println!("{}", inspection.report.summary());
             if let Some(dir) = &out {
                 println!(
-                    "  wrote report.json, report.html, height-map.png, all-in-focus.png, mesh.ply, mesh.stl and mesh.glb ({} vertices, {} triangles) to {}",
+                    "  wrote report.json, report.html, report.qif, height-map.png, all-in-focus.png, mesh.ply, mesh.stl and mesh.glb ({} vertices, {} triangles) to {}",
                     inspection.mesh.vertices.len(),
                     inspection.mesh.triangles.len(),
                     dir.display()

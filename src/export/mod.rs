@@ -1,11 +1,12 @@
 //! The output edge: the mesh as PLY, STL and GLB, the unrolled maps as PNG, the report as a
-//! self-contained HTML page.
+//! self-contained HTML page, the results as a QIF 3.0 document.
 
 pub mod glb;
 pub mod html;
 pub mod json;
 pub mod ply;
 pub mod png;
+pub mod qif;
 pub mod stl;
 
 #[cfg(test)]

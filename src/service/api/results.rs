@@ -24,7 +24,9 @@ pub fn router() -> OpenApiRouter<AppState> {
 /// The inspection report: verdict, reasons, per-thread heights and black crests, registration,
 /// timings (the result shape of docs/bundle.md plus measures). With `Accept: text/html` or
 /// `?format=html`, the same as one self-contained page for a person (plots, images and, once CMM
-/// data is uploaded, crestscan against the CMM); it loads nothing from anywhere.
+/// data is uploaded, crestscan against the CMM); it loads nothing from anywhere. With `Accept:
+/// application/qif+xml` or `?format=qif`, the results as a QIF 3.0 document (ISO 23952) for CMM
+/// software and quality databases (docs/interchange.md).
 #[utoipa::path(
     get,
     path = "/v1/inspections/{id}/report",
@@ -32,9 +34,10 @@ pub fn router() -> OpenApiRouter<AppState> {
     tag = "results",
     params(("id" = uuid::Uuid, Path, description = "Inspection id"), ReportFormatQuery),
     responses(
-        (status = 200, description = "The report: JSON (with an ETag), or an HTML page", content(
+        (status = 200, description = "The report: JSON (with an ETag), an HTML page, or a QIF 3.0 document (with an ETag)", content(
             (crate::pipeline::report::Report = "application/json"),
             (String = "text/html"),
+            (String = "application/qif+xml"),
         ), headers(("ETag" = String))),
         (status = 304, description = "Not modified"),
         (status = 400, description = "Malformed query (format given twice)", body = Problem, content_type = "application/problem+json"),
@@ -57,6 +60,17 @@ pub async fn get_report(
         return Ok(immutable(&headers, &etag, "application/json", json));
     }
     let report: crate::pipeline::report::Report = serde_json::from_str(&json).map_err(ApiError::internal)?;
+    if format == "qif" {
+        // What the document adds to the report (the station's name, the finishing time) is fixed
+        // once the inspection succeeded: immutable like the report, with an ETag of its own.
+        let row = state.store.inspection(&id.0).await?;
+        let finished_at = row.finished_at.map(crate::service::wire::rfc3339);
+        let inputs =
+            crate::export::qif::QifInputs { station_name: row.station.as_deref(), finished_at: finished_at.as_deref() };
+        let document = crate::export::qif::document(&report, &inputs);
+        let etag = format!("{}-qif\"", etag.trim_end_matches('"'));
+        return Ok(immutable(&headers, &etag, crate::export::qif::MEDIA_TYPE, document));
+    }
     let cmm = super::cmm::comparison_if_uploaded(&state, &id, &report).await?;
     // Images the retention deleted are left out; the rest of the page stands.
     let image = |kind: &'static str| {
@@ -124,7 +138,8 @@ pub struct ReportFormatQuery {
     pub format: Option<String>,
 }
 
-const REPORT_FORMATS: [(&str, &str); 2] = [("json", "application/json"), ("html", "text/html")];
+const REPORT_FORMATS: [(&str, &str); 3] =
+    [("json", "application/json"), ("html", "text/html"), ("qif", crate::export::qif::MEDIA_TYPE)];
 
 fn report_formats() -> utoipa::openapi::schema::Object {
     super::common::one_of(REPORT_FORMATS.map(|f| f.0), "Overrides `Accept`.")
