@@ -227,6 +227,12 @@ impl CmmMeasurements {
         Ok(parsed.normalised())
     }
 
+    /// Checked as every upload is, and normalised: what the parsers of other formats return.
+    pub(crate) fn checked(self) -> Result<Self, CmmError> {
+        self.validate()?;
+        Ok(self.normalised())
+    }
+
     /// Angles at the resolution they are published with (0.0001°, export::json), wrapped into
     /// [0, 360): 359.99999 is stored as 0, not as a 360 that the range forbids and no bin matches.
     fn normalised(mut self) -> Self {

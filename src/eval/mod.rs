@@ -3,6 +3,7 @@
 
 pub mod budget;
 pub mod cmm;
+pub mod cmm_qif;
 pub mod pairs;
 pub mod qualify;
 pub mod suite;

@@ -46,7 +46,13 @@ pub struct StoredCmm {
 /// (`thread,angle_deg,height_mm`; an empty angle is the thread's mean). CSV as CMM software
 /// exports it is read too: `;` or tab separators with decimal commas, heights in inches
 /// (`height_in`, or a `unit` column of `mm`/`in`, converted), and `# instrument: …`,
-/// `# measured_at: …` and `# units: mm|in` lines before the header.
+/// `# measured_at: …` and `# units: mm|in` lines before the header. Or a QIF 3.0 results
+/// document (`application/qif+xml`) as CMM software exports it: each
+/// `HeightCharacteristicMeasurement` whose item names its thread (an attribute `thread`, or a
+/// `Name` like `thread 3 height`), with an `angle_deg` attribute for a point (without one, the
+/// thread's mean), in the file's primary linear unit, its `combinedUncertainty` × 2 as the
+/// point's expanded uncertainty; any other measurement, or one whose item names no thread, is
+/// refused with its id (docs/interchange.md).
 #[utoipa::path(
     put,
     path = "/v1/inspections/{id}/cmm",
@@ -56,12 +62,13 @@ pub struct StoredCmm {
     request_body(content(
         (CmmMeasurements = "application/json"),
         (super::common::Binary = "text/csv"),
+        (super::common::Binary = "application/qif+xml"),
     )),
     responses(
         (status = 200, description = "Stored", body = StoredCmm),
         (status = 404, description = "No such inspection", body = Problem, content_type = "application/problem+json"),
         (status = 409, description = "Not succeeded (yet)", body = Problem, content_type = "application/problem+json"),
-        (status = 415, description = "Neither JSON nor CSV", body = Problem, content_type = "application/problem+json"),
+        (status = 415, description = "Neither JSON, CSV nor QIF", body = Problem, content_type = "application/problem+json"),
         (status = 422, description = "Invalid measurements (the field or CSV line is named)", body = Problem, content_type = "application/problem+json"),
     )
 )]
@@ -80,9 +87,16 @@ pub async fn put_cmm(
             ApiError::new(Code::BadRequest, format!("reading the body: {e}"))
         }
     })?;
-    let parsed = match super::common::json_or_csv(&headers)? {
-        super::common::JsonOrCsv::Json => CmmMeasurements::from_json(&body),
-        super::common::JsonOrCsv::Csv => CmmMeasurements::from_csv(&body),
+    let parsed = if is_qif(&headers) {
+        CmmMeasurements::from_qif(&body)
+    } else {
+        match super::common::json_or_csv(&headers).map_err(|mut e| {
+            e.detail = e.detail.replace("text/csv", "text/csv or application/qif+xml (QIF 3.0 results)");
+            e
+        })? {
+            super::common::JsonOrCsv::Json => CmmMeasurements::from_json(&body),
+            super::common::JsonOrCsv::Csv => CmmMeasurements::from_csv(&body),
+        }
     }
     .map_err(|e| ApiError::new(Code::InvalidCmm, e.to_string()).with_culprit(e.field.clone()))?;
     let (json, _) = state.store.report(&id.0).await?;
@@ -92,6 +106,15 @@ pub async fn put_cmm(
     let version = state.store.put_cmm(&id.0, &parsed, Some(&peer.ip().to_string())).await?;
     tracing::info!(inspection = %id.0, version, by = %peer.ip(), points = parsed.points.len(), "CMM data stored");
     Ok(super::common::Rounded(stored_cmm(&state, id, Some(version)).await?))
+}
+
+/// Whether the body is declared a QIF document (`application/qif+xml`; XML in general).
+fn is_qif(headers: &HeaderMap) -> bool {
+    let content_type = headers.get(axum::http::header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("");
+    matches!(
+        content_type.split(';').next().unwrap_or("").trim().to_ascii_lowercase().as_str(),
+        "application/qif+xml" | "application/xml" | "text/xml"
+    )
 }
 
 #[derive(Clone, Debug, Default, Deserialize, IntoParams)]

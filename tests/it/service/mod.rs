@@ -8,6 +8,7 @@ mod caps;
 mod disk_full;
 mod hostile;
 mod inspections;
+mod interchange;
 mod migrate;
 mod models;
 mod openapi;
