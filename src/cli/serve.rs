@@ -131,6 +131,22 @@ pub struct ServeArgs {
     /// [default: 3600].
     #[arg(long, env = "CRESTSCAN_ORPHAN_GRACE_SECONDS")]
     orphan_grace_seconds: Option<f64>,
+    /// Publish inspection and station events to this MQTT broker, mqtt://host:1883 or
+    /// mqtts://host:8883 (off by default).
+    #[arg(long, env = "CRESTSCAN_MQTT_URL")]
+    mqtt_url: Option<String>,
+    /// The topics' site segment, crestscan/<site>/… [default: plant].
+    #[arg(long, env = "CRESTSCAN_MQTT_SITE")]
+    mqtt_site: Option<String>,
+    /// The MQTT broker's user name.
+    #[arg(long, env = "CRESTSCAN_MQTT_USERNAME")]
+    mqtt_username: Option<String>,
+    /// Its password.
+    #[arg(long, env = "CRESTSCAN_MQTT_PASSWORD", hide_env_values = true)]
+    mqtt_password: Option<String>,
+    /// PEM roots an mqtts:// broker's certificate is checked against.
+    #[arg(long, env = "CRESTSCAN_MQTT_CA_FILE")]
+    mqtt_ca_file: Option<PathBuf>,
     /// Log filter [default: info].
     #[arg(long, env = "CRESTSCAN_LOG")]
     log: Option<String>,
@@ -251,8 +267,21 @@ impl ServeArgs {
             callback_secrets,
             webhook_timeout_seconds,
             webhook_max_attempts,
-            webhook_retry_seconds
+            webhook_retry_seconds,
+            mqtt_site
         );
+        for (field, value) in [
+            (&mut s.mqtt_url, self.mqtt_url),
+            (&mut s.mqtt_username, self.mqtt_username),
+            (&mut s.mqtt_password, self.mqtt_password),
+        ] {
+            if value.is_some() {
+                *field = value;
+            }
+        }
+        if self.mqtt_ca_file.is_some() {
+            s.mqtt_ca_file = self.mqtt_ca_file;
+        }
         if let Some(url) = self.otlp_endpoint {
             s.otlp_endpoint = Some(url);
         }

@@ -141,6 +141,19 @@ pub struct Settings {
     /// Its secret (`CRESTSCAN_S3_SECRET_ACCESS_KEY`, or the config file); never logged.
     #[serde(skip_serializing)]
     pub s3_secret_access_key: Option<String>,
+    /// Publish every inspection's state changes, each finished result's summary and each
+    /// station's status to this MQTT broker, `mqtt://host:1883` or `mqtts://host:8883`
+    /// (docs/interchange.md, "MQTT events"). None (off) by default.
+    pub mqtt_url: Option<String>,
+    /// The site segment of the topics, `crestscan/<site>/…`: 1–64 of `A–Z a–z 0–9 _ -`.
+    pub mqtt_site: String,
+    /// The broker's user name and password, where it asks for them.
+    pub mqtt_username: Option<String>,
+    #[serde(skip_serializing)]
+    pub mqtt_password: Option<String>,
+    /// PEM certificates of the authorities an `mqtts://` broker's certificate is checked against
+    /// (required with `mqtts://`).
+    pub mqtt_ca_file: Option<PathBuf>,
 }
 
 /// A process's role ([`Settings::role`]).
@@ -236,6 +249,11 @@ impl Default for Settings {
             otlp_endpoint: None,
             database_url: None,
             object_store: None,
+            mqtt_url: None,
+            mqtt_site: "plant".into(),
+            mqtt_username: None,
+            mqtt_password: None,
+            mqtt_ca_file: None,
             s3_endpoint: None,
             s3_region: None,
             s3_access_key_id: None,
@@ -417,6 +435,17 @@ impl Settings {
         }
         if self.s3_endpoint.is_some() && self.object_store.is_none() {
             return invalid("s3_endpoint", "is set without object_store (s3://bucket/prefix)".into());
+        }
+        if let Some(url) = &self.mqtt_url
+            && let Err(e) = crate::service::mqtt::Broker::parse(url, self.mqtt_ca_file.as_deref())
+        {
+            return invalid("mqtt_url", e);
+        }
+        if let Err(e) = crate::service::mqtt::check_site(&self.mqtt_site) {
+            return invalid("mqtt_site", e);
+        }
+        if self.mqtt_username.is_some() != self.mqtt_password.is_some() {
+            return invalid("mqtt_username", "and mqtt_password are set together or not at all".into());
         }
         if !self.callback_origins.is_empty() && self.callback_secrets.is_empty() {
             return invalid(

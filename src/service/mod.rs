@@ -3,6 +3,7 @@
 pub mod api;
 pub mod auth;
 pub mod config;
+pub mod mqtt;
 pub mod queue;
 pub mod startup;
 pub mod store;

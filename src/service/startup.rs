@@ -135,6 +135,11 @@ impl Application {
             self.state.settings.clone(),
             stop_rx.clone(),
         ));
+        let mqtt = tokio::spawn(crate::service::mqtt::run(
+            self.state.store.clone(),
+            self.state.settings.clone(),
+            stop_rx.clone(),
+        ));
         let header_timeout = Duration::from_secs_f64(self.state.settings.header_timeout_seconds);
         let app = if self.state.settings.role.serves_api() {
             api::router(self.state)
@@ -154,6 +159,8 @@ impl Application {
         let _ = workers.await;
         // A delivery cut off here is attempted again by the next process (its lease lapses).
         webhooks.abort();
+        // Given a moment to release its lease; an event cut off is published again (at least once).
+        let _ = tokio::time::timeout(Duration::from_secs(2), mqtt).await;
         sweeper.abort();
         listener.abort();
         signal.abort();
@@ -255,6 +262,10 @@ async fn retention_sweep(state: AppState, mut stop: watch::Receiver<bool>) {
             Ok(0) => {}
             Ok(n) => tracing::info!(removed = n, "retention: deleted upload files no inspection names"),
             Err(e) => tracing::warn!(error = %e, "orphan upload sweep failed"),
+        }
+        // Status events a month old are history (the MQTT publisher's undelivered ones stay).
+        if let Err(e) = state.store.purge_events(now_ms() - 30 * 86_400_000).await {
+            tracing::warn!(error = %e, "event retention failed");
         }
         match state.store.remove_orphan_artifacts(orphan_cutoff_ms(&state.settings)).await {
             Ok(0) => {}

@@ -28,6 +28,8 @@ pub const TABLES: &[&str] = &[
     "masters",
     "studies",
     "checks",
+    "events",
+    "mqtt_cursor",
 ];
 
 /// Rows a batch inserts: columns × rows stays under PostgreSQL's 65 535 parameters, and a batch
@@ -153,6 +155,11 @@ impl Store {
         }
         let mut copies = Vec::new();
         for &table in TABLES {
+            // The MQTT publisher's place is the deployment's own: the target starts from its events'
+            // end when its publisher first runs, rather than publishing the source's history.
+            if table == "mqtt_cursor" {
+                continue;
+            }
             let columns: Vec<(String, String)> = sqlx::query_as(
                 "SELECT column_name::TEXT, data_type::TEXT FROM information_schema.columns \
                  WHERE table_schema = current_schema() AND table_name = $1 ORDER BY ordinal_position",
@@ -208,12 +215,12 @@ impl Store {
                 }
             }
             drop(rows);
-            if table == "audit" {
+            if table == "audit" || table == "events" {
                 // Copied with their numbers: the target's own numbering goes on after them.
-                sqlx::query(
-                    "SELECT setval(pg_get_serial_sequence('audit', 'seq'), COALESCE((SELECT MAX(seq) FROM audit), 0) \
-                     + 1, false)",
-                )
+                sqlx::query(&format!(
+                    "SELECT setval(pg_get_serial_sequence('{table}', 'seq'), COALESCE((SELECT MAX(seq) FROM {table}), 0) \
+                     + 1, false)"
+                ))
                 .execute(pg)
                 .await?;
             }
@@ -331,7 +338,13 @@ async fn insert_batch(pg: &PgPool, table: &str, names: &str, batch: &[Vec<Value>
         }
     });
     q.push(" ON CONFLICT DO NOTHING");
-    Ok(q.build().execute(pg).await?.rows_affected())
+    // The source's status events are copied as they are: the triggers that record new ones stand
+    // aside for the copy's own transaction.
+    let mut tx = pg.begin().await?;
+    sqlx::query("SET LOCAL crestscan.copying = 'on'").execute(&mut *tx).await?;
+    let inserted = q.build().execute(&mut *tx).await?.rows_affected();
+    tx.commit().await?;
+    Ok(inserted)
 }
 
 #[cfg(test)]

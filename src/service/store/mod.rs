@@ -9,6 +9,7 @@
 pub mod blobs;
 mod cmm;
 pub mod copy;
+mod events;
 pub mod files;
 mod inspections;
 mod keys;
@@ -18,6 +19,7 @@ mod stations;
 mod webhooks;
 
 pub use cmm::{CmmRow, CmmVersionRow};
+pub use events::EventRow;
 pub use inspections::{Inserted, InspectionRow, ListFilter, NewInspection, UploadInfo};
 pub use keys::{AuditEntry, AuditRow, KeyRow};
 pub use queue::{Claimed, Heartbeat};

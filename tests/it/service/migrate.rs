@@ -92,7 +92,7 @@ async fn a_data_directory_moves_into_postgres_and_the_object_store_with_identica
     };
     let first = migrate(true);
     eprintln!("{first}");
-    assert!(first.contains("15 tables") && first.contains("identical in postgres://"), "{first}");
+    assert!(first.contains("16 tables") && first.contains("identical in postgres://"), "{first}");
     assert!(first.contains("1 live uploads: 1 copied"), "{first}");
     let inspections = first.lines().find(|l| l.starts_with("inspections ")).unwrap();
     assert!(inspections.contains("2 rows") && inspections.contains("2 copied now"), "{first}");

@@ -11,6 +11,7 @@ mod inspections;
 mod interchange;
 mod migrate;
 mod models;
+mod mqtt;
 mod openapi;
 mod queue;
 mod report_page;
