@@ -11,27 +11,20 @@ CREATE TABLE events (
 );
 CREATE INDEX events_at ON events (at);
 
-CREATE FUNCTION crestscan_inspection_event() RETURNS trigger LANGUAGE plpgsql AS $$
+-- One function for both tables: its arguments are the subject's kind and its key column.
+CREATE FUNCTION crestscan_status_event() RETURNS trigger LANGUAGE plpgsql AS $$
 BEGIN
     IF coalesce(current_setting('crestscan.copying', true), '') <> 'on'
        AND (TG_OP = 'INSERT' OR NEW.status IS DISTINCT FROM OLD.status) THEN
-        INSERT INTO events (subject_kind, subject, status, at) VALUES ('inspection', NEW.id, NEW.status, NEW.updated_at);
+        INSERT INTO events (subject_kind, subject, status, at)
+        VALUES (TG_ARGV[0], to_jsonb(NEW) ->> TG_ARGV[1], NEW.status, NEW.updated_at);
     END IF;
     RETURN NULL;
 END $$;
 CREATE TRIGGER inspection_event AFTER INSERT OR UPDATE OF status ON inspections
-    FOR EACH ROW EXECUTE FUNCTION crestscan_inspection_event();
-
-CREATE FUNCTION crestscan_station_event() RETURNS trigger LANGUAGE plpgsql AS $$
-BEGIN
-    IF coalesce(current_setting('crestscan.copying', true), '') <> 'on'
-       AND (TG_OP = 'INSERT' OR NEW.status IS DISTINCT FROM OLD.status) THEN
-        INSERT INTO events (subject_kind, subject, status, at) VALUES ('station', NEW.name, NEW.status, NEW.updated_at);
-    END IF;
-    RETURN NULL;
-END $$;
+    FOR EACH ROW EXECUTE FUNCTION crestscan_status_event('inspection', 'id');
 CREATE TRIGGER station_event AFTER INSERT OR UPDATE OF status ON stations
-    FOR EACH ROW EXECUTE FUNCTION crestscan_station_event();
+    FOR EACH ROW EXECUTE FUNCTION crestscan_status_event('station', 'name');
 
 CREATE TABLE mqtt_cursor (
     id               BIGINT PRIMARY KEY CHECK (id = 1),

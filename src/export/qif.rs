@@ -244,23 +244,12 @@ pub fn document(report: &Report, inputs: &QifInputs) -> String {
     doc.close();
     doc.open("LengthCharacteristicDefinition", &[("id", black_definition.to_string())]);
     doc.leaf("Name", "black crest length within Lc");
-    match report.assessment.arc_limit_mm {
-        Some(limit) => {
-            doc.open("Tolerance", &[]);
-            doc.leaf("MaxValue", &number(limit));
-            doc.leaf("MinValue", "0");
-            doc.leaf("DefinedAsLimit", "true");
-            doc.close();
-        }
-        // Round threads: none within Lc; the rule is on their presence, so 0 is the only limit.
-        None => {
-            doc.open("Tolerance", &[]);
-            doc.leaf("MaxValue", "0");
-            doc.leaf("MinValue", "0");
-            doc.leaf("DefinedAsLimit", "true");
-            doc.close();
-        }
-    }
+    // Round threads: none within Lc; the rule is on their presence, so 0 is the only limit.
+    doc.open("Tolerance", &[]);
+    doc.leaf("MaxValue", &number(report.assessment.arc_limit_mm.unwrap_or(0.0)));
+    doc.leaf("MinValue", "0");
+    doc.leaf("DefinedAsLimit", "true");
+    doc.close();
     doc.close();
     doc.close();
     doc.open("CharacteristicNominals", &[("n", "2".into())]);

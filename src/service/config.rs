@@ -437,11 +437,11 @@ impl Settings {
             return invalid("s3_endpoint", "is set without object_store (s3://bucket/prefix)".into());
         }
         if let Some(url) = &self.mqtt_url
-            && let Err(e) = crate::service::mqtt::Broker::parse(url, self.mqtt_ca_file.as_deref())
+            && let Err(e) = crate::service::mqtt_settings::Broker::parse(url, self.mqtt_ca_file.as_deref())
         {
             return invalid("mqtt_url", e);
         }
-        if let Err(e) = crate::service::mqtt::check_site(&self.mqtt_site) {
+        if let Err(e) = crate::service::mqtt_settings::check_site(&self.mqtt_site) {
             return invalid("mqtt_site", e);
         }
         if self.mqtt_username.is_some() != self.mqtt_password.is_some() {

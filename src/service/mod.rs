@@ -4,6 +4,7 @@ pub mod api;
 pub mod auth;
 pub mod config;
 pub mod mqtt;
+pub mod mqtt_settings;
 pub mod queue;
 pub mod startup;
 pub mod store;

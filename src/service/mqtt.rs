@@ -16,11 +16,11 @@
 //! reconnect carries the same `event_id`.
 
 use crate::service::config::Settings;
+pub use crate::service::mqtt_settings::{Broker, check_site};
 use crate::service::store::{EventRow, Store};
 use crate::service::wire::rfc3339;
 use rumqttc::{AsyncClient, Event, EventLoop, MqttOptions, Packet, QoS, Transport};
 use serde_json::json;
-use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::sync::watch;
@@ -32,60 +32,6 @@ const LEASE: Duration = Duration::from_secs(30);
 const ACK_TIMEOUT: Duration = Duration::from_secs(10);
 /// Events read at a time.
 const BATCH: i64 = 100;
-
-/// Where the broker is, from `mqtt://host:port` or `mqtts://host:port`.
-#[derive(Clone, Debug)]
-pub struct Broker {
-    pub host: String,
-    pub port: u16,
-    /// The PEM roots of an `mqtts://` broker; None: plain TCP.
-    pub tls_roots: Option<Vec<u8>>,
-}
-
-impl Broker {
-    /// Parses the URL (and reads `ca_file` for `mqtts://`); the error says what is wrong.
-    pub fn parse(url: &str, ca_file: Option<&Path>) -> Result<Broker, String> {
-        let parsed = reqwest::Url::parse(url).map_err(|e| format!("`{url}` is not a URL ({e}): mqtt://host:1883"))?;
-        let tls = match parsed.scheme() {
-            "mqtt" | "tcp" => false,
-            "mqtts" | "ssl" => true,
-            other => return Err(format!("scheme {other:?}: mqtt://host:1883 or mqtts://host:8883")),
-        };
-        let host = parsed.host_str().filter(|h| !h.is_empty()).ok_or("has no host: mqtt://host:1883")?;
-        if parsed.path().trim_matches('/') != "" || parsed.query().is_some() {
-            return Err("takes no path or query: the topics are crestscan/<mqtt_site>/…".into());
-        }
-        if !parsed.username().is_empty() || parsed.password().is_some() {
-            return Err("carries no credentials: set mqtt_username and mqtt_password".into());
-        }
-        let tls_roots = match (tls, ca_file) {
-            (false, _) => None,
-            (true, Some(path)) => {
-                Some(std::fs::read(path).map_err(|e| format!("mqtt_ca_file {}: {e}", path.display()))?)
-            }
-            (true, None) => {
-                return Err(
-                    "mqtts:// needs mqtt_ca_file, the PEM roots the broker's certificate is checked against".into()
-                );
-            }
-        };
-        Ok(Broker {
-            host: host.trim_matches(['[', ']']).to_string(),
-            port: parsed.port().unwrap_or(if tls { 8883 } else { 1883 }),
-            tls_roots,
-        })
-    }
-}
-
-/// The site segment: 1–64 of `A–Z a–z 0–9 _ -` (no `/`, `+` or `#`, which MQTT reads as levels
-/// and wildcards).
-pub fn check_site(site: &str) -> Result<(), String> {
-    if (1..=64).contains(&site.len()) && site.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-') {
-        Ok(())
-    } else {
-        Err(format!("{site:?}: 1–64 of A–Z a–z 0–9 _ -"))
-    }
-}
 
 /// One message to publish.
 #[derive(Clone, Debug, PartialEq)]
@@ -269,22 +215,4 @@ pub async fn run(store: Store, settings: Arc<Settings>, mut stop: watch::Receive
         let _ = conn.client.disconnect().await;
     }
     let _ = store.mqtt_release(&owner).await;
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn broker_urls_and_sites_are_checked() {
-        let b = Broker::parse("mqtt://broker.plant:1884", None).unwrap();
-        assert_eq!((b.host.as_str(), b.port, b.tls_roots.is_none()), ("broker.plant", 1884, true));
-        assert_eq!(Broker::parse("mqtt://10.0.0.5", None).unwrap().port, 1883);
-        assert!(Broker::parse("mqtts://broker", None).unwrap_err().contains("mqtt_ca_file"));
-        assert!(Broker::parse("http://broker", None).unwrap_err().contains("scheme"));
-        assert!(Broker::parse("mqtt://u:p@broker", None).unwrap_err().contains("mqtt_username"));
-        assert!(Broker::parse("mqtt://broker/topic", None).unwrap_err().contains("no path"));
-        assert!(check_site("plant-a_2").is_ok());
-        assert!(check_site("plant/a").is_err() && check_site("#").is_err() && check_site("").is_err());
-    }
 }
