@@ -67,6 +67,9 @@ impl Application {
         if orphans > 0 {
             tracing::info!(orphans, "removed upload files no inspection names (a submission that failed to commit)");
         }
+        if settings.mqtt_url.is_some() {
+            store.mqtt_start_cursor().await?;
+        }
         let orphans = store.remove_orphan_artifacts(orphan_cutoff_ms(&settings)).await?;
         if orphans > 0 {
             tracing::info!(orphans, "removed artifact objects no inspection names (a completion that did not commit)");

@@ -51,6 +51,21 @@ impl Store {
         Ok(held.map(|(seq,)| seq.unwrap_or(0)))
     }
 
+    /// Sets a cursor never set to the events' end, now: a publisher turned on starts from the
+    /// moment its process starts (before it serves), not from history, and not from whenever its
+    /// task first runs.
+    pub async fn mqtt_start_cursor(&self) -> Result<(), StoreError> {
+        on_db!(self.db, |pool, d| {
+            sqlx::query(
+                "UPDATE mqtt_cursor SET delivered_seq = (SELECT COALESCE(MAX(seq), 0) FROM events) \
+                 WHERE id = 1 AND delivered_seq IS NULL",
+            )
+            .execute(pool)
+            .await?;
+        });
+        Ok(())
+    }
+
     /// Records that every event up to `seq` was delivered (acknowledged by the broker); false
     /// where `owner` no longer holds the lease.
     pub async fn mqtt_delivered(&self, owner: &str, seq: i64) -> Result<bool, StoreError> {

@@ -11,22 +11,34 @@ struct Broker {
     dir: std::path::PathBuf,
     port: u16,
     child: Option<std::process::Child>,
+    /// The listener's authority, certificate and key (TLS), None: plain TCP.
+    tls: Option<(std::path::PathBuf, std::path::PathBuf, std::path::PathBuf)>,
 }
 
 impl Broker {
     fn start(dir: &Path) -> Broker {
+        Self::start_with(dir, None)
+    }
+
+    fn start_with(dir: &Path, tls: Option<(std::path::PathBuf, std::path::PathBuf, std::path::PathBuf)>) -> Broker {
         let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
-        let mut broker = Broker { dir: dir.to_path_buf(), port, child: None };
+        let mut broker = Broker { dir: dir.to_path_buf(), port, child: None, tls };
         broker.restart();
         broker
     }
 
     fn restart(&mut self) {
         let config = self.dir.join("mosquitto.conf");
+        let tls = match &self.tls {
+            Some((ca, cert, key)) => {
+                format!("cafile {}\ncertfile {}\nkeyfile {}\n", ca.display(), cert.display(), key.display())
+            }
+            None => String::new(),
+        };
         std::fs::write(
             &config,
             format!(
-                "listener {} 127.0.0.1\nallow_anonymous true\npersistence true\npersistence_location {}/\nuser root\n",
+                "listener {} 127.0.0.1\n{tls}allow_anonymous true\npersistence true\npersistence_location {}/\nuser root\n",
                 self.port,
                 self.dir.display()
             ),
@@ -77,7 +89,20 @@ async fn subscriber(
     filter: &str,
     persistent: bool,
 ) -> tokio::sync::mpsc::UnboundedReceiver<(String, bool, Value)> {
+    subscriber_over(port, id, filter, persistent, None).await
+}
+
+async fn subscriber_over(
+    port: u16,
+    id: &str,
+    filter: &str,
+    persistent: bool,
+    tls_roots: Option<Vec<u8>>,
+) -> tokio::sync::mpsc::UnboundedReceiver<(String, bool, Value)> {
     let mut options = MqttOptions::new(id, "127.0.0.1", port);
+    if let Some(ca) = tls_roots {
+        options.set_transport(rumqttc::Transport::tls(ca, None, None));
+    }
     options.set_clean_session(!persistent);
     options.set_keep_alive(Duration::from_secs(5));
     let (client, mut events) = AsyncClient::new(options, 100);
@@ -183,4 +208,29 @@ async fn each_state_reaches_a_subscriber_in_order_and_none_is_lost_while_the_bro
     assert_eq!(names, ["queued", "running", "succeeded"], "none lost: {states:?}");
     assert_eq!(result["inspection_id"], second);
     app.stop().await;
+}
+
+/// `mqtts://` with `mqtt_ca_file`: the publisher checks the broker's certificate against that
+/// authority and delivers over TLS.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn events_reach_a_tls_broker_checked_against_its_authority() {
+    let dir = tempfile::tempdir().unwrap();
+    let (ca, cert, key) = crate::common::self_signed(dir.path(), "broker");
+    let broker = Broker::start_with(dir.path(), Some((ca.clone(), cert, key)));
+    let port = broker.port;
+    let roots = std::fs::read(&ca).unwrap();
+    let mut rx = subscriber_over(port, "it-tls-monitor", "crestscan/plant-tls/#", false, Some(roots)).await;
+    let app = spawn_app_with(|s| {
+        s.mqtt_url = Some(format!("mqtts://127.0.0.1:{port}"));
+        s.mqtt_site = "plant-tls".into();
+        s.mqtt_ca_file = Some(ca.clone());
+    })
+    .await;
+    let id = app.submit(ci_tar(), "").await.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+    assert_eq!(app.wait(&id, Duration::from_secs(120)).await["status"], "succeeded");
+    let (states, result) = until_result(&mut rx, "plant-tls", &id).await;
+    assert_eq!(states.iter().map(|s| s.1.as_str()).collect::<Vec<_>>(), ["queued", "running", "succeeded"]);
+    assert_eq!(result["inspection_id"], id);
+    app.stop().await;
+    drop(broker);
 }
