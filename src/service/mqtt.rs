@@ -17,7 +17,7 @@
 
 use crate::service::config::Settings;
 pub use crate::service::mqtt_settings::{Broker, check_site};
-use crate::service::store::{EventRow, Store};
+use crate::service::store::{EventRow, Store, StoreError};
 use crate::service::wire::rfc3339;
 use rumqttc::{AsyncClient, Event, EventLoop, MqttOptions, Packet, QoS, Transport};
 use serde_json::json;
@@ -41,8 +41,9 @@ pub struct Message {
     pub retain: bool,
 }
 
-/// The messages an event makes (module docs).
-pub async fn messages(store: &Store, site: &str, event: &EventRow) -> Vec<Message> {
+/// The messages an event makes (module docs). A record that cannot be read now is an error (the
+/// event is tried again), never a message left out.
+pub async fn messages(store: &Store, site: &str, event: &EventRow) -> Result<Vec<Message>, StoreError> {
     let at = rfc3339(event.at);
     match event.subject_kind.as_str() {
         "inspection" => {
@@ -59,8 +60,13 @@ pub async fn messages(store: &Store, site: &str, event: &EventRow) -> Vec<Messag
                 .to_string(),
                 retain: false,
             }];
+            let row = match store.inspection(id).await {
+                Ok(row) => Some(row),
+                Err(StoreError::NotFound) => None,
+                Err(e) => return Err(e),
+            };
             if event.status == "succeeded"
-                && let Ok(row) = store.inspection(id).await
+                && let Some(row) = row
             {
                 out.push(Message {
                     topic: format!("crestscan/{site}/inspections/{id}/result"),
@@ -80,11 +86,15 @@ pub async fn messages(store: &Store, site: &str, event: &EventRow) -> Vec<Messag
                     retain: false,
                 });
             }
-            out
+            Ok(out)
         }
         _ => {
-            let reason = store.station(&event.subject).await.ok().and_then(|s| s.status_reason);
-            vec![Message {
+            let reason = match store.station(&event.subject).await {
+                Ok(station) => station.status_reason,
+                Err(StoreError::NotFound) => None,
+                Err(e) => return Err(e),
+            };
+            Ok(vec![Message {
                 topic: format!("crestscan/{site}/stations/{}/status", event.subject),
                 payload: json!({
                     "event_id": event.seq,
@@ -95,7 +105,7 @@ pub async fn messages(store: &Store, site: &str, event: &EventRow) -> Vec<Messag
                 })
                 .to_string(),
                 retain: true,
-            }]
+            }])
         }
     }
 }
@@ -186,7 +196,18 @@ pub async fn run(store: Store, settings: Arc<Settings>, mut stop: watch::Receive
         }
         for event in &events {
             let conn = connection.get_or_insert_with(|| Connection::open(&broker, &settings, &owner));
-            for message in messages(&store, &settings.mqtt_site, event).await {
+            let messages = match messages(&store, &settings.mqtt_site, event).await {
+                Ok(messages) => messages,
+                Err(e) => {
+                    tracing::warn!(error = %e, event = event.seq, "MQTT publisher: reading the event's record");
+                    tokio::select! {
+                        _ = tokio::time::sleep(poll) => {}
+                        _ = stop.changed() => {}
+                    }
+                    continue 'outer;
+                }
+            };
+            for message in messages {
                 if let Err(e) = conn.publish(&message).await {
                     tracing::warn!(error = %e, topic = %message.topic, retry_in_ms = backoff.as_millis() as u64,
                         "MQTT broker unreachable; events wait for it");
