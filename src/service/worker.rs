@@ -275,7 +275,14 @@ async fn process(ctx: &WorkerContext, job: Claimed, lease_token: &str, shutdown:
             }
         }
         Err(e) => {
-            tracing::error!(inspection = %job.id, error = %e, "could not record the outcome; the lease will lapse and the job re-run")
+            // The records or the object store refused the results (an outage): back to the queue
+            // after a wait, not blamed on the job, rather than a lapsed lease counted as an
+            // interruption (five of those fail a job as poisonous). If the requeue fails too, the
+            // lease lapses and the job is re-run as after a crash.
+            tracing::error!(inspection = %job.id, error = %e, "could not record the outcome; back to the queue in 30 s");
+            if let Err(e) = ctx.store.requeue(&job.id, lease_token, Duration::from_secs(30), None, true).await {
+                tracing::error!(inspection = %job.id, error = %e, "requeue failed too; the lease will lapse");
+            }
         }
     }
 }
