@@ -287,9 +287,13 @@ async fn a_full_disk_answers_507_and_every_202_survives_recovery_and_restart() {
             "round {round}: CMM data on a full disk: {status} {}",
             cmm.text().await.unwrap()
         );
+        // Full again at this moment: a job that ended meanwhile frees its temporaries (with an
+        // object store, the worker's downloaded copy of its bundle).
+        let refill = disk.fill(0);
         let ready = app.get("/readyz").await;
         assert_eq!(ready.status(), StatusCode::SERVICE_UNAVAILABLE, "round {round}: ready on a full disk");
 
+        refill.give_back();
         full.give_back();
         tight.give_back();
         let start = Instant::now();
