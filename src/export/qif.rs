@@ -154,7 +154,7 @@ pub fn document(report: &Report, inputs: &QifInputs) -> String {
     results.raw(&measurements.out);
     results.close();
     results.close();
-    results.inspection_status(report.decision);
+    results.inspection_status("InspectionStatus", report.decision);
     results.ids("ActualComponentIds", &[component]);
     results.close();
     results.close();
@@ -164,7 +164,7 @@ pub fn document(report: &Report, inputs: &QifInputs) -> String {
     if let Some(serial) = &report.serial {
         results.leaf("SerialNumber", serial);
     }
-    results.inspection_status_named("Status", report.decision);
+    results.inspection_status("Status", report.decision);
     results.close();
     results.close();
     results.close();
@@ -439,11 +439,7 @@ impl Xml {
 
     /// `InspectionStatus`: PASS / FAIL, or INDETERMINATE by name (QIF's enumeration has no such
     /// value; its `OtherInspectionStatus` carries one).
-    fn inspection_status(&mut self, decision: Decision) {
-        self.inspection_status_named("InspectionStatus", decision);
-    }
-
-    fn inspection_status_named(&mut self, element: &'static str, decision: Decision) {
+    fn inspection_status(&mut self, element: &'static str, decision: Decision) {
         self.open(element, &[]);
         match decision {
             Decision::Conforms => self.leaf("InspectionStatusEnum", "PASS"),

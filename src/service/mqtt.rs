@@ -60,14 +60,16 @@ pub async fn messages(store: &Store, site: &str, event: &EventRow) -> Result<Vec
                 .to_string(),
                 retain: false,
             }];
-            let row = match store.inspection(id).await {
-                Ok(row) => Some(row),
-                Err(StoreError::NotFound) => None,
-                Err(e) => return Err(e),
+            // Only a succeeded inspection's event reads its row, for the result.
+            let row = match event.status.as_str() {
+                "succeeded" => match store.inspection(id).await {
+                    Ok(row) => Some(row),
+                    Err(StoreError::NotFound) => None,
+                    Err(e) => return Err(e),
+                },
+                _ => None,
             };
-            if event.status == "succeeded"
-                && let Some(row) = row
-            {
+            if let Some(row) = row {
                 out.push(Message {
                     topic: format!("crestscan/{site}/inspections/{id}/result"),
                     payload: json!({

@@ -87,15 +87,18 @@ pub async fn put_cmm(
             ApiError::new(Code::BadRequest, format!("reading the body: {e}"))
         }
     })?;
-    let parsed = if is_qif(&headers) {
-        CmmMeasurements::from_qif(&body)
-    } else {
-        match super::common::json_or_csv(&headers).map_err(|mut e| {
-            e.detail = e.detail.replace("text/csv", "text/csv or application/qif+xml (QIF 3.0 results)");
-            e
-        })? {
-            super::common::JsonOrCsv::Json => CmmMeasurements::from_json(&body),
-            super::common::JsonOrCsv::Csv => CmmMeasurements::from_csv(&body),
+    let parsed = match super::common::media_type(&headers).as_str() {
+        "application/json" => CmmMeasurements::from_json(&body),
+        "text/csv" => CmmMeasurements::from_csv(&body),
+        "application/qif+xml" | "application/xml" | "text/xml" => CmmMeasurements::from_qif(&body),
+        other => {
+            return Err(ApiError::new(
+                Code::UnsupportedMediaType,
+                format!(
+                    "Content-Type {other:?}: send application/json, text/csv or application/qif+xml (QIF 3.0 results)"
+                ),
+            )
+            .with_culprit("Content-Type"));
         }
     }
     .map_err(|e| ApiError::new(Code::InvalidCmm, e.to_string()).with_culprit(e.field.clone()))?;
@@ -106,15 +109,6 @@ pub async fn put_cmm(
     let version = state.store.put_cmm(&id.0, &parsed, Some(&peer.ip().to_string())).await?;
     tracing::info!(inspection = %id.0, version, by = %peer.ip(), points = parsed.points.len(), "CMM data stored");
     Ok(super::common::Rounded(stored_cmm(&state, id, Some(version)).await?))
-}
-
-/// Whether the body is declared a QIF document (`application/qif+xml`; XML in general).
-fn is_qif(headers: &HeaderMap) -> bool {
-    let content_type = headers.get(axum::http::header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("");
-    matches!(
-        content_type.split(';').next().unwrap_or("").trim().to_ascii_lowercase().as_str(),
-        "application/qif+xml" | "application/xml" | "text/xml"
-    )
 }
 
 #[derive(Clone, Debug, Default, Deserialize, IntoParams)]

@@ -157,11 +157,15 @@ pub enum JsonOrCsv {
     Csv,
 }
 
+/// The body's media type by its `Content-Type`, lowercase, parameters dropped ("" without one).
+pub fn media_type(headers: &axum::http::HeaderMap) -> String {
+    let content_type = headers.get(axum::http::header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("");
+    content_type.split(';').next().unwrap_or("").trim().to_ascii_lowercase()
+}
+
 /// The body's format by its `Content-Type` (parameters ignored), or 415 naming the header.
 pub fn json_or_csv(headers: &axum::http::HeaderMap) -> Result<JsonOrCsv, ApiError> {
-    let content_type =
-        headers.get(axum::http::header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_ascii_lowercase();
-    match content_type.split(';').next().unwrap_or("").trim() {
+    match media_type(headers).as_str() {
         "application/json" => Ok(JsonOrCsv::Json),
         "text/csv" => Ok(JsonOrCsv::Csv),
         other => Err(ApiError::new(

@@ -238,10 +238,8 @@ impl S3Blobs {
         use object_store::{ObjectStore, PutPayload, WriteMultipart};
         use tokio::io::AsyncReadExt;
         let key = self.key(sha256);
-        match self.store.head(&key).await {
-            Ok(_) => return Ok(false),
-            Err(object_store::Error::NotFound { .. }) => {}
-            Err(e) => return Err(s3_error(e)),
+        if self.size_at(&key).await?.is_some() {
+            return Ok(false);
         }
         let mut file = tokio::fs::File::open(path).await?;
         let size = file.metadata().await?.len();
@@ -269,10 +267,24 @@ impl S3Blobs {
 
     /// The stored size of the blob `sha256`, bytes; None where it is not there.
     pub async fn size_of(&self, sha256: &str) -> io::Result<Option<u64>> {
+        self.size_at(&self.key(sha256)).await
+    }
+
+    /// The size of the object at `path`, bytes; None where there is none.
+    async fn size_at(&self, path: &object_store::path::Path) -> io::Result<Option<u64>> {
         use object_store::ObjectStore;
-        match self.store.head(&self.key(sha256)).await {
+        match self.store.head(path).await {
             Ok(meta) => Ok(Some(meta.size as u64)),
             Err(object_store::Error::NotFound { .. }) => Ok(None),
+            Err(e) => Err(s3_error(e)),
+        }
+    }
+
+    /// Deletes the object at `path`; one that is not there is no error.
+    async fn delete_at(&self, path: &object_store::path::Path) -> io::Result<()> {
+        use object_store::ObjectStore;
+        match self.store.delete(path).await {
+            Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
             Err(e) => Err(s3_error(e)),
         }
     }
@@ -314,13 +326,7 @@ impl BlobStore for S3Blobs {
     }
 
     fn remove<'a>(&'a self, sha256: &'a str) -> BoxFuture<'a, io::Result<()>> {
-        Box::pin(async move {
-            use object_store::ObjectStore;
-            match self.store.delete(&self.key(sha256)).await {
-                Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
-                Err(e) => Err(s3_error(e)),
-            }
-        })
+        Box::pin(async move { self.delete_at(&self.key(sha256)).await })
     }
 
     fn list(&self) -> BoxFuture<'_, io::Result<Vec<String>>> {
@@ -343,10 +349,7 @@ impl BlobStore for S3Blobs {
             use object_store::{ObjectStore, PutPayload};
             let probe = self.under_prefix(&format!("probe/{}", std::process::id()));
             self.store.put(&probe, PutPayload::from_static(b"probe")).await.map_err(s3_error)?;
-            match self.store.delete(&probe).await {
-                Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
-                Err(e) => Err(s3_error(e)),
-            }
+            self.delete_at(&probe).await
         })
     }
 
@@ -394,24 +397,11 @@ impl ArtifactStore for S3Blobs {
     }
 
     fn artifact_size<'a>(&'a self, key: &'a ArtifactKey) -> BoxFuture<'a, io::Result<Option<u64>>> {
-        Box::pin(async move {
-            use object_store::ObjectStore;
-            match self.store.head(&self.artifact_path(key)).await {
-                Ok(meta) => Ok(Some(meta.size as u64)),
-                Err(object_store::Error::NotFound { .. }) => Ok(None),
-                Err(e) => Err(s3_error(e)),
-            }
-        })
+        Box::pin(async move { self.size_at(&self.artifact_path(key)).await })
     }
 
     fn remove_artifact<'a>(&'a self, key: &'a ArtifactKey) -> BoxFuture<'a, io::Result<()>> {
-        Box::pin(async move {
-            use object_store::ObjectStore;
-            match self.store.delete(&self.artifact_path(key)).await {
-                Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
-                Err(e) => Err(s3_error(e)),
-            }
-        })
+        Box::pin(async move { self.delete_at(&self.artifact_path(key)).await })
     }
 
     fn list_artifacts(&self) -> BoxFuture<'_, io::Result<Vec<(ArtifactKey, i64)>>> {
