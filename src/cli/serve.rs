@@ -147,6 +147,16 @@ pub struct ServeArgs {
     /// PEM roots an mqtts:// broker's certificate is checked against.
     #[arg(long, env = "CRESTSCAN_MQTT_CA_FILE")]
     mqtt_ca_file: Option<PathBuf>,
+    /// Serve an OPC UA address space modelled on OPC 40100 (Machine Vision) at this endpoint,
+    /// opc.tcp://host:4840 (off by default).
+    #[arg(long, env = "CRESTSCAN_OPCUA_ENDPOINT")]
+    opcua_endpoint: Option<String>,
+    /// The OPC UA server's certificate store [default: <data-dir>/opcua-pki].
+    #[arg(long, env = "CRESTSCAN_OPCUA_PKI_DIR")]
+    opcua_pki_dir: Option<PathBuf>,
+    /// Offer only signed and encrypted OPC UA endpoints.
+    #[arg(long, env = "CRESTSCAN_OPCUA_REQUIRE_ENCRYPTION")]
+    opcua_require_encryption: bool,
     /// Log filter [default: info].
     #[arg(long, env = "CRESTSCAN_LOG")]
     log: Option<String>,
@@ -281,6 +291,15 @@ impl ServeArgs {
         }
         if self.mqtt_ca_file.is_some() {
             s.mqtt_ca_file = self.mqtt_ca_file;
+        }
+        if self.opcua_endpoint.is_some() {
+            s.opcua_endpoint = self.opcua_endpoint;
+        }
+        if self.opcua_pki_dir.is_some() {
+            s.opcua_pki_dir = self.opcua_pki_dir;
+        }
+        if self.opcua_require_encryption {
+            s.opcua_require_encryption = true;
         }
         if let Some(url) = self.otlp_endpoint {
             s.otlp_endpoint = Some(url);

@@ -154,6 +154,16 @@ pub struct Settings {
     /// PEM certificates of the authorities an `mqtts://` broker's certificate is checked against
     /// (required with `mqtts://`).
     pub mqtt_ca_file: Option<PathBuf>,
+    /// Serve an OPC UA address space modelled on OPC 40100 (Machine Vision) at this endpoint,
+    /// `opc.tcp://host:4840` (docs/interchange.md, "OPC UA"). None (off) by default.
+    pub opcua_endpoint: Option<String>,
+    /// The OPC UA server's certificate store: its own certificate and key (made on the first
+    /// start), the client certificates it trusts (`trusted/certs/`) and those it refused
+    /// (`rejected/`). `<data_dir>/opcua-pki` by default.
+    pub opcua_pki_dir: Option<PathBuf>,
+    /// Offer only the signed and encrypted endpoints (Basic256Sha256, Aes256Sha256RsaPss); false
+    /// also offers an unencrypted one (`None`), where passwords are still encrypted.
+    pub opcua_require_encryption: bool,
 }
 
 /// A process's role ([`Settings::role`]).
@@ -254,6 +264,9 @@ impl Default for Settings {
             mqtt_username: None,
             mqtt_password: None,
             mqtt_ca_file: None,
+            opcua_endpoint: None,
+            opcua_pki_dir: None,
+            opcua_require_encryption: false,
             s3_endpoint: None,
             s3_region: None,
             s3_access_key_id: None,
@@ -444,6 +457,11 @@ impl Settings {
         if let Err(e) = crate::service::mqtt_settings::check_site(&self.mqtt_site) {
             return invalid("mqtt_site", e);
         }
+        if let Some(url) = &self.opcua_endpoint
+            && let Err(e) = crate::service::opcua_settings::Endpoint::parse(url)
+        {
+            return invalid("opcua_endpoint", e);
+        }
         if self.mqtt_username.is_some() != self.mqtt_password.is_some() {
             return invalid("mqtt_username", "and mqtt_password are set together or not at all".into());
         }
@@ -484,6 +502,10 @@ impl Settings {
     }
 
     /// Installed learned models (`<name>.onnx` with its card `<name>.json`; docs/models.md).
+    pub fn opcua_pki_dir(&self) -> PathBuf {
+        self.opcua_pki_dir.clone().unwrap_or_else(|| self.data_dir.join("opcua-pki"))
+    }
+
     pub fn models_dir(&self) -> PathBuf {
         self.data_dir.join("models")
     }

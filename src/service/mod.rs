@@ -5,6 +5,8 @@ pub mod auth;
 pub mod config;
 pub mod mqtt;
 pub mod mqtt_settings;
+pub mod opcua;
+pub mod opcua_settings;
 pub mod queue;
 pub mod startup;
 pub mod store;

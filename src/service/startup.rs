@@ -24,6 +24,8 @@ pub enum StartupError {
     Bind { addr: SocketAddr, source: std::io::Error },
     #[error("webhooks: no HTTP client ({0})")]
     Webhooks(String),
+    #[error("{0}")]
+    OpcUa(String),
 }
 
 pub struct Application {
@@ -33,6 +35,7 @@ pub struct Application {
     worker: WorkerContext,
     address: SocketAddr,
     webhooks: reqwest::Client,
+    opcua: Option<crate::service::opcua::OpcUaServer>,
 }
 
 impl Application {
@@ -78,6 +81,13 @@ impl Application {
             .await
             .map_err(|source| StartupError::Bind { addr: settings.bind, source })?;
         let address = listener.local_addr().map_err(|source| StartupError::Bind { addr: settings.bind, source })?;
+        // Bound here, so that a taken port stops the start as the HTTP one does.
+        let opcua = match (&settings.opcua_endpoint, settings.role.serves_api()) {
+            (Some(url), true) => Some(
+                crate::service::opcua::OpcUaServer::bind(&settings, &store, url).await.map_err(StartupError::OpcUa)?,
+            ),
+            _ => None,
+        };
         let table = Arc::new(ConnectionTable::api5b());
         let metrics = Arc::new(Metrics::new());
         let wake = Arc::new(Notify::new());
@@ -113,11 +123,16 @@ impl Application {
             owner: format!("{}-{}", std::process::id(), uuid::Uuid::now_v7()),
             models,
         };
-        Ok(Self { listener, state, stop, worker, address, webhooks })
+        Ok(Self { listener, state, stop, worker, address, webhooks, opcua })
     }
 
     pub fn address(&self) -> SocketAddr {
         self.address
+    }
+
+    /// The OPC UA endpoint's URL with its port, where one is served.
+    pub fn opcua_url(&self) -> Option<&str> {
+        self.opcua.as_ref().map(|o| o.url())
     }
 
     /// Serves until `shutdown` resolves; then stops claiming, drains requests, and gives running
@@ -143,6 +158,7 @@ impl Application {
             self.state.settings.clone(),
             stop_rx.clone(),
         ));
+        let opcua = self.opcua.map(|server| tokio::spawn(server.run(self.state.store.clone(), stop_rx.clone())));
         let header_timeout = Duration::from_secs_f64(self.state.settings.header_timeout_seconds);
         let app = if self.state.settings.role.serves_api() {
             api::router(self.state)
@@ -164,6 +180,10 @@ impl Application {
         webhooks.abort();
         // Given a moment to release its lease; an event cut off is published again (at least once).
         let _ = tokio::time::timeout(Duration::from_secs(2), mqtt).await;
+        if let Some(opcua) = opcua {
+            // It shows `Halted` to its subscribers, then closes its sessions.
+            let _ = tokio::time::timeout(Duration::from_secs(5), opcua).await;
+        }
         sweeper.abort();
         listener.abort();
         signal.abort();

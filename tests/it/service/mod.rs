@@ -12,6 +12,7 @@ mod interchange;
 mod migrate;
 mod models;
 mod mqtt;
+mod opcua;
 mod openapi;
 mod queue;
 mod report_page;
@@ -35,6 +36,8 @@ pub struct TestApp {
     pub base: String,
     pub client: reqwest::Client,
     pub data: std::path::PathBuf,
+    /// The OPC UA endpoint, where one is served (`opcua_endpoint`).
+    pub opcua_url: Option<String>,
     dir: Option<tempfile::TempDir>,
     stop: Option<tokio::sync::oneshot::Sender<()>>,
     server: Option<tokio::task::JoinHandle<()>>,
@@ -179,6 +182,7 @@ pub async fn spawn_app_in(data: &Path, edit: impl FnOnce(&mut Settings)) -> Test
     edit(&mut settings);
     let app = Application::build(settings).await.unwrap();
     let base = format!("http://{}", app.address());
+    let opcua_url = app.opcua_url().map(String::from);
     let (tx, rx) = tokio::sync::oneshot::channel::<()>();
     let server = tokio::spawn(async move {
         app.run_until(async move {
@@ -187,7 +191,15 @@ pub async fn spawn_app_in(data: &Path, edit: impl FnOnce(&mut Settings)) -> Test
         .await
         .unwrap();
     });
-    TestApp { base, client: client(), data: data.to_path_buf(), dir: None, stop: Some(tx), server: Some(server) }
+    TestApp {
+        base,
+        client: client(),
+        data: data.to_path_buf(),
+        opcua_url,
+        dir: None,
+        stop: Some(tx),
+        server: Some(server),
+    }
 }
 
 /// An HTTP client as the service asks its clients to be: a pooled connection idles at most half
