@@ -48,8 +48,11 @@ use tokio::sync::watch;
 
 /// The namespace of crestscan's nodes and types.
 pub const NAMESPACE: &str = "urn:crestscan:machine-vision";
-/// How often the server looks for new events and at the store's state.
+/// How often the server looks for new events.
 const POLL: Duration = Duration::from_millis(500);
+/// How often it checks that the store reads and takes a write (the check commits a row, so not at
+/// every poll).
+const HEALTH: Duration = Duration::from_secs(5);
 /// Events read at a time.
 const BATCH: i64 = 100;
 
@@ -298,7 +301,7 @@ impl OpcUaServer {
         let OpcUaServer { server, handle, listener, manager, nodes, url } = self;
         tracing::info!(%url, "OPC UA server listening");
         let serving = tokio::spawn(server.run_with(listener));
-        let mut follower = Follower { store, handle: handle.clone(), manager, nodes, cursor: None };
+        let mut follower = Follower { store, handle: handle.clone(), manager, nodes, cursor: None, checked: None };
         let mut tick = tokio::time::interval(POLL);
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
@@ -469,6 +472,8 @@ struct Follower {
     nodes: Nodes,
     /// The last event seen; None until the first step reads where the table ends.
     cursor: Option<i64>,
+    /// When the store was last checked, and whether it was healthy then.
+    checked: Option<(std::time::Instant, bool)>,
 }
 
 impl Follower {
@@ -485,6 +490,26 @@ impl Follower {
     }
 
     async fn step(&mut self) {
+        if self.checked.is_none_or(|(at, _)| at.elapsed() >= HEALTH) {
+            self.checked = Some((std::time::Instant::now(), self.check_health().await));
+        }
+        if self.checked.is_some_and(|(_, healthy)| !healthy) {
+            return;
+        }
+        if let Ok((queued, running)) = self.store.queue_depth().await {
+            self.set(&self.nodes.queued, queued);
+            self.set(&self.nodes.running, running);
+            let execution = if queued + running > 0 { "Executing" } else { "Ready" };
+            self.set(&self.nodes.execution_state, LocalizedText::from(execution));
+        }
+        if let Err(e) = self.follow().await {
+            // Read again at the next poll; a store that stays away turns the state to Error.
+            tracing::warn!(error = %e, "OPC UA: the events could not be read; tried again");
+        }
+    }
+
+    /// Operational when the store reads and takes a write, else Error with the reason.
+    async fn check_health(&self) -> bool {
         let healthy = match self.store.ping().await {
             Err(e) => Err(format!("database: {e}")),
             Ok(()) => match tokio::time::timeout(Duration::from_secs(2), self.store.probe_write()).await {
@@ -493,29 +518,32 @@ impl Follower {
                 Err(_) => Err("database does not take writes within 2 s".into()),
             },
         };
-        if let Err(reason) = healthy {
-            self.set_state("Error", &reason);
-            return;
-        }
-        self.set_state("Operational", "");
-        if let Ok((queued, running)) = self.store.queue_depth().await {
-            self.set(&self.nodes.queued, queued);
-            self.set(&self.nodes.running, running);
-            let execution = if queued + running > 0 { "Executing" } else { "Ready" };
-            self.set(&self.nodes.execution_state, LocalizedText::from(execution));
-        }
-        if self.cursor.is_none() {
-            // Stations as they are now, then only what changes: the table's end is read first, so
-            // a station changed in between is applied twice, never missed.
-            let Ok(end) = self.store.count("SELECT COALESCE(MAX(seq), 0) FROM events").await else { return };
-            let Ok(stations) = self.store.stations().await else { return };
-            for s in stations {
-                self.station(&s.name, &s.status, s.status_reason.as_deref().unwrap_or(""));
+        match &healthy {
+            Ok(()) => self.set_state("Operational", ""),
+            Err(reason) => {
+                tracing::warn!(%reason, "OPC UA: the vision system is in Error");
+                self.set_state("Error", reason);
             }
-            self.cursor = Some(end);
         }
-        let Some(mut cursor) = self.cursor else { return };
-        let Ok(events) = self.store.events_after(cursor, BATCH).await else { return };
+        healthy.is_ok()
+    }
+
+    /// Applies the events after the cursor: stations' statuses and succeeded inspections' results.
+    async fn follow(&mut self) -> Result<(), StoreError> {
+        let mut cursor = match self.cursor {
+            Some(cursor) => cursor,
+            None => {
+                // Stations as they are now, then only what changes: the table's end is read
+                // first, so a station changed in between is applied twice, never missed.
+                let end = self.store.count("SELECT COALESCE(MAX(seq), 0) FROM events").await?;
+                for s in self.store.stations().await? {
+                    self.station(&s.name, &s.status, s.status_reason.as_deref().unwrap_or(""));
+                }
+                self.cursor = Some(end);
+                end
+            }
+        };
+        let events = self.store.events_after(cursor, BATCH).await?;
         for event in events {
             let done = match event.subject_kind.as_str() {
                 "inspection" if event.status == "succeeded" => self.result(&event.subject, event.seq).await,
@@ -540,6 +568,7 @@ impl Follower {
             cursor = event.seq;
         }
         self.cursor = Some(cursor);
+        Ok(())
     }
 
     /// A station's configuration node, added the first time it is seen.
