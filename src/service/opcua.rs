@@ -109,9 +109,10 @@ fn ua_time(ms: i64) -> DateTime {
 
 /// The result state a decision reads as (1 good, 2 bad, 0 undecided).
 pub fn result_state(decision: Option<&str>) -> i32 {
+    use crate::pipeline::uncertainty::Decision;
     match decision {
-        Some("conforms") => 1,
-        Some("does_not_conform") => 2,
+        Some(d) if d == Decision::Conforms.as_str() => 1,
+        Some(d) if d == Decision::DoesNotConform.as_str() => 2,
         _ => 0,
     }
 }
