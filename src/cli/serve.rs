@@ -144,7 +144,7 @@ pub struct ServeArgs {
     /// Its password.
     #[arg(long, env = "CRESTSCAN_MQTT_PASSWORD", hide_env_values = true)]
     mqtt_password: Option<String>,
-    /// PEM roots an mqtts:// broker's certificate is checked against.
+    /// PEM roots an mqtts:// broker's certificate is checked against [default: the system's].
     #[arg(long, env = "CRESTSCAN_MQTT_CA_FILE")]
     mqtt_ca_file: Option<PathBuf>,
     /// Serve an OPC UA address space modelled on OPC 40100 (Machine Vision) at this endpoint,

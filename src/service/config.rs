@@ -152,7 +152,7 @@ pub struct Settings {
     #[serde(skip_serializing)]
     pub mqtt_password: Option<String>,
     /// PEM certificates of the authorities an `mqtts://` broker's certificate is checked against
-    /// (required with `mqtts://`).
+    /// (without it, the system's roots).
     pub mqtt_ca_file: Option<PathBuf>,
     /// Serve an OPC UA address space modelled on OPC 40100 (Machine Vision) at this endpoint,
     /// `opc.tcp://host:4840` (docs/interchange.md, "OPC UA"). None (off) by default.

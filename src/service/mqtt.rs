@@ -16,7 +16,7 @@
 //! reconnect carries the same `event_id`.
 
 use crate::service::config::Settings;
-pub use crate::service::mqtt_settings::{Broker, check_site};
+pub use crate::service::mqtt_settings::{Broker, Roots, check_site};
 use crate::service::store::{EventRow, Store, StoreError};
 use crate::service::wire::rfc3339;
 use rumqttc::{AsyncClient, Event, EventLoop, MqttOptions, Packet, QoS, Transport};
@@ -112,6 +112,27 @@ pub async fn messages(store: &Store, site: &str, event: &EventRow) -> Result<Vec
     }
 }
 
+/// The system's roots (`SSL_CERT_FILE` / `SSL_CERT_DIR` where set), read at each connection so a
+/// renewed store is taken; what cannot be read is logged, and with no root at all the broker's
+/// certificate fails its check (logged at each try) rather than being trusted.
+fn system_roots() -> rumqttc::TlsConfiguration {
+    use rumqttc::tokio_rustls::rustls::{ClientConfig, RootCertStore};
+    let found = rustls_native_certs::load_native_certs();
+    for e in &found.errors {
+        tracing::warn!(error = %e, "MQTT: a system certificate store could not be read");
+    }
+    let mut roots = RootCertStore::empty();
+    let (added, ignored) = roots.add_parsable_certificates(found.certs);
+    if ignored > 0 {
+        tracing::warn!(ignored, "MQTT: system certificates that do not parse were left out");
+    }
+    if added == 0 {
+        tracing::warn!("MQTT: no system roots; an mqtts:// broker cannot be checked (set mqtt_ca_file)");
+    }
+    let config = ClientConfig::builder().with_root_certificates(roots).with_no_client_auth();
+    rumqttc::TlsConfiguration::Rustls(Arc::new(config))
+}
+
 /// A connection to the broker: the client and the event loop that drives it.
 struct Connection {
     client: AsyncClient,
@@ -126,9 +147,11 @@ impl Connection {
         if let (Some(user), Some(password)) = (&settings.mqtt_username, &settings.mqtt_password) {
             options.set_credentials(user, password);
         }
-        if let Some(ca) = &broker.tls_roots {
-            options.set_transport(Transport::tls(ca.clone(), None, None));
-        }
+        match &broker.tls {
+            Some(Roots::CaFile(ca)) => options.set_transport(Transport::tls(ca.clone(), None, None)),
+            Some(Roots::System) => options.set_transport(Transport::tls_with_config(system_roots())),
+            None => &mut options,
+        };
         let (client, events) = AsyncClient::new(options, 16);
         Connection { client, events }
     }

@@ -8,8 +8,17 @@ use std::path::Path;
 pub struct Broker {
     pub host: String,
     pub port: u16,
-    /// The PEM roots of an `mqtts://` broker; None: plain TCP.
-    pub tls_roots: Option<Vec<u8>>,
+    /// What an `mqtts://` broker's certificate is checked against; None: plain TCP.
+    pub tls: Option<Roots>,
+}
+
+/// The authorities a broker's certificate is checked against.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Roots {
+    /// The PEM certificates of `mqtt_ca_file`.
+    CaFile(Vec<u8>),
+    /// The system's (`SSL_CERT_FILE` / `SSL_CERT_DIR` where set, else the system's store).
+    System,
 }
 
 impl Broker {
@@ -28,21 +37,17 @@ impl Broker {
         if !parsed.username().is_empty() || parsed.password().is_some() {
             return Err("carries no credentials: set mqtt_username and mqtt_password".into());
         }
-        let tls_roots = match (tls, ca_file) {
+        let tls = match (tls, ca_file) {
             (false, _) => None,
             (true, Some(path)) => {
-                Some(std::fs::read(path).map_err(|e| format!("mqtt_ca_file {}: {e}", path.display()))?)
+                Some(Roots::CaFile(std::fs::read(path).map_err(|e| format!("mqtt_ca_file {}: {e}", path.display()))?))
             }
-            (true, None) => {
-                return Err(
-                    "mqtts:// needs mqtt_ca_file, the PEM roots the broker's certificate is checked against".into()
-                );
-            }
+            (true, None) => Some(Roots::System),
         };
         Ok(Broker {
             host: host.trim_matches(['[', ']']).to_string(),
-            port: parsed.port().unwrap_or(if tls { 8883 } else { 1883 }),
-            tls_roots,
+            port: parsed.port().unwrap_or(if tls.is_some() { 8883 } else { 1883 }),
+            tls,
         })
     }
 }
@@ -64,9 +69,13 @@ mod tests {
     #[test]
     fn broker_urls_and_sites_are_checked() {
         let b = Broker::parse("mqtt://broker.plant:1884", None).unwrap();
-        assert_eq!((b.host.as_str(), b.port, b.tls_roots.is_none()), ("broker.plant", 1884, true));
+        assert_eq!((b.host.as_str(), b.port, b.tls.is_none()), ("broker.plant", 1884, true));
         assert_eq!(Broker::parse("mqtt://10.0.0.5", None).unwrap().port, 1883);
-        assert!(Broker::parse("mqtts://broker", None).unwrap_err().contains("mqtt_ca_file"));
+        let secure = Broker::parse("mqtts://broker", None).unwrap();
+        assert_eq!((secure.port, secure.tls), (8883, Some(Roots::System)));
+        assert!(
+            Broker::parse("mqtts://broker", Some(Path::new("/no/such/ca.pem"))).unwrap_err().contains("mqtt_ca_file")
+        );
         assert!(Broker::parse("http://broker", None).unwrap_err().contains("scheme"));
         assert!(Broker::parse("mqtt://u:p@broker", None).unwrap_err().contains("mqtt_username"));
         assert!(Broker::parse("mqtt://broker/topic", None).unwrap_err().contains("no path"));

@@ -220,6 +220,11 @@ pub async fn spawn_app() -> TestApp {
 /// The real binary, `crestscan serve` on a loopback port over `data` with `extra` arguments: the
 /// child and its base URL (read off the line it prints when listening).
 pub fn start_binary(data: &Path, extra: &[&str]) -> (std::process::Child, String) {
+    start_binary_env(data, extra, &[])
+}
+
+/// [`start_binary`] with environment variables of the child's own.
+pub fn start_binary_env(data: &Path, extra: &[&str], env: &[(&str, &Path)]) -> (std::process::Child, String) {
     let blobs: Vec<String> = test_object_store(data)
         .map(|(url, endpoint)| {
             let key = ["--s3-access-key-id", "test", "--s3-secret-access-key", "test"].map(String::from);
@@ -233,6 +238,7 @@ pub fn start_binary(data: &Path, extra: &[&str]) -> (std::process::Child, String
         .args(&blobs)
         .args(&records)
         .args(extra)
+        .envs(env.iter().copied())
         .arg("--data-dir")
         .arg(data)
         .stdout(std::process::Stdio::piped())

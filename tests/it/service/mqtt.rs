@@ -234,3 +234,32 @@ async fn events_reach_a_tls_broker_checked_against_its_authority() {
     app.stop().await;
     drop(broker);
 }
+
+/// `mqtts://` without `mqtt_ca_file`: the broker's certificate is checked against the system's
+/// roots, here the test's authority given as the real binary's `SSL_CERT_FILE` (the variable the
+/// system-root loader honours, set for that process alone).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn without_a_ca_file_the_system_roots_check_the_broker() {
+    let dir = tempfile::tempdir().unwrap();
+    let (ca, cert, key) = crate::common::self_signed(dir.path(), "broker");
+    let broker = Broker::start_with(dir.path(), Some((ca.clone(), cert, key)));
+    let port = broker.port;
+    let mut rx =
+        subscriber_over(port, "it-system-roots", "crestscan/plant-sys/#", false, Some(std::fs::read(&ca).unwrap()))
+            .await;
+    let data = tempfile::tempdir().unwrap();
+    let url = format!("mqtts://127.0.0.1:{port}");
+    let (mut child, base) = start_binary_env(
+        data.path(),
+        &["--mqtt-url", &url, "--mqtt-site", "plant-sys"],
+        &[("SSL_CERT_FILE", ca.as_path())],
+    );
+    let client = client();
+    let id = submit_ci_to(&client, &base).await;
+    let (states, result) = until_result(&mut rx, "plant-sys", &id).await;
+    assert_eq!(states.iter().map(|s| s.1.as_str()).collect::<Vec<_>>(), ["queued", "running", "succeeded"]);
+    assert_eq!(result["inspection_id"], id);
+    let _ = child.kill();
+    let _ = child.wait();
+    drop(broker);
+}
