@@ -501,11 +501,13 @@ impl Settings {
         self.data_dir.join("tmp")
     }
 
-    /// Installed learned models (`<name>.onnx` with its card `<name>.json`; docs/models.md).
+    /// The OPC UA server's certificate store ([`Settings::opcua_pki_dir`], else under the data
+    /// directory).
     pub fn opcua_pki_dir(&self) -> PathBuf {
         self.opcua_pki_dir.clone().unwrap_or_else(|| self.data_dir.join("opcua-pki"))
     }
 
+    /// Installed learned models (`<name>.onnx` with its card `<name>.json`; docs/models.md).
     pub fn models_dir(&self) -> PathBuf {
         self.data_dir.join("models")
     }

@@ -56,16 +56,8 @@ pub struct Readiness {
         (status = 503, description = "Not ready (database unreachable or not taking writes, disk not writable, or free space under the floor)", body = Problem, content_type = "application/problem+json"),
     ))]
 pub async fn readyz(State(state): State<AppState>) -> Result<Json<Readiness>, ApiError> {
-    state.store.ping().await.map_err(|e| ApiError::new(Code::NotReady, format!("database: {e}")))?;
-    // A database that reads but cannot write (disk full, write lock held) is not ready; the probe
-    // is bounded well under the store's 10 s busy timeout, so a stuck lock answers promptly.
-    match tokio::time::timeout(std::time::Duration::from_secs(2), state.store.probe_write()).await {
-        Ok(Ok(())) => {}
-        Ok(Err(e)) => return Err(ApiError::new(Code::NotReady, format!("database does not take writes: {e}"))),
-        Err(_) => {
-            return Err(ApiError::new(Code::NotReady, "database does not take writes: no write lock within 2 s"));
-        }
-    }
+    // A database that reads but cannot write (disk full, write lock held) is not ready.
+    state.store.database_ready().await.map_err(|reason| ApiError::new(Code::NotReady, reason))?;
     let files = state.store.files.clone();
     let (room, free) = tokio::task::spawn_blocking(move || {
         files.check_writable()?;

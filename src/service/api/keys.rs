@@ -67,16 +67,16 @@ async fn authenticate(state: &AppState, headers: &HeaderMap) -> Result<(KeyRow, 
         .filter(|(scheme, _)| scheme.eq_ignore_ascii_case("bearer"))
         .map(|(_, token)| token.trim())
         .unwrap_or("");
-    let invalid = || unauthorized(Code::InvalidKey, "the API key is not valid (unknown, malformed or revoked)".into());
-    let Some((id, secret)) = auth::split_token(token) else { return Err(invalid()) };
-    let row = match state.store.key(id).await {
-        Ok(row) => row,
-        Err(StoreError::NotFound) => return Err(invalid()),
+    let row = match state.store.key_for_token(token).await {
+        Ok(Some(row)) => row,
+        Ok(None) => {
+            return Err(unauthorized(
+                Code::InvalidKey,
+                "the API key is not valid (unknown, malformed or revoked)".into(),
+            ));
+        }
         Err(e) => return Err(ApiError::from(e).into_response()),
     };
-    if row.revoked_at.is_some() || !auth::secret_matches(secret, &row.secret_sha256) {
-        return Err(invalid());
-    }
     let scopes = row.scopes();
     Ok((row, scopes))
 }

@@ -81,6 +81,20 @@ impl Store {
         .ok_or(StoreError::NotFound)
     }
 
+    /// The live key a presented token (`csk_<id>_<secret>`) names, None where the token is
+    /// malformed, unknown, revoked or its secret does not match: the one check every interface
+    /// that takes API keys makes.
+    pub async fn key_for_token(&self, token: &str) -> Result<Option<KeyRow>, StoreError> {
+        let Some((id, secret)) = crate::service::auth::split_token(token) else { return Ok(None) };
+        let row = match self.key(id).await {
+            Ok(row) => row,
+            Err(StoreError::NotFound) => return Ok(None),
+            Err(e) => return Err(e),
+        };
+        let live = row.revoked_at.is_none() && crate::service::auth::secret_matches(secret, &row.secret_sha256);
+        Ok(live.then_some(row))
+    }
+
     /// Every key, oldest first (revoked ones too).
     pub async fn keys(&self) -> Result<Vec<KeyRow>, StoreError> {
         Ok(on_db!(self.db, |pool, d| {

@@ -487,6 +487,18 @@ impl Store {
         Ok(())
     }
 
+    /// Whether the database reads and takes a write, else why not (as `/readyz` and the OPC UA
+    /// state say it). The write is bounded well under the store's 10 s busy timeout, so a stuck
+    /// lock answers promptly.
+    pub async fn database_ready(&self) -> Result<(), String> {
+        self.ping().await.map_err(|e| format!("database: {e}"))?;
+        match tokio::time::timeout(std::time::Duration::from_secs(2), self.probe_write()).await {
+            Ok(Ok(())) => Ok(()),
+            Ok(Err(e)) => Err(format!("database does not take writes: {e}")),
+            Err(_) => Err("database does not take writes: no write lock within 2 s".into()),
+        }
+    }
+
     /// Writes and commits one small row: fails where the database reads but cannot take a write
     /// (its disk full, its write lock held by a stuck connection).
     pub async fn probe_write(&self) -> Result<(), StoreError> {
