@@ -217,14 +217,40 @@ pub async fn spawn_app() -> TestApp {
     spawn_app_with(|_| {}).await
 }
 
+/// A `crestscan serve` child process, killed and reaped when dropped if it is still running, so
+/// that a failed assertion never leaves a service behind; otherwise the child itself.
+pub struct ServeChild(std::process::Child);
+
+impl std::ops::Deref for ServeChild {
+    type Target = std::process::Child;
+    fn deref(&self) -> &std::process::Child {
+        &self.0
+    }
+}
+
+impl std::ops::DerefMut for ServeChild {
+    fn deref_mut(&mut self) -> &mut std::process::Child {
+        &mut self.0
+    }
+}
+
+impl Drop for ServeChild {
+    fn drop(&mut self) {
+        if let Ok(None) = self.0.try_wait() {
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+}
+
 /// The real binary, `crestscan serve` on a loopback port over `data` with `extra` arguments: the
 /// child and its base URL (read off the line it prints when listening).
-pub fn start_binary(data: &Path, extra: &[&str]) -> (std::process::Child, String) {
+pub fn start_binary(data: &Path, extra: &[&str]) -> (ServeChild, String) {
     start_binary_env(data, extra, &[])
 }
 
 /// [`start_binary`] with environment variables of the child's own.
-pub fn start_binary_env(data: &Path, extra: &[&str], env: &[(&str, &Path)]) -> (std::process::Child, String) {
+pub fn start_binary_env(data: &Path, extra: &[&str], env: &[(&str, &Path)]) -> (ServeChild, String) {
     let blobs: Vec<String> = test_object_store(data)
         .map(|(url, endpoint)| {
             let key = ["--s3-access-key-id", "test", "--s3-secret-access-key", "test"].map(String::from);
@@ -243,6 +269,7 @@ pub fn start_binary_env(data: &Path, extra: &[&str], env: &[(&str, &Path)]) -> (
         .arg(data)
         .stdout(std::process::Stdio::piped())
         .spawn()
+        .map(ServeChild)
         .unwrap();
     let mut line = String::new();
     std::io::BufRead::read_line(&mut std::io::BufReader::new(child.stdout.take().unwrap()), &mut line).unwrap();

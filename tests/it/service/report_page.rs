@@ -69,7 +69,7 @@ fn page_requests(net_log: &Value, site: &str) -> Vec<String> {
 
 /// The real binary on a loopback port over a fresh data directory, killed when dropped.
 struct Served {
-    child: std::process::Child,
+    child: super::ServeChild,
     base: String,
     _data: tempfile::TempDir,
 }

@@ -54,7 +54,18 @@ async fn traces_reach_an_otlp_collector() {
     // SIGTERM: the service drains and sends the spans still batched before it exits.
     // SAFETY: a signal to our own child process.
     assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGTERM) }, 0);
-    assert!(child.wait().unwrap().success());
+    // Waited for without blocking a runtime thread: the child's last export goes to the collector
+    // on this runtime, and a blocked worker could hold the connection's task in its own slot until
+    // the child gave up on the export and exited.
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let status = loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            break status;
+        }
+        assert!(Instant::now() < deadline, "the service did not exit within 60 s of SIGTERM");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    assert!(status.success(), "{status}");
     let exports = exports.lock().unwrap().clone();
     assert!(!exports.is_empty(), "the collector got nothing");
     assert!(

@@ -111,7 +111,7 @@ async fn start_honeypot() -> (Arc<AtomicUsize>, String) {
 }
 
 /// The service's process, SIGKILLed when dropped (a failed assertion must not leave it running).
-struct Service(std::process::Child);
+struct Service(super::ServeChild);
 
 impl Service {
     fn kill(&mut self) {
