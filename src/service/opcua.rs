@@ -82,6 +82,20 @@ pub struct ResultReadyEvent {
     thread_black_crest_lengths_mm: Vec<f64>,
 }
 
+impl ResultReadyEvent {
+    /// The value of field `name` (one of [`RESULT_FIELDS`]), as an event filter selects it;
+    /// `Variant::Empty` for a name the event does not have.
+    fn field(&self, name: &str) -> Variant {
+        use opcua::nodes::Event as _;
+        self.get_field(
+            &ObjectTypeId::BaseEventType.into(),
+            opcua::types::AttributeId::Value,
+            &opcua::types::NumericRange::None,
+            &[QualifiedName::new(self.own_namespace_index, name)],
+        )
+    }
+}
+
 /// The event type's fields as properties of its type node, name, data type and whether an array:
 /// a client builds its event filter from them.
 const RESULT_FIELDS: [(&str, DataTypeId, bool); 15] = [
@@ -626,26 +640,66 @@ impl Follower {
             thread_findings: threads.iter().map(|t| t.height_finding.clone().unwrap_or_default()).collect(),
             thread_black_crest_lengths_mm: threads.iter().map(|t| t.black_crest_length_mm).collect(),
         };
-        let field = |name: &str| self.nodes.id(&format!("ResultManagement/LastResult/{name}"));
-        self.set(&field("ResultId"), event.result_id.clone());
-        self.set(&field("IsPartial"), false);
-        self.set(&field("ResultState"), event.result_state);
-        self.set(&field("Verdict"), event.verdict.clone());
-        self.set(&field("Decision"), event.decision.clone());
-        self.set(&field("ReviewRequired"), event.review_required);
-        self.set(&field("Station"), event.station.clone());
-        self.set(&field("Serial"), event.serial.clone());
-        self.set(&field("Connection"), event.connection.clone());
-        self.set(&field("Report"), event.report.clone());
-        self.set(&field("ThreadNumbers"), event.thread_numbers.clone());
-        self.set(&field("ThreadMeanHeightsMm"), event.thread_mean_heights_mm.clone());
-        self.set(&field("ThreadHeightUncertaintiesMm"), event.thread_height_uncertainties_mm.clone());
-        self.set(&field("ThreadFindings"), event.thread_findings.clone());
-        self.set(&field("ThreadBlackCrestLengthsMm"), event.thread_black_crest_lengths_mm.clone());
+        // LastResult reads each field from the event as a subscriber's select clause would, so
+        // that the two cannot differ (a unit test checks every field is found).
+        for (name, _, _) in RESULT_FIELDS {
+            self.set(&self.nodes.id(&format!("ResultManagement/LastResult/{name}")), event.field(name));
+        }
         self.handle
             .subscriptions()
             .notify_events([(&event as &dyn opcua::nodes::Event, &self.nodes.vision_system)].into_iter());
         tracing::debug!(inspection = id, seq, "OPC UA: result announced");
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every field the type node and LastResult name is one the event has, of the declared type
+    /// and shape: the struct, [`RESULT_FIELDS`] and LastResult cannot drift apart.
+    #[test]
+    fn every_declared_field_is_the_events_own() {
+        let ns = 2;
+        let base = BaseEventType::new(
+            ResultReadyEvent::event_type_id_from_index(ns),
+            ByteString::from(b"id".to_vec()),
+            "message",
+            DateTime::now(),
+        );
+        let event = ResultReadyEvent {
+            base,
+            own_namespace_index: ns,
+            result_id: "0190-id".into(),
+            is_partial: false,
+            result_state: 1,
+            verdict: "accept".into(),
+            decision: "conforms".into(),
+            review_required: true,
+            station: "line-3".into(),
+            serial: "SN-1".into(),
+            connection: "buttress".into(),
+            report: "/v1/inspections/0190-id/report".into(),
+            thread_numbers: vec![1, 2],
+            thread_mean_heights_mm: vec![1.57, 1.58],
+            thread_height_uncertainties_mm: vec![0.004, 0.005],
+            thread_findings: vec!["conforms".into(), "indeterminate".into()],
+            thread_black_crest_lengths_mm: vec![0.0, 1.5],
+        };
+        for (name, data_type, array) in RESULT_FIELDS {
+            let value = event.field(name);
+            let expected = match (data_type, array) {
+                (DataTypeId::String, false) => matches!(value, Variant::String(_)),
+                (DataTypeId::Boolean, false) => matches!(value, Variant::Boolean(_)),
+                (DataTypeId::Int32, false) => matches!(value, Variant::Int32(_)),
+                (_, true) => matches!(&value, Variant::Array(a) if a.values.len() == 2),
+                _ => false,
+            };
+            assert!(expected, "{name}: {value:?}");
+        }
+        assert_eq!(event.field("ResultId"), Variant::from("0190-id"));
+        assert_eq!(event.field("ThreadMeanHeightsMm"), Variant::from(vec![1.57, 1.58]));
+        assert_eq!(event.field("NoSuchField"), Variant::Empty);
     }
 }
