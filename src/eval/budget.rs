@@ -294,7 +294,7 @@ fn depth_bands(
             row_step: 1,
             depth_mm: true_depth.clone(),
             peak_ratio: vec![2.0; true_depth.len()],
-            all_in_focus: vec![0.0; 3 * true_depth.len()],
+            all_in_focus: vec![0; 3 * true_depth.len()],
             end_edges: Vec::new(),
             frame_noise: None,
             prefiltered: false,

@@ -76,7 +76,7 @@ pub fn points_of<'a>(
         let ((origin_u, direction_u), (origin_r, direction_r)) = (&columns[u], &rows[r]);
         SurfacePoint {
             position: Point3::from(origin_u + origin_r + (direction_u + direction_r) * d as f64),
-            rgb: [depth.all_in_focus[3 * i], depth.all_in_focus[3 * i + 1], depth.all_in_focus[3 * i + 2]],
+            rgb: depth.colour(i),
             weight: depth.peak_ratio[i],
             pixel: [u as u32, (r * step) as u32],
         }
@@ -110,7 +110,7 @@ mod tests {
                 row_step: step,
                 depth_mm: (0..w * rows).map(|i| if i == 3 { f32::NAN } else { 218.0 + 0.37 * i as f32 }).collect(),
                 peak_ratio: vec![2.0; w * rows],
-                all_in_focus: vec![0.5; 3 * w * rows],
+                all_in_focus: vec![32768; 3 * w * rows],
                 end_edges: Vec::new(),
                 frame_noise: None,
                 prefiltered: false,
@@ -138,7 +138,7 @@ mod tests {
             row_step: 1,
             depth_mm: vec![220.0; 9],
             peak_ratio: vec![2.0; 9],
-            all_in_focus: vec![0.5; 27],
+            all_in_focus: vec![32768; 27],
             end_edges: Vec::new(),
             frame_noise: None,
             prefiltered: false,

@@ -23,8 +23,9 @@ const BASE_BYTES: f64 = 64.0 * 1024.0 * 1024.0;
 /// native and box sums, best and best frame, the small box's three, the map, its ratio and the
 /// all-in-focus colour).
 const DEPTH_PLANES: f64 = 16.0;
-/// Bytes a view keeps per pixel from depth to fusion (depth, confidence, colour, its cloud).
-const KEPT_BYTES_PER_VIEW_PIXEL: f64 = 24.0;
+/// Bytes a view keeps per pixel from depth to fusion (depth and confidence 4 each, colour 6 as
+/// 16-bit fractions, its cloud).
+const KEPT_BYTES_PER_VIEW_PIXEL: f64 = 18.0;
 /// Bytes per fused-map cell over the stages that build grids over the surface (registration's
 /// view grids, the fused map's accumulators and result, the height map and images).
 const BYTES_PER_SURFACE_CELL: f64 = 64.0;

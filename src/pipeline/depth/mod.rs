@@ -252,6 +252,12 @@ impl DepthOptions {
     }
 }
 
+/// A colour in [0, 1] as 16-bit fractions of full scale (rounded; out of range clamped).
+#[inline]
+pub fn unorm16(rgb: [f32; 3]) -> [u16; 3] {
+    rgb.map(|v| (v.clamp(0.0, 1.0) * 65535.0).round() as u16)
+}
+
 /// A view's depth map on the offset-0 pixel grid: every column, every `row_step`-th row.
 #[derive(Clone, Debug, PartialEq)]
 pub struct DepthMap {
@@ -265,8 +271,10 @@ pub struct DepthMap {
     pub depth_mm: Vec<f32>,
     /// Peak focus measure over its floor (median over the stack); ≥ 1.
     pub peak_ratio: Vec<f32>,
-    /// Sharpest colour per pixel, RGB interleaved in [0, 1].
-    pub all_in_focus: Vec<f32>,
+    /// Sharpest colour per pixel, RGB interleaved, each a 16-bit fraction of full scale
+    /// ([`unorm16`]; [`DepthMap::colour`] reads it back): half the memory of f32 for every view
+    /// held until fusion, with steps 257 times finer than an 8-bit frame's.
+    pub all_in_focus: Vec<u16>,
     /// The end face's silhouette in each frame that shows it (for [`crate::pipeline::register::anchor`]).
     pub end_edges: Vec<FrameEdge>,
     /// The first frame's noise relative to its mean brightness ([`noise::relative_noise`]).
@@ -279,6 +287,13 @@ impl DepthMap {
     /// Rows of the map: the pixel rows 0, `row_step`, 2·`row_step`, … below `height`.
     pub fn rows(&self) -> usize {
         self.height.div_ceil(self.row_step.max(1))
+    }
+
+    /// Pixel i's all-in-focus colour, RGB in [0, 1].
+    #[inline]
+    pub fn colour(&self, i: usize) -> [f32; 3] {
+        let c = &self.all_in_focus[3 * i..3 * i + 3];
+        [c[0], c[1], c[2]].map(|v| v as f32 / 65535.0)
     }
 
     pub fn coverage(&self) -> f64 {
@@ -466,7 +481,7 @@ pub fn depth_from_focus_in(
     let mut depth_mm = vec![f32::NAN; plane];
     let mut peak_ratio = vec![1f32; plane];
     let network = MedianNetwork::new(n);
-    let mut all_in_focus = vec![0f32; plane * 3];
+    let mut all_in_focus = vec![0u16; plane * 3];
     let volume: &[f32] = volume;
     let edge_volume: &[f32] = edge_volume;
     // The frame step: how far the small box's depth may lie from the big box's (its peak is
@@ -504,7 +519,9 @@ pub fn depth_from_focus_in(
                 let floors = &sorted[network.rank * w..(network.rank + 1) * w];
                 // Every pixel's colour from its sharpest frame (the first of equals).
                 for (x, colour) in colour_row.chunks_exact_mut(3).enumerate() {
-                    held_frames[best_frame[r * w + x] as usize].colour_at(x, y, w, colour);
+                    let mut rgb = [0f32; 3];
+                    held_frames[best_frame[r * w + x] as usize].colour_at(x, y, w, &mut rgb);
+                    colour.copy_from_slice(&unorm16(rgb));
                 }
                 for x in 0..w {
                     let floor = floors[x].max(1e-12);
@@ -528,7 +545,9 @@ pub fn depth_from_focus_in(
                             // surface's frame: the big box's colour mixes two surfaces into
                             // registration's texture (docs/notebook/accuracy.md, The depth stage's
                             // edge box).
-                            held_frames[k_edge].colour_at(x, y, w, &mut colour_row[3 * x..3 * x + 3]);
+                            let mut rgb = [0f32; 3];
+                            held_frames[k_edge].colour_at(x, y, w, &mut rgb);
+                            colour_row[3 * x..3 * x + 3].copy_from_slice(&unorm16(rgb));
                             k_best = own;
                         }
                     }

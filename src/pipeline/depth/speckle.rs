@@ -71,7 +71,7 @@ mod tests {
             row_step: 1,
             depth_mm,
             peak_ratio: vec![2.0; w * h],
-            all_in_focus: vec![0.5; 3 * w * h],
+            all_in_focus: vec![32768; 3 * w * h],
             end_edges: Vec::new(),
             frame_noise: None,
             prefiltered: false,

@@ -222,7 +222,8 @@ fn every_sample_depth_gives_the_same_depth_map() {
         let float = depth_of(frames_as(&|v| Samples::Float(v.iter().map(|&v| v as f32 / 255.0).collect())));
         assert!(eight.depth_mm.iter().any(|d| d.is_finite()), "some pixels are in focus");
         let bits = |m: &DepthMap| -> Vec<u32> {
-            m.depth_mm.iter().chain(&m.peak_ratio).chain(&m.all_in_focus).map(|v| v.to_bits()).collect()
+            let colours = m.all_in_focus.iter().map(|&v| v as u32);
+            m.depth_mm.iter().chain(&m.peak_ratio).map(|v| v.to_bits()).chain(colours).collect()
         };
         assert_eq!(bits(&eight), bits(&sixteen), "{channels} channels: 8 vs 16 bits");
         assert_eq!(bits(&eight), bits(&float), "{channels} channels: 8 bits vs f32");
@@ -239,16 +240,18 @@ fn every_sample_depth_gives_the_same_depth_map() {
         for step in [2, 3] {
             let sparse = with_step(step);
             assert_eq!((sparse.width, sparse.height, sparse.row_step, sparse.rows()), (w, h, step, h.div_ceil(step)));
-            let rows_of = |m: &DepthMap, values: &[f32], per: usize| -> Vec<Vec<u32>> {
-                values.chunks_exact(per * m.width).map(|r| r.iter().map(|v| v.to_bits()).collect()).collect()
+            let rows_of = |m: &DepthMap, values: &[u32], per: usize| -> Vec<Vec<u32>> {
+                values.chunks_exact(per * m.width).map(<[u32]>::to_vec).collect()
             };
+            let bits = |v: &[f32]| v.iter().map(|v| v.to_bits()).collect::<Vec<u32>>();
+            let colours = |m: &DepthMap| m.all_in_focus.iter().map(|&v| v as u32).collect::<Vec<u32>>();
             for (values_full, values_sparse, per) in [
-                (&full.depth_mm, &sparse.depth_mm, 1),
-                (&full.peak_ratio, &sparse.peak_ratio, 1),
-                (&full.all_in_focus, &sparse.all_in_focus, 3),
+                (bits(&full.depth_mm), bits(&sparse.depth_mm), 1),
+                (bits(&full.peak_ratio), bits(&sparse.peak_ratio), 1),
+                (colours(&full), colours(&sparse), 3),
             ] {
-                let want: Vec<Vec<u32>> = rows_of(&full, values_full, per).into_iter().step_by(step).collect();
-                assert_eq!(rows_of(&sparse, values_sparse, per), want, "{channels} channels, step {step}");
+                let want: Vec<Vec<u32>> = rows_of(&full, &values_full, per).into_iter().step_by(step).collect();
+                assert_eq!(rows_of(&sparse, &values_sparse, per), want, "{channels} channels, step {step}");
             }
             assert!(sparse.depth_mm.iter().any(|d| d.is_finite()), "step {step}");
         }
@@ -316,7 +319,7 @@ fn all_in_focus_takes_each_pixel_from_its_sharpest_frame() {
         for x in (0..w).filter(|&x| (6..=7).contains(&(x % 12)) || (1..4).contains(&x)) {
             let k = sharpest[x / 12];
             let expected = frames[k].samples.value(y * w + x);
-            assert_eq!(&map.all_in_focus[3 * (i + x)..3 * (i + x) + 3], &[expected; 3], "({x}, {y})");
+            assert_eq!(&map.all_in_focus[3 * (i + x)..3 * (i + x) + 3], &unorm16([expected; 3]), "({x}, {y})");
         }
     }
 }
@@ -397,7 +400,7 @@ fn phase_equalisation_removes_an_odd_sub_frame_bias() {
         row_step: 1,
         depth_mm: depth,
         peak_ratio: vec![5.0; w * h],
-        all_in_focus: vec![0.5; 3 * w * h],
+        all_in_focus: vec![32768; 3 * w * h],
         end_edges: Vec::new(),
         frame_noise: None,
         prefiltered: false,
