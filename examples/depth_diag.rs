@@ -45,8 +45,13 @@ fn main() {
         std::fs::write(&path, bytes).unwrap();
         let ratio: Vec<u8> = maps[0].peak_ratio.iter().flat_map(|d| d.to_le_bytes()).collect();
         std::fs::write(format!("{path}.ratio"), ratio).unwrap();
-        let aif: Vec<u8> =
-            maps[0].all_in_focus.chunks_exact(3).flat_map(|c| ((c[0] + c[1] + c[2]) / 3.0).to_le_bytes()).collect();
+        let pixels = maps[0].all_in_focus.len() / 3;
+        let aif: Vec<u8> = (0..pixels)
+            .flat_map(|i| {
+                let c = maps[0].colour(i);
+                ((c[0] + c[1] + c[2]) / 3.0).to_le_bytes()
+            })
+            .collect();
         std::fs::write(format!("{path}.aif"), aif).unwrap();
         println!("dumped {}×{}", maps[0].width, maps[0].rows());
     }
