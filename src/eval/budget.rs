@@ -201,6 +201,7 @@ pub fn budget(
             },
             poses: (!matches!(variant, Variant::AsConfigured | Variant::Pipeline)).then_some(true_poses.as_slice()),
             helix: (variant == Variant::TrueHelix).then_some(&true_helix),
+            keep_depth_maps: true,
         };
         let run_options = if variant == Variant::AsConfigured { configured } else { &options };
         let inspection = match crate::pipeline::inspect_substituted(bundle, run_options, models, &subs) {

@@ -380,7 +380,6 @@ fn timed_runs(
         })?;
         Ok(started.elapsed().as_secs_f64())
     };
-    let cancel = std::sync::atomic::AtomicBool::new(false);
     // (decode s, inspect s, stage times) per run; the results are the same every run, so only
     // the last inspection is kept.
     let mut runs = Vec::new();
@@ -389,8 +388,10 @@ fn timed_runs(
         let decode_seconds = decode()?;
         drop(last.take()); // the previous run's maps are not held while this one runs
         let started = std::time::Instant::now();
-        let inspection = crate::pipeline::inspect(bundle, options, &|_, _| {}, &cancel)?
-            .ok_or_else(|| BenchError::Other("cancelled".into()))?;
+        // The depth maps are kept for the depth error against the truth (an inspection drops
+        // them once fused).
+        let keep = crate::pipeline::Substitutes { keep_depth_maps: true, ..Default::default() };
+        let inspection = crate::pipeline::inspect_substituted(bundle, options, crate::learned::models(), &keep)?;
         let stages: Vec<(String, f64)> =
             inspection.report.timings.iter().map(|t| (t.stage.clone(), t.seconds)).collect();
         runs.push((decode_seconds, started.elapsed().as_secs_f64(), stages));

@@ -124,6 +124,8 @@ impl ErrorCode for PipelineError {
 pub struct Inspection {
     pub report: Report,
     pub map: UnrolledMap,
+    /// The views' depth maps where a diagnosis asked for them ([`Substitutes::keep_depth_maps`]);
+    /// otherwise empty: an inspection drops them once fused, before the fused map is finished.
     pub depth_maps: Vec<DepthMap>,
     /// The refined view poses.
     pub poses: Vec<ViewPose>,
@@ -200,6 +202,10 @@ pub struct Substitutes<'a> {
     pub poses: Option<&'a [ViewPose]>,
     /// The helix the heights are measured on, in place of the estimated one.
     pub helix: Option<&'a (dyn Fn(&Helix) -> Helix + Sync)>,
+    /// Keep the views' depth maps in [`Inspection::depth_maps`] (a diagnosis compares them with
+    /// the truth); an inspection drops them once fused, which lowers its peak by every view's
+    /// maps (docs/notebook/speed.md).
+    pub keep_depth_maps: bool,
 }
 
 /// [`inspect_with`] with some stages' outputs replaced ([`Substitutes`]); never cancelled.
@@ -237,13 +243,22 @@ fn run_stages(
     if let Some(poses) = substitutes.poses {
         registered.poses = poses.to_vec();
     }
-    let (map, map_implausible_share) =
-        fuse_views(recording, options, &depth_maps, &registered.poses, &registered.encoder_z_ranges_mm, &mut run)?;
+    let frame_noise_pct = crate::numeric::stats::median(
+        &mut depth_maps.iter().filter_map(|d| d.frame_noise).map(|n| 100.0 * n).collect::<Vec<_>>(),
+    );
+    let depth_prefiltered_views = depth_maps.iter().filter(|d| d.prefiltered).count();
+    let (map, map_implausible_share, depth_maps) = fuse_views(
+        recording,
+        options,
+        depth_maps,
+        substitutes.keep_depth_maps,
+        &registered.poses,
+        &registered.encoder_z_ranges_mm,
+        &mut run,
+    )?;
     let part = recording.part();
     let mut station = domain::station::Station::of(recording.optics(), recording.views(), part.pipe_od_mm / 2.0)
-        .with_frame_noise(crate::numeric::stats::median(
-            &mut depth_maps.iter().filter_map(|d| d.frame_noise).map(|n| 100.0 * n).collect::<Vec<_>>(),
-        ));
+        .with_frame_noise(frame_noise_pct);
     // One view's pose error moves all its generatrices: the views' spacing is the helix phase's
     // sector, over which the windows' local phase is read and its readings count as one.
     let sector_deg = station.view_spacing_deg.unwrap_or(360.0);
@@ -338,7 +353,7 @@ fn run_stages(
         registration: registered.registration,
         end_face: registered.end_face,
         depth_coverage,
-        depth_prefiltered_views: depth_maps.iter().filter(|d| d.prefiltered).count(),
+        depth_prefiltered_views,
         map_coverage: map.coverage(),
         map_implausible_share,
         models: depth_model.into_iter().chain(learned.used).collect(),
@@ -506,15 +521,18 @@ fn register_views(
     Ok(Registered { poses, registration, end_face, encoder_z_ranges_mm })
 }
 
-/// Every view's points binned at its refined pose and summed into the unrolled surface.
+/// Every view's points binned at its refined pose and summed into the unrolled surface. The
+/// depth maps are dropped once summed, before the map is finished (its result planes are the
+/// next allocation), unless `keep_depth_maps`: then they come back.
 fn fuse_views(
     recording: &dyn Recording,
     options: &PipelineOptions,
-    depth_maps: &[DepthMap],
+    depth_maps: Vec<DepthMap>,
+    keep_depth_maps: bool,
     poses: &[ViewPose],
     encoder_z_ranges_mm: &[(f64, f64)],
     run: &mut Run,
-) -> Step<(UnrolledMap, f64)> {
+) -> Step<(UnrolledMap, f64, Vec<DepthMap>)> {
     run.progress(Stage::Fuse, 0.0);
     let (part, optics, views) = (recording.part(), recording.optics(), recording.views());
     let total = views.len();
@@ -534,7 +552,7 @@ fn fuse_views(
     // buffers reused from batch to batch; each batch is summed in view order before the next.
     let batch = 2 * rayon::current_num_threads().max(1);
     let mut buffers: Vec<Vec<fuse::Binned>> = vec![Vec::new(); batch.min(total)];
-    for (batch_index, views) in poses.iter().zip(depth_maps).collect::<Vec<_>>().chunks(batch).enumerate() {
+    for (batch_index, views) in poses.iter().zip(&depth_maps).collect::<Vec<_>>().chunks(batch).enumerate() {
         run.check()?;
         buffers.par_iter_mut().zip(views).for_each(|(buffer, &(pose, depth))| {
             fusion.bin_into(buffer, cloud::points_of(optics, pose, depth), pose.angle_deg.to_radians());
@@ -544,13 +562,14 @@ fn fuse_views(
         run.progress(Stage::Fuse, 0.9 * ((batch_index * batch + views.len()) as f64 / total as f64));
     }
     drop(buffers);
+    let depth_maps = if keep_depth_maps { depth_maps } else { Vec::new() };
     run.progress(Stage::Fuse, 1.0);
     let mut map = fusion.finish();
     let seen = map.radius_mm.iter().filter(|r| r.is_finite()).count();
     let dropped = if options.gate_implausible { gate::drop_implausible(&mut map, &part.form) } else { 0 };
     run.lap(Stage::Fuse);
     run.check()?;
-    Ok((map, dropped as f64 / seen.max(1) as f64))
+    Ok((map, dropped as f64 / seen.max(1) as f64, depth_maps))
 }
 
 /// The mesh is an export: it runs beside the profile, which the verdict needs. Each stage's own

@@ -65,6 +65,8 @@ fn profile_correction_changes_heights_and_the_report_names_the_model() {
     options.profile.correction = Correction::Off;
     let classic_run = pipeline::inspect(&bundle, &options, &|_, _| {}, &AtomicBool::new(false)).unwrap().unwrap();
     assert_eq!(corrected_run.threads, classic_run.threads);
+    // An inspection drops the views' depth maps once fused: nothing after fusion reads them.
+    assert!(classic_run.depth_maps.is_empty());
     options.profile.correction = Correction::On;
     let provenance = corrected.provenance.as_ref().unwrap();
     assert_eq!(provenance.models.len(), 1, "{:?}", provenance.models);
@@ -260,12 +262,15 @@ fn the_shipped_depth_unets_through_onnx_runtime_equal_the_frameworks_output() {
 fn cnn_depth_measures_the_classical_pixels_near_truth_and_the_report_names_the_model() {
     use crestscan::pipeline::depth::DepthMethod;
     let bundle = Bundle::open(ci_bundle(), &ConnectionTable::api5b(), OpenOptions::default()).unwrap();
+    // The depth maps are kept for the comparison (an inspection drops them once fused).
+    let keep = pipeline::Substitutes { keep_depth_maps: true, ..Default::default() };
     let run = |options: &PipelineOptions| {
-        pipeline::inspect(&bundle, options, &|_, _| {}, &AtomicBool::new(false)).unwrap().unwrap()
+        pipeline::inspect_substituted(&bundle, options, crestscan::learned::models(), &keep).unwrap()
     };
     let mut options = PipelineOptions::default();
     options.profile.correction = Correction::Off;
     let classic = run(&options);
+    assert_eq!(classic.depth_maps.len(), bundle.views.len());
     options.depth.method = DepthMethod::Cnn;
     let cnn = run(&options);
     // The same pixels are trusted; their depths are the nets'.
