@@ -203,8 +203,8 @@ pub struct Substitutes<'a> {
     /// The helix the heights are measured on, in place of the estimated one.
     pub helix: Option<&'a (dyn Fn(&Helix) -> Helix + Sync)>,
     /// Keep the views' depth maps in [`Inspection::depth_maps`] (a diagnosis compares them with
-    /// the truth); an inspection drops them once fused, which lowers its peak by every view's
-    /// maps (docs/notebook/speed.md).
+    /// the truth); an inspection drops them once fused, so the stages after fusion and the
+    /// exports run without them (docs/notebook/speed.md).
     pub keep_depth_maps: bool,
 }
 
