@@ -33,9 +33,10 @@ def ci_bundle(work, seed=1):
     return bundle, tar_path
 
 
-def serve(data, *extra, stderr=subprocess.DEVNULL):
-    """Starts `crestscan serve` on 127.0.0.1:0 over `data`; returns the process and its base URL."""
-    proc = subprocess.Popen([BIN, "serve", "--bind", "127.0.0.1:0", "--data-dir", data, "--log", "warn", *extra],
+def serve(data, *extra, stderr=subprocess.DEVNULL, binary=None):
+    """Starts `crestscan serve` on 127.0.0.1:0 over `data` (the release build, or `binary`);
+    returns the process and its base URL."""
+    proc = subprocess.Popen([binary or BIN, "serve", "--bind", "127.0.0.1:0", "--data-dir", data, "--log", "warn", *extra],
                             stdout=subprocess.PIPE, stderr=stderr, text=True)
     line = proc.stdout.readline()
     if "listening on" not in line:
