@@ -217,8 +217,8 @@ pub async fn spawn_app() -> TestApp {
     spawn_app_with(|_| {}).await
 }
 
-/// A `crestscan serve` child process, killed and reaped when dropped if it is still running, so
-/// that a failed assertion never leaves a service behind; otherwise the child itself.
+/// A `crestscan serve` child process (it derefs to the `Child`), killed and reaped when dropped
+/// if it is still running, so that a failed assertion never leaves a service behind.
 pub struct ServeChild(std::process::Child);
 
 impl std::ops::Deref for ServeChild {
