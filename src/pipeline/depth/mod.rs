@@ -519,9 +519,7 @@ pub fn depth_from_focus_in(
                 let floors = &sorted[network.rank * w..(network.rank + 1) * w];
                 // Every pixel's colour from its sharpest frame (the first of equals).
                 for (x, colour) in colour_row.chunks_exact_mut(3).enumerate() {
-                    let mut rgb = [0f32; 3];
-                    held_frames[best_frame[r * w + x] as usize].colour_at(x, y, w, &mut rgb);
-                    colour.copy_from_slice(&unorm16(rgb));
+                    colour.copy_from_slice(&held_frames[best_frame[r * w + x] as usize].colour16_at(x, y, w));
                 }
                 for x in 0..w {
                     let floor = floors[x].max(1e-12);
@@ -545,9 +543,7 @@ pub fn depth_from_focus_in(
                             // surface's frame: the big box's colour mixes two surfaces into
                             // registration's texture (docs/notebook/accuracy.md, The depth stage's
                             // edge box).
-                            let mut rgb = [0f32; 3];
-                            held_frames[k_edge].colour_at(x, y, w, &mut rgb);
-                            colour_row[3 * x..3 * x + 3].copy_from_slice(&unorm16(rgb));
+                            colour_row[3 * x..3 * x + 3].copy_from_slice(&held_frames[k_edge].colour16_at(x, y, w));
                             k_best = own;
                         }
                     }

@@ -40,6 +40,14 @@ impl HeldFrame {
             Samples::Float(samples) => mix_corners(samples, self.frame.channels, w, corners, out),
         }
     }
+
+    /// [`HeldFrame::colour_at`] as a depth map holds it ([`super::unorm16`]).
+    #[inline]
+    pub(super) fn colour16_at(&self, x: usize, y: usize, w: usize) -> [u16; 3] {
+        let mut rgb = [0f32; 3];
+        self.colour_at(x, y, w, &mut rgb);
+        super::unorm16(rgb)
+    }
 }
 
 /// Bilinear interpolation between four values: `fx` of the way from the 0 to the 1 column, `fy`

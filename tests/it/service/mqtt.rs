@@ -249,7 +249,7 @@ async fn without_a_ca_file_the_system_roots_check_the_broker() {
             .await;
     let data = tempfile::tempdir().unwrap();
     let url = format!("mqtts://127.0.0.1:{port}");
-    let (mut child, base) = start_binary_env(
+    let (child, base) = start_binary_env(
         data.path(),
         &["--mqtt-url", &url, "--mqtt-site", "plant-sys"],
         &[("SSL_CERT_FILE", ca.as_path())],
@@ -259,7 +259,6 @@ async fn without_a_ca_file_the_system_roots_check_the_broker() {
     let (states, result) = until_result(&mut rx, "plant-sys", &id).await;
     assert_eq!(states.iter().map(|s| s.1.as_str()).collect::<Vec<_>>(), ["queued", "running", "succeeded"]);
     assert_eq!(result["inspection_id"], id);
-    let _ = child.kill();
-    let _ = child.wait();
+    drop(child); // killed by its guard, as on a failed assertion
     drop(broker);
 }

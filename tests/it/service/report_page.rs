@@ -67,24 +67,18 @@ fn page_requests(net_log: &Value, site: &str) -> Vec<String> {
         .collect()
 }
 
-/// The real binary on a loopback port over a fresh data directory, killed when dropped.
+/// The real binary on a loopback port over a fresh data directory, killed when dropped (its
+/// [`super::ServeChild`], before the directory goes).
 struct Served {
-    child: super::ServeChild,
+    _child: super::ServeChild,
     base: String,
     _data: tempfile::TempDir,
-}
-
-impl Drop for Served {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 fn serve_binary() -> Served {
     let data = tempfile::tempdir().unwrap();
     let (child, base) = start_binary(data.path(), &[]);
-    Served { child, base, _data: data }
+    Served { _child: child, base, _data: data }
 }
 
 /// Nothing on the page's console (no script error, no refused load: a refusal by the page's

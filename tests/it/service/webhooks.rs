@@ -110,19 +110,14 @@ async fn start_honeypot() -> (Arc<AtomicUsize>, String) {
     (hits, base)
 }
 
-/// The service's process, SIGKILLed when dropped (a failed assertion must not leave it running).
+/// The service's process (SIGKILLed when dropped, as every [`super::ServeChild`] is).
 struct Service(super::ServeChild);
 
 impl Service {
+    /// SIGKILL, and the process reaped.
     fn kill(&mut self) {
         let _ = self.0.kill();
         let _ = self.0.wait();
-    }
-}
-
-impl Drop for Service {
-    fn drop(&mut self) {
-        self.kill();
     }
 }
 
