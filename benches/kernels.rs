@@ -85,7 +85,7 @@ fn register_pair(c: &mut Criterion) {
     ];
     let views: Vec<Vec<SurfacePoint>> = poses.iter().map(|p| view_points(p.angle_deg, 5.5)).collect();
     let lattice = Lattice::new(RADIUS_MM, CELL_MM);
-    let options = RegisterOptions { cell_mm: CELL_MM, ..RegisterOptions::default() };
+    let options = RegisterOptions::default();
     let mut scratch = GridScratch::default();
     c.bench_function("register one overlapping pair (bin, NCC search, solve)", |b| {
         b.iter(|| {
@@ -102,7 +102,8 @@ fn register_pair(c: &mut Criterion) {
                     )
                 })
                 .collect();
-            let registration = register::register(&grids, &poses, &lattice, 6.0, 7.0, &options);
+            // The pitch of a 5-threads-per-inch buttress thread (the texture has none).
+            let registration = register::register(&grids, &poses, &lattice, 6.0, 7.0, 5.08, &options);
             assert_eq!(registration.pairs.len(), 1, "the pair is measured");
             black_box(registration)
         })
