@@ -14,7 +14,7 @@ trap cleanup EXIT
 tar -C "$work/ci" --exclude truth -cf "$work/ci.tar" .
 
 start() {
-  "$bin" serve --bind 127.0.0.1:0 --data-dir "$work/data-$1" --log warn > "$work/server-$1.out" &
+  "$bin" serve --bind 127.0.0.1:0 --data-dir "$work/data-$1" --log warn --min-free-disk-mb 64 > "$work/server-$1.out" &
   server=$!
   for _ in $(seq 1 100); do
     grep -q 'listening on' "$work/server-$1.out" 2>/dev/null && break

@@ -119,6 +119,11 @@ pub fn test_object_store(data: &Path) -> Option<(String, String)> {
     Some((format!("s3://crestscan-it/{prefix}"), endpoint))
 }
 
+/// The free space a test server keeps, MiB. The shipped 1 GiB floor would turn a test into a 507
+/// wherever the build and the suite's renders leave less free (a CI machine's disk did); the floor
+/// itself is tested where a test sets it (`hostile.rs`, `disk_full.rs`).
+pub const TEST_MIN_FREE_DISK_MB: u64 = 64;
+
 pub fn test_settings(data: &Path) -> Settings {
     let (object_store, s3_endpoint) = test_object_store(data).unzip();
     Settings {
@@ -134,6 +139,7 @@ pub fn test_settings(data: &Path) -> Settings {
         object_store,
         s3_endpoint,
         database_url: crate::common::test_database_url(data),
+        min_free_disk_mb: TEST_MIN_FREE_DISK_MB,
         ..Settings::default()
     }
 }
@@ -261,6 +267,7 @@ pub fn start_binary_env(data: &Path, extra: &[&str], env: &[(&str, &Path)]) -> (
         crate::common::test_database_url(data).map(|url| vec!["--database-url".into(), url]).unwrap_or_default();
     let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_crestscan"))
         .args(["serve", "--bind", "127.0.0.1:0", "--log", "warn"])
+        .args(["--min-free-disk-mb", &TEST_MIN_FREE_DISK_MB.to_string()])
         .args(&blobs)
         .args(&records)
         .args(extra)
