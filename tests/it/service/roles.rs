@@ -54,3 +54,32 @@ fn a_worker_process_without_workers_is_refused() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(stderr.contains("workers") && stderr.contains("role worker"), "{stderr}");
 }
+
+/// A `serve` process runs with few malloc arenas: it starts itself again with `MALLOC_ARENA_MAX`
+/// set (one per two cores), keeping its pid, and still serves; an operator's own value is kept.
+#[test]
+fn serve_runs_with_few_malloc_arenas_unless_the_operator_set_them() {
+    fn arenas_of(own: Option<&str>) -> Option<String> {
+        let dir = tempfile::tempdir().unwrap();
+        let mut command = std::process::Command::new(env!("CARGO_BIN_EXE_crestscan"));
+        command
+            .args(["serve", "--bind", "127.0.0.1:0", "--log", "warn", "--min-free-disk-mb", "64", "--data-dir"])
+            .arg(dir.path())
+            .stdout(std::process::Stdio::piped())
+            .env_remove("MALLOC_ARENA_MAX");
+        if let Some(own) = own {
+            command.env("MALLOC_ARENA_MAX", own);
+        }
+        let mut child = ServeChild(command.spawn().unwrap());
+        let mut line = String::new();
+        std::io::BufRead::read_line(&mut std::io::BufReader::new(child.0.stdout.take().unwrap()), &mut line).unwrap();
+        assert!(line.contains("listening on http://127.0.0.1:"), "{line}");
+        let environ = std::fs::read(format!("/proc/{}/environ", child.id())).unwrap();
+        environ
+            .split(|&b| b == 0)
+            .find_map(|kv| kv.strip_prefix(b"MALLOC_ARENA_MAX=").map(|v| String::from_utf8_lossy(v).into_owned()))
+    }
+    let cores = std::thread::available_parallelism().unwrap().get();
+    assert_eq!(arenas_of(None), Some((cores / 2).max(1).to_string()));
+    assert_eq!(arenas_of(Some("3")).as_deref(), Some("3"));
+}
