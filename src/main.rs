@@ -25,12 +25,10 @@ fn main() -> std::process::ExitCode {
 }
 
 /// glibc gives a thread that meets a locked arena one of its own (up to 8 per core), and memory
-/// freed into one arena is not reused by another. A worker process (tokio's threads and rayon's)
-/// measured on 2 cores with `MALLOC_ARENA_MAX=1` in its environment: peak resident 490–536 MB
-/// against 585–588 on standard bundles, 150–166 against 235–249 on ci, at the same CPU time
-/// (docs/notebook/speed.md). Set by `mallopt` from here it held no peak down, so the process
-/// starts itself again with the variable set (same pid, arguments and streams): one arena per two
-/// cores. A `MALLOC_ARENA_MAX` already set is left as it is.
+/// freed into one arena is not reused by another: a worker's peak resident size fell by 15–35%
+/// with `MALLOC_ARENA_MAX` set, at the same CPU time (docs/notebook/speed.md). Set by `mallopt`
+/// from here it held no peak down, so the process starts itself again with the variable set (same
+/// pid, arguments and streams): one arena per two cores. One already set is left as it is.
 fn few_malloc_arenas() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     if std::env::var_os("MALLOC_ARENA_MAX").is_none() {
