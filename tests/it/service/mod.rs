@@ -271,6 +271,8 @@ pub fn start_binary_env(data: &Path, extra: &[&str], env: &[(&str, &Path)]) -> (
         .args(&blobs)
         .args(&records)
         .args(extra)
+        // The child's malloc arenas are the service's own choice unless a test names them.
+        .env_remove("MALLOC_ARENA_MAX")
         .envs(env.iter().copied())
         .arg("--data-dir")
         .arg(data)

@@ -61,19 +61,8 @@ fn a_worker_process_without_workers_is_refused() {
 fn serve_runs_with_few_malloc_arenas_unless_the_operator_set_them() {
     fn arenas_of(own: Option<&str>) -> Option<String> {
         let dir = tempfile::tempdir().unwrap();
-        let mut command = std::process::Command::new(env!("CARGO_BIN_EXE_crestscan"));
-        command
-            .args(["serve", "--bind", "127.0.0.1:0", "--log", "warn", "--min-free-disk-mb", "64", "--data-dir"])
-            .arg(dir.path())
-            .stdout(std::process::Stdio::piped())
-            .env_remove("MALLOC_ARENA_MAX");
-        if let Some(own) = own {
-            command.env("MALLOC_ARENA_MAX", own);
-        }
-        let mut child = ServeChild(command.spawn().unwrap());
-        let mut line = String::new();
-        std::io::BufRead::read_line(&mut std::io::BufReader::new(child.0.stdout.take().unwrap()), &mut line).unwrap();
-        assert!(line.contains("listening on http://127.0.0.1:"), "{line}");
+        let env: Vec<(&str, &Path)> = own.map(|own| ("MALLOC_ARENA_MAX", Path::new(own))).into_iter().collect();
+        let (child, _base) = start_binary_env(dir.path(), &[], &env);
         let environ = std::fs::read(format!("/proc/{}/environ", child.id())).unwrap();
         environ
             .split(|&b| b == 0)
