@@ -30,11 +30,58 @@ pub fn rendered(preset: &'static str) -> &'static Path {
     })
 }
 
+/// What a placed render is: preset, the simulator's station (if named), part seed, placement
+/// seed, focus drift (its bits).
+type PlacedKey = (String, Option<String>, u64, u64, u64);
+
+/// Placed renders made so far in this process, each its own cell (a render in progress holds only
+/// its own).
+static PLACED: std::sync::Mutex<Vec<(PlacedKey, &'static OnceLock<PathBuf>)>> = std::sync::Mutex::new(Vec::new());
+
+/// A `ci*` preset's part `seed`, placed anew (`placement`: encoders and sensor noise), recorded at
+/// the simulator's named station `at` if given, every frame `drift_mm` further along the camera's
+/// axis than its manifest says: rendered once per test process (several tests study the same
+/// master runs), shared read-only, removed when the process exits. Truth under `truth/`.
+pub fn placed(preset: &str, at: Option<&str>, seed: u64, placement: u64, drift_mm: f64) -> &'static Path {
+    let key: PlacedKey = (preset.to_string(), at.map(str::to_string), seed, placement, drift_mm.to_bits());
+    let cell: &'static OnceLock<PathBuf> = {
+        let mut placed = PLACED.lock().unwrap_or_else(|e| e.into_inner());
+        match placed.iter().find(|(k, _)| *k == key) {
+            Some((_, cell)) => cell,
+            None => {
+                let cell: &'static OnceLock<PathBuf> = Box::leak(Box::new(OnceLock::new()));
+                placed.push((key, cell));
+                cell
+            }
+        }
+    };
+    cell.get_or_init(|| {
+        assert!(preset.starts_with("ci"), "tests render only the ci presets, not {preset}");
+        remove_renders_at_exit();
+        let dir =
+            tempfile::Builder::new().prefix(&format!("crestscan-{preset}-{seed}-{placement}-")).tempdir().unwrap();
+        let mut spec = sim::preset(preset).unwrap();
+        if let Some(at) = at {
+            let station =
+                sim::station::station(at, seed, spec.part.pipe_od_mm / 2.0, sim::station::z_span_mm(&spec)).unwrap();
+            spec = sim::station::at_station(&spec, &station);
+        }
+        let spec = sim::SimSpec { focus_drift_mm: drift_mm, ..spec };
+        sim::simulate_placed(&spec, seed, placement, dir.path(), &|_| {}).unwrap();
+        dir.keep()
+    })
+}
+
 /// Statics are never dropped, so a `TempDir` kept in one would never be removed: the renders are
 /// deleted by a C `atexit` hook instead, which runs when the test harness returns from `main`.
 fn remove_renders_at_exit() {
     extern "C" fn remove_renders() {
         for dir in [&CI, &TELECENTRIC, &REJECT].into_iter().filter_map(|cell| cell.get()) {
+            let _ = std::fs::remove_dir_all(dir);
+        }
+        // A test that panicked while holding the list poisoned it; the renders still go.
+        let placed = PLACED.lock().unwrap_or_else(|e| e.into_inner());
+        for dir in placed.iter().filter_map(|(_, cell)| cell.get()) {
             let _ = std::fs::remove_dir_all(dir);
         }
     }

@@ -322,6 +322,27 @@ pub fn bundle_tar(dir: &Path, keep: &dyn Fn(&str) -> bool) -> Vec<u8> {
     builder.into_inner().unwrap()
 }
 
+/// The bundle in `dir` (without its truth) as a tar whose `manifest.json` is `manifest` instead,
+/// in the same place: the render stays shared and unedited.
+pub fn bundle_tar_with_manifest(dir: &Path, manifest: &[u8]) -> Vec<u8> {
+    let mut builder = tar::Builder::new(Vec::new());
+    for file in walk(dir) {
+        let rel = file.strip_prefix(dir).unwrap().to_string_lossy().replace('\\', "/");
+        if rel.starts_with("truth") {
+            continue;
+        }
+        if rel == "manifest.json" {
+            let mut header = tar::Header::new_gnu();
+            header.set_size(manifest.len() as u64);
+            header.set_mode(0o644);
+            builder.append_data(&mut header, &rel, manifest).unwrap();
+        } else {
+            builder.append_path_with_name(&file, &rel).unwrap();
+        }
+    }
+    builder.into_inner().unwrap()
+}
+
 fn truth() -> Truth {
     serde_json::from_slice(&std::fs::read(ci_bundle().join("truth/truth.json")).unwrap()).unwrap()
 }

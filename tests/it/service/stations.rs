@@ -27,21 +27,12 @@ fn placed_tar(
     station: &str,
     drift_mm: f64,
 ) -> (Vec<u8>, Truth) {
-    let dir = tempfile::tempdir().unwrap();
-    let mut spec = sim::preset(preset).unwrap();
-    if let Some(at) = at {
-        let s = sim::station::station(at, seed, spec.part.pipe_od_mm / 2.0, sim::station::z_span_mm(&spec)).unwrap();
-        spec = sim::station::at_station(&spec, &s);
-    }
-    let spec = sim::SimSpec { focus_drift_mm: drift_mm, ..spec };
-    sim::simulate_placed(&spec, seed, placement, dir.path(), &|_| {}).unwrap();
-    let path = dir.path().join("manifest.json");
-    let mut manifest: Value = serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
+    let dir = crate::common::placed(preset, at, seed, placement, drift_mm);
+    let mut manifest: Value = serde_json::from_slice(&std::fs::read(dir.join("manifest.json")).unwrap()).unwrap();
     manifest["part"]["serial"] = serial.into();
     manifest["station"] = station.into();
-    std::fs::write(&path, serde_json::to_vec(&manifest).unwrap()).unwrap();
-    let truth: Truth = serde_json::from_slice(&std::fs::read(dir.path().join("truth/truth.json")).unwrap()).unwrap();
-    (bundle_tar(dir.path(), &|_| true), truth)
+    let truth: Truth = serde_json::from_slice(&std::fs::read(dir.join("truth/truth.json")).unwrap()).unwrap();
+    (bundle_tar_with_manifest(dir, &serde_json::to_vec(&manifest).unwrap()), truth)
 }
 
 async fn post_json(app: &TestApp, path: &str, body: Value) -> reqwest::Response {
