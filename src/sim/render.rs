@@ -292,7 +292,7 @@ impl Camera<'_> {
 }
 
 /// Largest blur-circle radius rendered, in pixels: beyond it a point is spread so thin that it
-/// carries no focus information; the cap bounds the gather window.
+/// carries no focus information; the cap bounds how far a pixel's disc reaches.
 pub const MAX_BLUR_RADIUS_PX: f32 = 12.0;
 
 /// Renders one frame to 8- or 16-bit samples, interleaved RGB or gray.
