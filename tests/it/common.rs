@@ -79,8 +79,13 @@ fn remove_renders_at_exit() {
         for dir in [&CI, &TELECENTRIC, &REJECT].into_iter().filter_map(|cell| cell.get()) {
             let _ = std::fs::remove_dir_all(dir);
         }
-        // A test that panicked while holding the list poisoned it; the renders still go.
-        let placed = PLACED.lock().unwrap_or_else(|e| e.into_inner());
+        let placed = match PLACED.try_lock() {
+            Ok(placed) => placed,
+            // A test that panicked while holding the list poisoned it; the renders still go.
+            Err(std::sync::TryLockError::Poisoned(e)) => e.into_inner(),
+            // A thread still running at exit holds it: leave the renders rather than wait.
+            Err(std::sync::TryLockError::WouldBlock) => return,
+        };
         for dir in placed.iter().filter_map(|(_, cell)| cell.get()) {
             let _ = std::fs::remove_dir_all(dir);
         }
