@@ -7,14 +7,13 @@ use crestscan::domain::thread::ConnectionTable;
 use crestscan::eval::budget::{self, BANDS, Variant};
 use crestscan::pipeline::PipelineOptions;
 use crestscan::pipeline::profile::Correction;
-use crestscan::sim::Truth;
 use std::sync::atomic::AtomicBool;
 
 #[test]
 fn the_budget_puts_each_stage_s_truth_in_and_measures_what_follows() {
     let dir = ci_bundle();
     let bundle = Bundle::open(dir, &ConnectionTable::api5b(), OpenOptions::default()).unwrap();
-    let truth: Truth = serde_json::from_slice(&std::fs::read(dir.join("truth/truth.json")).unwrap()).unwrap();
+    let truth = crate::common::truth_of(dir);
     let options = PipelineOptions::default();
     let b = budget::budget("ci", &bundle, dir, &truth, &options, crestscan::learned::models(), &Variant::ALL).unwrap();
     assert_eq!(b.variants.iter().map(|v| v.variant).collect::<Vec<_>>(), Variant::ALL.to_vec());

@@ -30,6 +30,11 @@ pub fn rendered(preset: &'static str) -> &'static Path {
     })
 }
 
+/// A rendered bundle's truth (`truth/truth.json` under `dir`).
+pub fn truth_of(dir: &Path) -> sim::Truth {
+    serde_json::from_slice(&std::fs::read(dir.join("truth/truth.json")).unwrap()).unwrap()
+}
+
 /// What a placed render is: preset, the simulator's station (if named), part seed, placement
 /// seed, focus drift (its bits).
 type PlacedKey = (String, Option<String>, u64, u64, u64);

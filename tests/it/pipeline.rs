@@ -5,13 +5,10 @@ use crestscan::bundle::{Bundle, OpenOptions};
 use crestscan::domain::thread::ConnectionTable;
 use crestscan::eval;
 use crestscan::pipeline::{self, PipelineOptions, Stage};
-use crestscan::sim::Truth;
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicBool, Ordering};
 
-fn truth(dir: &std::path::Path) -> Truth {
-    serde_json::from_slice(&std::fs::read(dir.join("truth/truth.json")).unwrap()).unwrap()
-}
+use crate::common::truth_of as truth;
 
 #[test]
 fn inspection_of_the_ci_bundle_matches_truth() {

@@ -239,14 +239,13 @@ fn two_masters_measure_the_spread_between_them() {
         // The runs as `simulate --placement-seed` writes them, rendered once per test process (the
         // service's station tests study seed 7's too; the test above goes through the CLI), and
         // the certificate as `simulate --certificate` writes it: 2 µm (k = 2), the last run's truth.
-        let mut truth = None;
+        let mut last = None;
         for placement in 101..=110 {
             let render = crate::common::placed("ci-reject", None, seed, placement, 0.0);
             crate::common::copy_tree(render, &runs.join(format!("run-{placement}")), &|_| true);
-            truth = Some(render.join("truth/truth.json"));
+            last = Some(render);
         }
-        let truth: crestscan::sim::Truth = serde_json::from_slice(&std::fs::read(truth.unwrap()).unwrap()).unwrap();
-        let cert = crestscan::sim::certificate(&truth, 0.002, seed);
+        let cert = crestscan::sim::certificate(&crate::common::truth_of(last.unwrap()), 0.002, seed);
         std::fs::write(&certificate, serde_json::to_vec_pretty(&cert).unwrap()).unwrap();
         args.extend(["--master".into(), path(&runs), "--certificate".into(), path(&certificate)]);
     }

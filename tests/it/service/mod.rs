@@ -311,40 +311,39 @@ pub fn ci_tar() -> Vec<u8> {
 }
 
 pub fn bundle_tar(dir: &Path, keep: &dyn Fn(&str) -> bool) -> Vec<u8> {
+    tar_of(dir, keep, None)
+}
+
+/// The bundle in `dir` (without its truth) as a tar whose `manifest.json` is `manifest` instead,
+/// in the same place: the render stays shared and unedited.
+pub fn bundle_tar_with_manifest(dir: &Path, manifest: &[u8]) -> Vec<u8> {
+    tar_of(dir, &|_| true, Some(manifest))
+}
+
+/// The files under `dir` that `keep` takes, truth left out, as a tar; `manifest.json` from
+/// `manifest` where given.
+fn tar_of(dir: &Path, keep: &dyn Fn(&str) -> bool, manifest: Option<&[u8]>) -> Vec<u8> {
     let mut builder = tar::Builder::new(Vec::new());
     for file in walk(dir) {
         let rel = file.strip_prefix(dir).unwrap().to_string_lossy().replace('\\', "/");
         if rel.starts_with("truth") || !keep(&rel) {
             continue;
         }
-        builder.append_path_with_name(&file, &rel).unwrap();
-    }
-    builder.into_inner().unwrap()
-}
-
-/// The bundle in `dir` (without its truth) as a tar whose `manifest.json` is `manifest` instead,
-/// in the same place: the render stays shared and unedited.
-pub fn bundle_tar_with_manifest(dir: &Path, manifest: &[u8]) -> Vec<u8> {
-    let mut builder = tar::Builder::new(Vec::new());
-    for file in walk(dir) {
-        let rel = file.strip_prefix(dir).unwrap().to_string_lossy().replace('\\', "/");
-        if rel.starts_with("truth") {
-            continue;
-        }
-        if rel == "manifest.json" {
-            let mut header = tar::Header::new_gnu();
-            header.set_size(manifest.len() as u64);
-            header.set_mode(0o644);
-            builder.append_data(&mut header, &rel, manifest).unwrap();
-        } else {
-            builder.append_path_with_name(&file, &rel).unwrap();
+        match manifest {
+            Some(manifest) if rel == "manifest.json" => {
+                let mut header = tar::Header::new_gnu();
+                header.set_size(manifest.len() as u64);
+                header.set_mode(0o644);
+                builder.append_data(&mut header, &rel, manifest).unwrap();
+            }
+            _ => builder.append_path_with_name(&file, &rel).unwrap(),
         }
     }
     builder.into_inner().unwrap()
 }
 
 fn truth() -> Truth {
-    serde_json::from_slice(&std::fs::read(ci_bundle().join("truth/truth.json")).unwrap()).unwrap()
+    crate::common::truth_of(ci_bundle())
 }
 
 async fn problem(response: reqwest::Response, status: StatusCode, code: &str) -> Value {

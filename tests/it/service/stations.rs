@@ -31,8 +31,7 @@ fn placed_tar(
     let mut manifest: Value = serde_json::from_slice(&std::fs::read(dir.join("manifest.json")).unwrap()).unwrap();
     manifest["part"]["serial"] = serial.into();
     manifest["station"] = station.into();
-    let truth: Truth = serde_json::from_slice(&std::fs::read(dir.join("truth/truth.json")).unwrap()).unwrap();
-    (bundle_tar_with_manifest(dir, &serde_json::to_vec(&manifest).unwrap()), truth)
+    (bundle_tar_with_manifest(dir, &serde_json::to_vec(&manifest).unwrap()), crate::common::truth_of(dir))
 }
 
 async fn post_json(app: &TestApp, path: &str, body: Value) -> reqwest::Response {
