@@ -1,23 +1,28 @@
-//! An OPC UA server modelled on OPC 40100 (OPC UA for Machine Vision), `opcua_endpoint`
-//! (docs/interchange.md, "OPC UA"). Under `Objects/VisionSystem`, in the namespace
-//! [`NAMESPACE`]:
+//! An OPC UA server on OPC 40100-1 (OPC UA for Machine Vision), `opcua_endpoint`
+//! (docs/interchange.md, "OPC UA"). The companion specification's NodeSet (`data/opcua/`, its
+//! namespace [`MV_NAMESPACE`]) is loaded at start; crestscan's instances and its own additions
+//! are in the namespace [`NAMESPACE`]. Under `Objects/VisionSystem` (a `VisionSystemType`):
 //!
-//! - `VisionStateMachine/CurrentState`: `Preoperational` until the first look at the store,
-//!   `Operational` while the store reads and takes writes, `Error` (with `ErrorReason`) while it
-//!   does not, `Halted` once the service is stopping; `ExecutionState` below it: `Ready` (nothing
-//!   queued or running) or `Executing`, with the queued and running inspections counted;
+//! - `VisionStateMachine` (`VisionStateMachineType`), its `CurrentState` (with `Id`, the
+//!   specification's state node): `Preoperational` until the first look at the store,
+//!   `Operational` while the store reads and takes writes, `Error` (with crestscan's
+//!   `ErrorReason`) while it does not, `Halted` once the service is stopping; crestscan's
+//!   `ExecutionState` beside it: `Ready` (nothing queued or running) or `Executing`, with the
+//!   queued and running inspections counted;
 //! - `RecipeManagement/Recipes/default`: the pipeline options a submission gets unless it overrides
 //!   them (`Content`, JSON);
 //! - `ConfigurationManagement/Configurations/<station>`: each station's status (qualified,
 //!   suspended, …) and its reason;
 //! - `ResultManagement/LastResult`: the last succeeded inspection's result;
-//! - `ResultReadyEventType` events (the VisionSystem is their source and notifier; the Server
-//!   object sees them too) for each succeeded inspection: its id, verdict, decision, review flag,
-//!   station, serial, connection, report link, and per thread its number, mean height,
-//!   uncertainty, finding and black-crest length.
+//! - events of crestscan's `ThreadResultReadyEventType`, a subtype of the specification's
+//!   `ResultReadyEventType` (the VisionSystem is their source and notifier; the Server object sees
+//!   them too), for each succeeded inspection: the specification's fields (`ResultId`, `JobId`,
+//!   `PartId`, the recipe and configuration ids as its structures, `ResultState`, …) and
+//!   crestscan's: verdict, decision, review flag, station, serial, connection, report link, and per
+//!   thread its number, mean height, uncertainty, finding and black-crest length.
 //!
-//! The companion specification's own NodeSet (its type NodeIds and the structured
-//! `ResultDataType`) is not loaded: the names follow it, the types are this namespace's.
+//! The specification's methods (`Halt`, `Reset`, `GetResultById`, recipe and configuration
+//! management) are not offered: the state follows the store, and results are read over REST.
 //!
 //! Each process serving the API with an endpoint follows the database's `events` table (as the MQTT
 //! publisher does, but every server sees every event), so results another process finished are
@@ -27,20 +32,21 @@
 use crate::service::auth::{self, Scope};
 use crate::service::config::{AuthMode, Settings};
 use crate::service::opcua_settings::Endpoint;
-use crate::service::store::{Store, StoreError};
+use crate::service::store::{InspectionRow, Store, StoreError};
 use opcua::Event;
 use opcua::crypto::SecurityPolicy;
-use opcua::nodes::BaseEventType;
+use opcua::nodes::{BaseEventType, NodeSet2Import};
 use opcua::server::address_space::{AddressSpace, EventNotifier, ObjectBuilder, ObjectTypeBuilder, VariableBuilder};
 use opcua::server::authenticator::{AuthManager, Password, UserToken, user_pass_security_policy_id};
 use opcua::server::diagnostics::NamespaceMetadata;
-use opcua::server::node_manager::memory::{SimpleNodeManager, simple_node_manager};
+use opcua::server::node_manager::memory::{SimpleNodeManager, simple_node_manager, simple_node_manager_imports};
 use opcua::server::{ANONYMOUS_USER_TOKEN_ID, Server, ServerBuilder, ServerEndpoint, ServerHandle};
 use opcua::types::{
-    BuildInfo, ByteString, DataTypeId, DataValue, DateTime, Error as UaError, LocalizedText, MessageSecurityMode,
-    NodeId, ObjectId, ObjectTypeId, QualifiedName, StatusCode, UAString, UserTokenPolicy, UserTokenType,
-    VariableTypeId, Variant,
+    BuildInfo, ByteString, DataTypeId, DataValue, DateTime, Error as UaError, ExpandedNodeId, ExtensionObject,
+    LocalizedText, MessageSecurityMode, NodeId, ObjectId, ObjectTypeId, QualifiedName, StatusCode, UAString,
+    UserTokenPolicy, UserTokenType, VariableTypeId, Variant,
 };
+use sha2::{Digest, Sha256};
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::net::TcpListener;
@@ -48,6 +54,13 @@ use tokio::sync::watch;
 
 /// The namespace of crestscan's nodes and types.
 pub const NAMESPACE: &str = "urn:crestscan:machine-vision";
+/// OPC 40100-1's namespace, its NodeSet's model.
+pub const MV_NAMESPACE: &str = "http://opcfoundation.org/UA/MachineVision";
+/// OPC 40100-1's NodeSet, compiled in (data/opcua/SOURCE.md).
+const MV_NODESET: &str = include_str!("../../data/opcua/Opc.Ua.MachineVision.NodeSet2.xml");
+/// The node managers' names: the specification's types, crestscan's instances.
+const MV_MANAGER: &str = "machine-vision";
+const OWN_MANAGER: &str = "crestscan";
 /// How often the server looks for new events.
 const POLL: Duration = Duration::from_millis(500);
 /// How often it checks that the store reads and takes a write (the check commits a row, so not at
@@ -56,18 +69,142 @@ const HEALTH: Duration = Duration::from_secs(5);
 /// Events read at a time.
 const BATCH: i64 = 100;
 
-/// A succeeded inspection, as OPC 40100's ResultReadyEventType announces a result (flattened:
-/// the per-thread summary as parallel arrays, index i for the thread `ThreadNumbers[i]`).
+/// Numeric node ids in OPC 40100-1's NodeSet (its namespace).
+mod mv {
+    pub const VISION_SYSTEM_TYPE: u32 = 1003;
+    pub const RECIPE_MANAGEMENT_TYPE: u32 = 1004;
+    pub const CONFIGURATION_MANAGEMENT_TYPE: u32 = 1006;
+    pub const RESULT_MANAGEMENT_TYPE: u32 = 1007;
+    pub const RECIPE_FOLDER_TYPE: u32 = 1008;
+    pub const CONFIGURATION_FOLDER_TYPE: u32 = 1011;
+    pub const VISION_STATE_MACHINE_TYPE: u32 = 1017;
+    pub const RESULT_READY_EVENT_TYPE: u32 = 1024;
+    /// VisionStateMachineType's states (their StateNumber 1 to 4).
+    pub const STATES: [(&str, u32); 4] =
+        [("Preoperational", 5028), ("Halted", 5029), ("Error", 5030), ("Operational", 5031)];
+    /// Data types: (the type, its Default Binary and Default XML encodings).
+    pub const RESULT_ID: (u32, u32, u32) = (3021, 5274, 5275);
+    pub const JOB_ID: (u32, u32, u32) = (3016, 5008, 5026);
+    pub const PART_ID: (u32, u32, u32) = (3004, 5013, 5014);
+    pub const CONFIGURATION_ID: (u32, u32, u32) = (3008, 5090, 5091);
+    pub const RECIPE_ID_INTERNAL: (u32, u32, u32) = (3013, 5268, 5269);
+    pub const RESULT_STATE: u32 = 3009;
+}
+
+/// A node id in OPC 40100-1's namespace by its URI, resolved where it is encoded.
+fn mv_id(id: u32) -> ExpandedNodeId {
+    ExpandedNodeId { node_id: NodeId::new(0, id), namespace_uri: MV_NAMESPACE.into(), server_index: 0 }
+}
+
+/// An OPC 40100-1 structure: its binary and XML encodings (the derives, named one by one since
+/// `ua_encodable` gates XML on the calling crate's features) and its data type and encoding ids.
+macro_rules! mv_structure {
+    ($(#[$meta:meta])* $name:ident, $ids:expr, { $($body:tt)* }) => {
+        $(#[$meta])*
+        #[derive(
+            Debug,
+            Clone,
+            PartialEq,
+            Default,
+            opcua::types::BinaryEncodable,
+            opcua::types::BinaryDecodable,
+            opcua::types::UaNullable,
+            opcua::types::XmlEncodable,
+            opcua::types::XmlDecodable,
+            opcua::types::XmlType
+        )]
+        pub struct $name { $($body)* }
+
+        impl opcua::types::ExpandedMessageInfo for $name {
+            fn full_type_id(&self) -> ExpandedNodeId {
+                mv_id($ids.1)
+            }
+            fn full_json_type_id(&self) -> ExpandedNodeId {
+                // OPC 40100-1 1.0 defines no JSON encoding.
+                ExpandedNodeId::null()
+            }
+            fn full_xml_type_id(&self) -> ExpandedNodeId {
+                mv_id($ids.2)
+            }
+            fn full_data_type_id(&self) -> ExpandedNodeId {
+                mv_id($ids.0)
+            }
+        }
+    };
+}
+
+mv_structure!(
+    /// `ResultIdDataType`: the system's id of a result.
+    ResultIdDataType, mv::RESULT_ID, { pub id: UAString }
+);
+mv_structure!(
+    /// `JobIdDataType`: the system's id of the job that made a result.
+    JobIdDataType, mv::JOB_ID, { pub id: UAString }
+);
+mv_structure!(
+    /// `PartIdDataType`: the part a result is about.
+    PartIdDataType, mv::PART_ID, {
+        pub id: UAString,
+        #[opcua(optional)]
+        pub description: Option<LocalizedText>,
+    }
+);
+
+/// `BinaryIdBaseDataType`'s fields, which `ConfigurationIdDataType` and `RecipeIdInternalDataType`
+/// inherit unchanged.
+macro_rules! binary_id {
+    ($name:ident, $ids:expr, $doc:literal) => {
+        mv_structure!(
+            #[doc = $doc]
+            $name, $ids, {
+                pub id: UAString,
+                #[opcua(optional)]
+                pub version: Option<UAString>,
+                #[opcua(optional)]
+                pub hash: Option<ByteString>,
+                #[opcua(optional)]
+                pub hash_algorithm: Option<UAString>,
+                #[opcua(optional)]
+                pub description: Option<LocalizedText>,
+            }
+        );
+    };
+}
+binary_id!(
+    ConfigurationIdDataType,
+    mv::CONFIGURATION_ID,
+    "`ConfigurationIdDataType`: the configuration (for crestscan, the station) a result was made at."
+);
+binary_id!(
+    RecipeIdInternalDataType,
+    mv::RECIPE_ID_INTERNAL,
+    "`RecipeIdInternalDataType`: the recipe (the pipeline options) a result was made with."
+);
+
+/// OPC 40100-1's ResultReadyEventType: its mandatory fields, and the optional PartId.
 #[derive(Event)]
-#[opcua(identifier = "s=ResultReadyEventType", namespace = "urn:crestscan:machine-vision")]
-pub struct ResultReadyEvent {
+#[opcua(identifier = "i=1024", namespace = "http://opcfoundation.org/UA/MachineVision")]
+pub struct MvResultReadyEvent {
     base: BaseEventType,
     own_namespace_index: u16,
-    /// The inspection's id.
-    result_id: String,
+    creation_time: DateTime,
+    result_id: ExtensionObject,
+    job_id: ExtensionObject,
+    internal_recipe_id: ExtensionObject,
+    internal_configuration_id: ExtensionObject,
     is_partial: bool,
     /// 1 conforms, 2 does not conform, 0 indeterminate (the ISO 14253-1 decision).
     result_state: i32,
+    part_id: Option<ExtensionObject>,
+}
+
+/// A succeeded inspection: OPC 40100-1's ResultReadyEventType with crestscan's fields (the
+/// per-thread summary as parallel arrays, index i for the thread `ThreadNumbers[i]`).
+#[derive(Event)]
+#[opcua(identifier = "s=ThreadResultReadyEventType", namespace = "urn:crestscan:machine-vision")]
+pub struct ResultReadyEvent {
+    base: MvResultReadyEvent,
+    own_namespace_index: u16,
     verdict: String,
     decision: String,
     review_required: bool,
@@ -87,6 +224,7 @@ impl ResultReadyEvent {
     /// `Variant::Empty` for a name the event does not have.
     fn field(&self, name: &str) -> Variant {
         use opcua::nodes::Event as _;
+        // The derived events match a field by its name; the namespace is the subscriber's.
         self.get_field(
             &ObjectTypeId::BaseEventType.into(),
             opcua::types::AttributeId::Value,
@@ -96,24 +234,63 @@ impl ResultReadyEvent {
     }
 }
 
-/// The event type's fields as properties of its type node, name, data type and whether an array:
-/// a client builds its event filter from them.
-const RESULT_FIELDS: [(&str, DataTypeId, bool); 15] = [
-    ("ResultId", DataTypeId::String, false),
-    ("IsPartial", DataTypeId::Boolean, false),
-    ("ResultState", DataTypeId::Int32, false),
-    ("Verdict", DataTypeId::String, false),
-    ("Decision", DataTypeId::String, false),
-    ("ReviewRequired", DataTypeId::Boolean, false),
-    ("Station", DataTypeId::String, false),
-    ("Serial", DataTypeId::String, false),
-    ("Connection", DataTypeId::String, false),
-    ("Report", DataTypeId::String, false),
-    ("ThreadNumbers", DataTypeId::Int32, true),
-    ("ThreadMeanHeightsMm", DataTypeId::Double, true),
-    ("ThreadHeightUncertaintiesMm", DataTypeId::Double, true),
-    ("ThreadFindings", DataTypeId::String, true),
-    ("ThreadBlackCrestLengthsMm", DataTypeId::Double, true),
+/// The namespace a node id or browse name is in.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Ns {
+    Core,
+    Mv,
+    Own,
+}
+
+/// The ids of the server's two namespaces.
+#[derive(Debug, Clone, Copy)]
+struct Namespaces {
+    mv: u16,
+    own: u16,
+}
+
+impl Namespaces {
+    fn index(&self, ns: Ns) -> u16 {
+        match ns {
+            Ns::Core => 0,
+            Ns::Mv => self.mv,
+            Ns::Own => self.own,
+        }
+    }
+
+    fn id(&self, ns: Ns, id: u32) -> NodeId {
+        NodeId::new(self.index(ns), id)
+    }
+
+    fn name(&self, ns: Ns, name: &str) -> QualifiedName {
+        QualifiedName::new(self.index(ns), name)
+    }
+}
+
+/// A result's fields: the browse name's namespace and name, the data type (its namespace and
+/// number) and whether an array. OPC 40100-1's are declared by its type; crestscan's are
+/// properties of `ThreadResultReadyEventType`. A client builds its event filter from them.
+const RESULT_FIELDS: [(Ns, &str, Ns, u32, bool); 20] = [
+    (Ns::Mv, "ResultId", Ns::Mv, mv::RESULT_ID.0, false),
+    (Ns::Mv, "JobId", Ns::Mv, mv::JOB_ID.0, false),
+    (Ns::Mv, "PartId", Ns::Mv, mv::PART_ID.0, false),
+    (Ns::Mv, "InternalRecipeId", Ns::Mv, mv::RECIPE_ID_INTERNAL.0, false),
+    (Ns::Mv, "InternalConfigurationId", Ns::Mv, mv::CONFIGURATION_ID.0, false),
+    (Ns::Mv, "CreationTime", Ns::Core, DataTypeId::UtcTime as u32, false),
+    (Ns::Mv, "IsPartial", Ns::Core, DataTypeId::Boolean as u32, false),
+    (Ns::Mv, "ResultState", Ns::Mv, mv::RESULT_STATE, false),
+    (Ns::Own, "Verdict", Ns::Core, DataTypeId::String as u32, false),
+    (Ns::Own, "Decision", Ns::Core, DataTypeId::String as u32, false),
+    (Ns::Own, "ReviewRequired", Ns::Core, DataTypeId::Boolean as u32, false),
+    (Ns::Own, "Station", Ns::Core, DataTypeId::String as u32, false),
+    (Ns::Own, "Serial", Ns::Core, DataTypeId::String as u32, false),
+    (Ns::Own, "Connection", Ns::Core, DataTypeId::String as u32, false),
+    (Ns::Own, "Report", Ns::Core, DataTypeId::String as u32, false),
+    (Ns::Own, "ThreadNumbers", Ns::Core, DataTypeId::Int32 as u32, true),
+    (Ns::Own, "ThreadMeanHeightsMm", Ns::Core, DataTypeId::Double as u32, true),
+    (Ns::Own, "ThreadHeightUncertaintiesMm", Ns::Core, DataTypeId::Double as u32, true),
+    (Ns::Own, "ThreadFindings", Ns::Core, DataTypeId::String as u32, true),
+    (Ns::Own, "ThreadBlackCrestLengthsMm", Ns::Core, DataTypeId::Double as u32, true),
 ];
 
 /// Unix milliseconds as OPC UA's time (100 ns ticks since 1601-01-01).
@@ -202,9 +379,10 @@ impl AuthManager for ApiKeys {
 
 /// Node ids of what changes while the server runs.
 struct Nodes {
-    ns: u16,
+    ns: Namespaces,
     vision_system: NodeId,
     current_state: NodeId,
+    current_state_id: NodeId,
     error_reason: NodeId,
     execution_state: NodeId,
     queued: NodeId,
@@ -214,7 +392,7 @@ struct Nodes {
 
 impl Nodes {
     fn id(&self, path: &str) -> NodeId {
-        NodeId::new(self.ns, path.to_string())
+        NodeId::new(self.ns.own, path.to_string())
     }
 }
 
@@ -240,6 +418,8 @@ impl OpcUaServer {
         let url = format!("opc.tcp://{host}:{port}/");
         let pki = settings.opcua_pki_dir();
         std::fs::create_dir_all(&pki).map_err(|e| format!("opcua_pki_dir {}: {e}", pki.display()))?;
+        let nodeset = NodeSet2Import::new_str("en", MV_NODESET, Vec::new())
+            .map_err(|e| format!("OPC UA server: OPC 40100's NodeSet (data/opcua/) does not load: {e}"))?;
         let tokens = [ANONYMOUS_USER_TOKEN_ID.to_string()];
         let version = env!("CARGO_PKG_VERSION");
         let mut builder = ServerBuilder::new()
@@ -266,9 +446,10 @@ impl OpcUaServer {
                 store: store.clone(),
                 required: settings.auth == AuthMode::Required,
             }))
+            .with_node_manager(simple_node_manager_imports(vec![Box::new(nodeset)], MV_MANAGER))
             .with_node_manager(simple_node_manager(
                 NamespaceMetadata { namespace_uri: NAMESPACE.to_owned(), ..Default::default() },
-                "crestscan",
+                OWN_MANAGER,
             ));
         if !settings.opcua_require_encryption {
             let mut none = ServerEndpoint::new_none("/", &tokens);
@@ -289,9 +470,22 @@ impl OpcUaServer {
         let (server, handle) = builder.build().map_err(|e| format!("OPC UA server: {e}"))?;
         let manager = handle
             .node_managers()
-            .get_of_type::<SimpleNodeManager>()
+            .get_by_name::<SimpleNodeManager>(OWN_MANAGER)
             .ok_or("OPC UA server: its node manager is missing")?;
-        let ns = handle.get_namespace_index(NAMESPACE).ok_or("OPC UA server: its namespace is missing")?;
+        let namespace = |uri: &str| {
+            handle.get_namespace_index(uri).ok_or_else(|| format!("OPC UA server: the namespace {uri} is missing"))
+        };
+        let ns = Namespaces { mv: namespace(MV_NAMESPACE)?, own: namespace(NAMESPACE)? };
+        let types = handle
+            .node_managers()
+            .get_by_name::<SimpleNodeManager>(MV_MANAGER)
+            .ok_or("OPC UA server: the companion specification's node manager is missing")?;
+        {
+            let type_tree = handle.type_tree().read();
+            let address_space = types.address_space();
+            let mut space = address_space.write();
+            set_default_encodings(&mut space, &*type_tree);
+        }
         let nodes = {
             let address_space = manager.address_space();
             let mut space = address_space.write();
@@ -331,146 +525,249 @@ impl OpcUaServer {
     }
 }
 
+/// Gives each imported structure's definition its default (binary) encoding's id, which the
+/// NodeSet import leaves null when the file's namespace index differs from the server's
+/// (async-opcua 0.19 matches the encodings by the file's node id text). Generic clients build their
+/// decoders from these definitions: asyncua's `load_data_type_definitions` registers each
+/// structure under its `DefaultEncodingId`.
+fn set_default_encodings(space: &mut AddressSpace, type_tree: &dyn opcua::nodes::TypeTree) {
+    use opcua::nodes::NodeType;
+    use opcua::types::{BrowseDirection, DataTypeDefinition, ReferenceTypeId};
+    let mut parents = vec![NodeId::from(DataTypeId::Structure)];
+    while let Some(parent) = parents.pop() {
+        let children: Vec<NodeId> = space
+            .find_references(&parent, Some((ReferenceTypeId::HasSubtype, false)), type_tree, BrowseDirection::Forward)
+            .map(|r| r.target_node.clone())
+            .collect();
+        for child in children {
+            let binary = space
+                .find_references(
+                    &child,
+                    Some((ReferenceTypeId::HasEncoding, false)),
+                    type_tree,
+                    BrowseDirection::Forward,
+                )
+                .map(|r| r.target_node.clone())
+                .find(|e| {
+                    space.find_node(e).is_some_and(|n| n.as_node().browse_name().name.as_ref() == "Default Binary")
+                });
+            if let (Some(binary), Some(NodeType::DataType(t))) = (binary, space.find_node_mut(&child))
+                && let Some(DataTypeDefinition::Structure(mut definition)) = t.data_type_definition().cloned()
+                && definition.default_encoding_id.is_null()
+            {
+                definition.default_encoding_id = binary;
+                t.set_data_type_definition(Some(DataTypeDefinition::Structure(definition)));
+            }
+            parents.push(child);
+        }
+    }
+}
+
 /// The type and instance nodes (module docs).
-fn build_address_space(space: &mut AddressSpace, ns: u16) -> Nodes {
-    let id = |path: &str| NodeId::new(ns, path.to_string());
-    let event_type = ResultReadyEvent::event_type_id_from_index(ns);
-    ObjectTypeBuilder::new(&event_type, QualifiedName::new(ns, "ResultReadyEventType"), "ResultReadyEventType")
+fn build_address_space(space: &mut AddressSpace, ns: Namespaces) -> Nodes {
+    let id = |path: &str| NodeId::new(ns.own, path.to_string());
+    let event_type = ResultReadyEvent::event_type_id_from_index(ns.own);
+    ObjectTypeBuilder::new(&event_type, ns.name(Ns::Own, "ThreadResultReadyEventType"), "ThreadResultReadyEventType")
         .is_abstract(false)
-        .subtype_of(ObjectTypeId::BaseEventType)
-        .description("A succeeded inspection's result (modelled on OPC 40100's ResultReadyEventType)")
+        .subtype_of(ns.id(Ns::Mv, mv::RESULT_READY_EVENT_TYPE))
+        .description("A succeeded inspection's result, with its verdict and per-thread summary")
         .insert(space);
-    for (name, data_type, array) in RESULT_FIELDS {
+    for (_, name, type_ns, data_type, array) in RESULT_FIELDS.iter().filter(|f| f.0 == Ns::Own) {
         let mut field =
-            VariableBuilder::new(&id(&format!("ResultReadyEventType/{name}")), QualifiedName::new(ns, name), name)
+            VariableBuilder::new(&id(&format!("ThreadResultReadyEventType/{name}")), ns.name(Ns::Own, name), *name)
                 .property_of(event_type.clone())
-                .data_type(data_type)
+                .data_type(ns.id(*type_ns, *data_type))
                 .has_type_definition(VariableTypeId::PropertyType)
                 .has_modelling_rule(ObjectId::ModellingRule_Mandatory);
-        if array {
+        if *array {
             field = field.value_rank(1);
         }
         field.insert(space);
     }
-    let system_type = id("VisionSystemType");
-    ObjectTypeBuilder::new(&system_type, QualifiedName::new(ns, "VisionSystemType"), "VisionSystemType")
-        .is_abstract(false)
-        .subtype_of(ObjectTypeId::BaseObjectType)
-        .generates_event(event_type.clone())
-        .insert(space);
 
     let system = id("VisionSystem");
-    ObjectBuilder::new(&system, QualifiedName::new(ns, "VisionSystem"), "crestscan VisionSystem")
-        .description("crestscan's thread inspection, modelled on OPC 40100 (Machine Vision)")
+    ObjectBuilder::new(&system, ns.name(Ns::Own, "VisionSystem"), "crestscan VisionSystem")
+        .description("crestscan's thread inspection (OPC 40100-1, Machine Vision)")
         .event_notifier(EventNotifier::SUBSCRIBE_TO_EVENTS)
         .organized_by(ObjectId::ObjectsFolder)
-        .has_type_definition(system_type)
+        .has_type_definition(ns.id(Ns::Mv, mv::VISION_SYSTEM_TYPE))
         .insert(space);
-    let object = |space: &mut AddressSpace, path: &str, name: &str, parent: &NodeId| {
-        ObjectBuilder::new(&id(path), QualifiedName::new(ns, name), name)
+    let object = |space: &mut AddressSpace, path: &str, name: QualifiedName, parent: &NodeId, type_id: NodeId| {
+        let display = name.name.to_string();
+        ObjectBuilder::new(&id(path), name, display)
             .component_of(parent.clone())
-            .has_type_definition(ObjectTypeId::BaseObjectType)
+            .has_type_definition(type_id)
             .insert(space);
         id(path)
     };
-    let variable =
-        |space: &mut AddressSpace, path: &str, name: &str, parent: &NodeId, value: Variant, data_type: DataTypeId| {
-            VariableBuilder::new(&id(path), QualifiedName::new(ns, name), name)
-                .component_of(parent.clone())
-                .data_type(data_type)
-                .has_type_definition(VariableTypeId::BaseDataVariableType)
-                .value(value)
-                .insert(space);
-            id(path)
-        };
+    let variable = |space: &mut AddressSpace,
+                    path: &str,
+                    name: QualifiedName,
+                    parent: &NodeId,
+                    value: Variant,
+                    data_type: NodeId| {
+        let display = name.name.to_string();
+        VariableBuilder::new(&id(path), name, display)
+            .component_of(parent.clone())
+            .data_type(data_type)
+            .has_type_definition(VariableTypeId::BaseDataVariableType)
+            .value(value)
+            .insert(space);
+        id(path)
+    };
+    let base_object = || ObjectTypeId::BaseObjectType.into();
 
-    let machine = object(space, "VisionStateMachine", "VisionStateMachine", &system);
-    let current_state = variable(
+    let machine = object(
         space,
-        "VisionStateMachine/CurrentState",
-        "CurrentState",
-        &machine,
-        LocalizedText::from("Preoperational").into(),
-        DataTypeId::LocalizedText,
+        "VisionStateMachine",
+        ns.name(Ns::Mv, "VisionStateMachine"),
+        &system,
+        ns.id(Ns::Mv, mv::VISION_STATE_MACHINE_TYPE),
     );
-    let error_reason =
-        variable(space, "VisionStateMachine/ErrorReason", "ErrorReason", &machine, "".into(), DataTypeId::String);
+    // FiniteStateMachineType's CurrentState, with the state node's id as its Id property.
+    let current_state = id("VisionStateMachine/CurrentState");
+    VariableBuilder::new(&current_state, QualifiedName::new(0, "CurrentState"), "CurrentState")
+        .component_of(machine.clone())
+        .data_type(DataTypeId::LocalizedText)
+        .has_type_definition(VariableTypeId::FiniteStateVariableType)
+        .value(LocalizedText::from("Preoperational"))
+        .insert(space);
+    let current_state_id = id("VisionStateMachine/CurrentState/Id");
+    VariableBuilder::new(&current_state_id, QualifiedName::new(0, "Id"), "Id")
+        .property_of(current_state.clone())
+        .data_type(DataTypeId::NodeId)
+        .has_type_definition(VariableTypeId::PropertyType)
+        .value(state_node(ns, "Preoperational"))
+        .insert(space);
+    let error_reason = variable(
+        space,
+        "VisionStateMachine/ErrorReason",
+        ns.name(Ns::Own, "ErrorReason"),
+        &machine,
+        "".into(),
+        DataTypeId::String.into(),
+    );
     let execution_state = variable(
         space,
         "VisionStateMachine/ExecutionState",
-        "ExecutionState",
+        ns.name(Ns::Own, "ExecutionState"),
         &machine,
         LocalizedText::from("Ready").into(),
-        DataTypeId::LocalizedText,
+        DataTypeId::LocalizedText.into(),
     );
     let queued = variable(
         space,
         "VisionStateMachine/InspectionsQueued",
-        "InspectionsQueued",
+        ns.name(Ns::Own, "InspectionsQueued"),
         &machine,
         0i64.into(),
-        DataTypeId::Int64,
+        DataTypeId::Int64.into(),
     );
     let running = variable(
         space,
         "VisionStateMachine/InspectionsRunning",
-        "InspectionsRunning",
+        ns.name(Ns::Own, "InspectionsRunning"),
         &machine,
         0i64.into(),
-        DataTypeId::Int64,
+        DataTypeId::Int64.into(),
     );
 
-    let recipes_manager = object(space, "RecipeManagement", "RecipeManagement", &system);
-    let recipes = object(space, "RecipeManagement/Recipes", "Recipes", &recipes_manager);
-    let default = object(space, "RecipeManagement/Recipes/default", "default", &recipes);
+    let recipes_manager = object(
+        space,
+        "RecipeManagement",
+        ns.name(Ns::Mv, "RecipeManagement"),
+        &system,
+        ns.id(Ns::Mv, mv::RECIPE_MANAGEMENT_TYPE),
+    );
+    let recipes = object(
+        space,
+        "RecipeManagement/Recipes",
+        ns.name(Ns::Mv, "Recipes"),
+        &recipes_manager,
+        ns.id(Ns::Mv, mv::RECIPE_FOLDER_TYPE),
+    );
+    let default =
+        object(space, "RecipeManagement/Recipes/default", ns.name(Ns::Own, "default"), &recipes, base_object());
     variable(
         space,
         "RecipeManagement/Recipes/default/ExternalId",
-        "ExternalId",
+        ns.name(Ns::Own, "ExternalId"),
         &default,
         "default".into(),
-        DataTypeId::String,
+        DataTypeId::String.into(),
     );
     let options = serde_json::to_string(&crate::pipeline::PipelineOptions::default()).unwrap_or_default();
     variable(
         space,
         "RecipeManagement/Recipes/default/Content",
-        "Content",
+        ns.name(Ns::Own, "Content"),
         &default,
         options.into(),
-        DataTypeId::String,
+        DataTypeId::String.into(),
     );
 
-    let configurations_manager = object(space, "ConfigurationManagement", "ConfigurationManagement", &system);
-    let configurations =
-        object(space, "ConfigurationManagement/Configurations", "Configurations", &configurations_manager);
+    let configurations_manager = object(
+        space,
+        "ConfigurationManagement",
+        ns.name(Ns::Mv, "ConfigurationManagement"),
+        &system,
+        ns.id(Ns::Mv, mv::CONFIGURATION_MANAGEMENT_TYPE),
+    );
+    let configurations = object(
+        space,
+        "ConfigurationManagement/Configurations",
+        ns.name(Ns::Mv, "Configurations"),
+        &configurations_manager,
+        ns.id(Ns::Mv, mv::CONFIGURATION_FOLDER_TYPE),
+    );
 
-    let results = object(space, "ResultManagement", "ResultManagement", &system);
-    let last_result = object(space, "ResultManagement/LastResult", "LastResult", &results);
-    for (name, data_type, array) in RESULT_FIELDS {
-        let value = match (array, data_type) {
-            (true, DataTypeId::Int32) => Variant::from(Vec::<i32>::new()),
-            (true, DataTypeId::Double) => Variant::from(Vec::<f64>::new()),
-            (true, _) => Variant::from(Vec::<String>::new()),
-            (false, DataTypeId::Boolean) => false.into(),
-            (false, DataTypeId::Int32) => 0i32.into(),
-            _ => "".into(),
+    let results = object(
+        space,
+        "ResultManagement",
+        ns.name(Ns::Mv, "ResultManagement"),
+        &system,
+        ns.id(Ns::Mv, mv::RESULT_MANAGEMENT_TYPE),
+    );
+    let last_result =
+        object(space, "ResultManagement/LastResult", ns.name(Ns::Own, "LastResult"), &results, base_object());
+    for (name_ns, name, type_ns, data_type, array) in RESULT_FIELDS {
+        let value = match (array, type_ns, data_type) {
+            (true, _, t) if t == DataTypeId::Int32 as u32 => Variant::from(Vec::<i32>::new()),
+            (true, _, t) if t == DataTypeId::Double as u32 => Variant::from(Vec::<f64>::new()),
+            (true, _, _) => Variant::from(Vec::<String>::new()),
+            (false, Ns::Core, t) if t == DataTypeId::Boolean as u32 => false.into(),
+            (false, Ns::Core, t) if t == DataTypeId::String as u32 => "".into(),
+            // No result yet: the structures and the time are null.
+            _ => Variant::Empty,
         };
-        let mut field = VariableBuilder::new(
-            &id(&format!("ResultManagement/LastResult/{name}")),
-            QualifiedName::new(ns, name),
-            name,
-        )
-        .component_of(last_result.clone())
-        .data_type(data_type)
-        .has_type_definition(VariableTypeId::BaseDataVariableType)
-        .value(value);
+        let mut field =
+            VariableBuilder::new(&id(&format!("ResultManagement/LastResult/{name}")), ns.name(name_ns, name), name)
+                .component_of(last_result.clone())
+                .data_type(ns.id(type_ns, data_type))
+                .has_type_definition(VariableTypeId::BaseDataVariableType)
+                .value(value);
         if array {
             field = field.value_rank(1);
         }
         field.insert(space);
     }
-    Nodes { ns, vision_system: system, current_state, error_reason, execution_state, queued, running, configurations }
+    Nodes {
+        ns,
+        vision_system: system,
+        current_state,
+        current_state_id,
+        error_reason,
+        execution_state,
+        queued,
+        running,
+        configurations,
+    }
+}
+
+/// The node of VisionStateMachineType's state `name` (Preoperational if the name is not one).
+fn state_node(ns: Namespaces, name: &str) -> NodeId {
+    let number = mv::STATES.iter().find(|(state, _)| *state == name).unwrap_or(&mv::STATES[0]).1;
+    ns.id(Ns::Mv, number)
 }
 
 /// Follows the events table and the store's state into the address space.
@@ -495,6 +792,7 @@ impl Follower {
 
     fn set_state(&self, state: &str, reason: &str) {
         self.set(&self.nodes.current_state, LocalizedText::from(state));
+        self.set(&self.nodes.current_state_id, state_node(self.nodes.ns, state));
         self.set(&self.nodes.error_reason, reason);
     }
 
@@ -582,12 +880,12 @@ impl Follower {
             let address_space = self.manager.address_space();
             let mut space = address_space.write();
             if !space.node_exists(&object) {
-                ObjectBuilder::new(&object, QualifiedName::new(self.nodes.ns, name), name)
+                ObjectBuilder::new(&object, self.nodes.ns.name(Ns::Own, name), name)
                     .component_of(self.nodes.configurations.clone())
                     .has_type_definition(ObjectTypeId::BaseObjectType)
                     .insert(&mut *space);
                 for (id, field) in [(&status_id, "Status"), (&reason_id, "StatusReason")] {
-                    VariableBuilder::new(id, QualifiedName::new(self.nodes.ns, field), field)
+                    VariableBuilder::new(id, self.nodes.ns.name(Ns::Own, field), field)
                         .component_of(object.clone())
                         .data_type(DataTypeId::String)
                         .has_type_definition(VariableTypeId::BaseDataVariableType)
@@ -608,41 +906,10 @@ impl Follower {
             Err(e) => return Err(e),
         };
         let (threads, _) = self.store.threads(id).await?;
-        let ns = self.nodes.ns;
-        let event_type = ResultReadyEvent::event_type_id_from_index(ns);
-        let verdict = row.verdict.clone().unwrap_or_default();
-        let decision = row.decision.clone().unwrap_or_default();
-        let message = format!("inspection {id}: {verdict}, {decision}");
-        let time = ua_time(row.finished_at.unwrap_or(row.updated_at));
-        let base = BaseEventType::new(event_type, ByteString::from(id.as_bytes().to_vec()), message, time)
-            .set_source_node(self.nodes.vision_system.clone())
-            .set_source_name(UAString::from("VisionSystem"))
-            .set_severity(if row.review_required == Some(true) { 500 } else { 100 });
-        let event = ResultReadyEvent {
-            base,
-            own_namespace_index: ns,
-            result_id: id.to_string(),
-            is_partial: false,
-            result_state: result_state(row.decision.as_deref()),
-            verdict,
-            decision,
-            review_required: row.review_required.unwrap_or(false),
-            station: row.station.clone().unwrap_or_default(),
-            serial: row.serial.clone().unwrap_or_default(),
-            connection: row.connection.clone().unwrap_or_default(),
-            report: format!("/v1/inspections/{id}/report"),
-            thread_numbers: threads.iter().map(|t| t.thread_index as i32).collect(),
-            thread_mean_heights_mm: threads.iter().map(|t| t.mean_height_mm.unwrap_or(f64::NAN)).collect(),
-            thread_height_uncertainties_mm: threads
-                .iter()
-                .map(|t| t.mean_height_uncertainty_mm.unwrap_or(f64::NAN))
-                .collect(),
-            thread_findings: threads.iter().map(|t| t.height_finding.clone().unwrap_or_default()).collect(),
-            thread_black_crest_lengths_mm: threads.iter().map(|t| t.black_crest_length_mm).collect(),
-        };
+        let event = result_event(&row, &threads, self.nodes.ns, self.nodes.vision_system.clone());
         // LastResult reads each field from the event as a subscriber's select clause would, so
         // that the two cannot differ (a unit test checks every field is found).
-        for (name, _, _) in RESULT_FIELDS {
+        for (_, name, _, _, _) in RESULT_FIELDS {
             self.set(&self.nodes.id(&format!("ResultManagement/LastResult/{name}")), event.field(name));
         }
         self.handle
@@ -653,53 +920,234 @@ impl Follower {
     }
 }
 
+/// The recipe an inspection ran with: `default`, or `custom` where its pipeline options differ
+/// from the defaults; the hash (SHA-256 of the options as JSON) tells one custom recipe from
+/// another, and equals the default recipe's `Content`'s hash for `default`.
+fn recipe_id(options_json: &str) -> RecipeIdInternalDataType {
+    let pipeline = serde_json::from_str::<crate::service::queue::JobOptions>(options_json).ok().map(|o| o.pipeline);
+    let default = pipeline.as_ref() == Some(&crate::pipeline::PipelineOptions::default());
+    let content = pipeline.and_then(|p| serde_json::to_string(&p).ok()).unwrap_or_else(|| options_json.to_string());
+    RecipeIdInternalDataType {
+        id: if default { "default" } else { "custom" }.into(),
+        hash: Some(ByteString::from(Sha256::digest(content.as_bytes()).to_vec())),
+        hash_algorithm: Some("SHA-256".into()),
+        ..Default::default()
+    }
+}
+
+/// The ResultReady event of a succeeded inspection and its threads.
+fn result_event(
+    row: &InspectionRow,
+    threads: &[crate::service::store::ThreadRow],
+    ns: Namespaces,
+    source: NodeId,
+) -> ResultReadyEvent {
+    let id = row.id.as_str();
+    let event_type = ResultReadyEvent::event_type_id_from_index(ns.own);
+    let verdict = row.verdict.clone().unwrap_or_default();
+    let decision = row.decision.clone().unwrap_or_default();
+    let message = format!("inspection {id}: {verdict}, {decision}");
+    let time = ua_time(row.finished_at.unwrap_or(row.updated_at));
+    let base = BaseEventType::new(event_type, ByteString::from(id.as_bytes().to_vec()), message, time)
+        .set_source_node(source)
+        .set_source_name(UAString::from("VisionSystem"))
+        .set_severity(if row.review_required == Some(true) { 500 } else { 100 });
+    let station = row.station.clone().unwrap_or_default();
+    let serial = row.serial.clone().unwrap_or_default();
+    let mv = MvResultReadyEvent {
+        base,
+        own_namespace_index: ns.mv,
+        creation_time: time,
+        result_id: ExtensionObject::from_message(ResultIdDataType { id: id.into() }),
+        // The inspection is the job that made the result.
+        job_id: ExtensionObject::from_message(JobIdDataType { id: id.into() }),
+        internal_recipe_id: ExtensionObject::from_message(recipe_id(&row.options_json)),
+        // No station: the station design the simulator defines ("" as the id).
+        internal_configuration_id: ExtensionObject::from_message(ConfigurationIdDataType {
+            id: station.as_str().into(),
+            ..Default::default()
+        }),
+        is_partial: false,
+        result_state: result_state(row.decision.as_deref()),
+        part_id: (!serial.is_empty())
+            .then(|| ExtensionObject::from_message(PartIdDataType { id: serial.as_str().into(), description: None })),
+    };
+    ResultReadyEvent {
+        base: mv,
+        own_namespace_index: ns.own,
+        verdict,
+        decision,
+        review_required: row.review_required.unwrap_or(false),
+        station,
+        serial,
+        connection: row.connection.clone().unwrap_or_default(),
+        report: format!("/v1/inspections/{id}/report"),
+        thread_numbers: threads.iter().map(|t| t.thread_index as i32).collect(),
+        thread_mean_heights_mm: threads.iter().map(|t| t.mean_height_mm.unwrap_or(f64::NAN)).collect(),
+        thread_height_uncertainties_mm: threads
+            .iter()
+            .map(|t| t.mean_height_uncertainty_mm.unwrap_or(f64::NAN))
+            .collect(),
+        thread_findings: threads.iter().map(|t| t.height_finding.clone().unwrap_or_default()).collect(),
+        thread_black_crest_lengths_mm: threads.iter().map(|t| t.black_crest_length_mm).collect(),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+    use opcua::types::{BinaryEncodable, Context, ContextOwned, DecodingOptions, NamespaceMap, TypeLoaderCollection};
 
-    /// Every field the type node and LastResult name is one the event has, of the declared type
-    /// and shape: the struct, [`RESULT_FIELDS`] and LastResult cannot drift apart.
+    const NS: Namespaces = Namespaces { mv: 2, own: 3 };
+
+    fn row(decision: &str, serial: Option<&str>, options: &crate::service::queue::JobOptions) -> InspectionRow {
+        serde_json::from_value(serde_json::json!({
+            "id": "0190-id", "status": "succeeded", "upload_sha256": "ab", "serial": serial,
+            "connection": "buttress", "client_reference": null,
+            "options_json": serde_json::to_string(options).unwrap(), "verdict": "accept",
+            "review_required": true, "decision": decision, "created_at": 1, "updated_at": 2,
+            "started_at": 1, "finished_at": 1_765_000_000_000i64, "progress_stage": null,
+            "progress_fraction": null, "attempts": 1, "max_attempts": 3, "cancel_requested": false,
+            "error_json": null, "request_sha256": "cd", "station": "line-3", "size_bytes": 10,
+            "views": 1, "frames": 5
+        }))
+        .unwrap()
+    }
+
+    fn thread(index: i64, mean_mm: f64) -> crate::service::store::ThreadRow {
+        crate::service::store::ThreadRow {
+            thread_index: index,
+            crest_z_start_mm: 0.0,
+            crest_z_end_mm: 1.0,
+            min_height_mm: Some(mean_mm),
+            mean_height_mm: Some(mean_mm),
+            max_height_mm: Some(mean_mm),
+            bins_measured: 360,
+            black_crest_length_mm: 0.5 * index as f64,
+            black_crest_arcs_json: "[]".into(),
+            mean_height_uncertainty_mm: Some(0.004),
+            height_finding: Some("conforms".into()),
+        }
+    }
+
+    fn default_options() -> crate::service::queue::JobOptions {
+        crate::service::queue::JobOptions { pipeline: crate::pipeline::PipelineOptions::default(), callback_url: None }
+    }
+
+    /// The event's fields as a subscriber's select clause reads them: every name [`RESULT_FIELDS`]
+    /// declares (for the type node and LastResult) is found, of the declared type and shape.
     #[test]
     fn every_declared_field_is_the_events_own() {
-        let ns = 2;
-        let base = BaseEventType::new(
-            ResultReadyEvent::event_type_id_from_index(ns),
-            ByteString::from(b"id".to_vec()),
-            "message",
-            DateTime::now(),
+        let event = result_event(
+            &row("conforms", Some("SN-1"), &default_options()),
+            &[thread(1, 1.57), thread(2, 1.58)],
+            NS,
+            NodeId::new(NS.own, "VisionSystem"),
         );
-        let event = ResultReadyEvent {
-            base,
-            own_namespace_index: ns,
-            result_id: "0190-id".into(),
-            is_partial: false,
-            result_state: 1,
-            verdict: "accept".into(),
-            decision: "conforms".into(),
-            review_required: true,
-            station: "line-3".into(),
-            serial: "SN-1".into(),
-            connection: "buttress".into(),
-            report: "/v1/inspections/0190-id/report".into(),
-            thread_numbers: vec![1, 2],
-            thread_mean_heights_mm: vec![1.57, 1.58],
-            thread_height_uncertainties_mm: vec![0.004, 0.005],
-            thread_findings: vec!["conforms".into(), "indeterminate".into()],
-            thread_black_crest_lengths_mm: vec![0.0, 1.5],
-        };
-        for (name, data_type, array) in RESULT_FIELDS {
+        for (_, name, type_ns, data_type, array) in RESULT_FIELDS {
             let value = event.field(name);
-            let expected = match (data_type, array) {
-                (DataTypeId::String, false) => matches!(value, Variant::String(_)),
-                (DataTypeId::Boolean, false) => matches!(value, Variant::Boolean(_)),
-                (DataTypeId::Int32, false) => matches!(value, Variant::Int32(_)),
+            let expected = match (type_ns, array) {
+                (Ns::Mv, false) if data_type == mv::RESULT_STATE => matches!(value, Variant::Int32(_)),
+                (Ns::Mv, false) => matches!(value, Variant::ExtensionObject(_)),
                 (_, true) => matches!(&value, Variant::Array(a) if a.values.len() == 2),
+                (_, false) if data_type == DataTypeId::String as u32 => matches!(value, Variant::String(_)),
+                (_, false) if data_type == DataTypeId::Boolean as u32 => matches!(value, Variant::Boolean(_)),
+                (_, false) if data_type == DataTypeId::UtcTime as u32 => matches!(value, Variant::DateTime(_)),
                 _ => false,
             };
             assert!(expected, "{name}: {value:?}");
         }
-        assert_eq!(event.field("ResultId"), Variant::from("0190-id"));
+        assert_eq!(event.field("ResultState"), Variant::Int32(1));
         assert_eq!(event.field("ThreadMeanHeightsMm"), Variant::from(vec![1.57, 1.58]));
         assert_eq!(event.field("NoSuchField"), Variant::Empty);
+        let Variant::ExtensionObject(id) = event.field("ResultId") else { panic!("ResultId") };
+        assert_eq!(id.inner_as::<ResultIdDataType>(), Some(&ResultIdDataType { id: "0190-id".into() }));
+        let Variant::ExtensionObject(part) = event.field("PartId") else { panic!("PartId") };
+        assert_eq!(part.inner_as::<PartIdDataType>().unwrap().id.as_ref(), "SN-1");
+        // Without a serial there is no PartId (the field is optional in OPC 40100-1).
+        let anonymous = result_event(&row("conforms", None, &default_options()), &[], NS, NodeId::null());
+        assert_eq!(anonymous.field("PartId"), Variant::Empty);
+    }
+
+    /// The structures encode as OPC 40100-1's binary encodings: the encoding's node id by the
+    /// namespace's index, then the fields, the optional ones behind a mask (Part 6, 5.2.7).
+    #[test]
+    fn the_structures_encode_as_the_specifications() {
+        let mut namespaces = NamespaceMap::new();
+        namespaces.add_namespace(MV_NAMESPACE);
+        let owned = ContextOwned::new(namespaces, TypeLoaderCollection::new(), DecodingOptions::default());
+        let ctx: Context<'_> = owned.context();
+        let encode = |object: ExtensionObject| {
+            let mut bytes = Vec::new();
+            object.encode(&mut bytes, &ctx).unwrap();
+            bytes
+        };
+        let result_id = encode(ExtensionObject::from_message(ResultIdDataType { id: "ab".into() }));
+        // NodeId four-byte form (ns 1, 5274), binary body, body length 6, the string "ab".
+        let mut expected = vec![0x01, 0x01];
+        expected.extend(5274u16.to_le_bytes());
+        expected.push(0x01);
+        expected.extend(6i32.to_le_bytes());
+        expected.extend(2i32.to_le_bytes());
+        expected.extend(b"ab");
+        assert_eq!(result_id, expected);
+
+        let recipe = recipe_id(&serde_json::to_string(&default_options()).unwrap());
+        assert_eq!(recipe.id.as_ref(), "default");
+        let recipe = encode(ExtensionObject::from_message(recipe));
+        // After the 9-byte header (node id, encoding byte, length): the mask has Hash (bit 1) and
+        // HashAlgorithm (bit 2), then Id, the 32-byte hash, "SHA-256".
+        assert_eq!(&recipe[..4], &[0x01, 0x01, 0x94, 0x14], "RecipeIdInternalDataType's encoding 5268");
+        assert_eq!(u32::from_le_bytes(recipe[9..13].try_into().unwrap()), 0b110);
+        assert_eq!(recipe.len(), 9 + 4 + (4 + 7) + (4 + 32) + (4 + 7));
+
+        let mut custom = default_options();
+        custom.pipeline.cell_px *= 2.0;
+        assert_eq!(recipe_id(&serde_json::to_string(&custom).unwrap()).id.as_ref(), "custom");
+        // The callback is not part of the recipe.
+        let mut called = default_options();
+        called.callback_url = Some("https://mes.example/hook".into());
+        let (plain, hooked) = (
+            recipe_id(&serde_json::to_string(&default_options()).unwrap()),
+            recipe_id(&serde_json::to_string(&called).unwrap()),
+        );
+        assert_eq!(plain, hooked);
+    }
+
+    /// The compiled-in NodeSet parses, and declares the types and states the server refers to.
+    #[test]
+    fn the_companion_nodeset_holds_what_the_server_refers_to() {
+        let text = MV_NODESET;
+        NodeSet2Import::new_str("en", text, Vec::new()).expect("the NodeSet parses");
+        assert!(text.contains(&format!("<Uri>{MV_NAMESPACE}</Uri>")));
+        let declared = |id: u32, name: &str| {
+            let tag = format!("NodeId=\"ns=1;i={id}\" BrowseName=\"1:{name}\"");
+            assert!(text.contains(&tag), "{tag}");
+        };
+        declared(mv::VISION_SYSTEM_TYPE, "VisionSystemType");
+        declared(mv::RECIPE_MANAGEMENT_TYPE, "RecipeManagementType");
+        declared(mv::CONFIGURATION_MANAGEMENT_TYPE, "ConfigurationManagementType");
+        declared(mv::RESULT_MANAGEMENT_TYPE, "ResultManagementType");
+        declared(mv::RECIPE_FOLDER_TYPE, "RecipeFolderType");
+        declared(mv::CONFIGURATION_FOLDER_TYPE, "ConfigurationFolderType");
+        declared(mv::VISION_STATE_MACHINE_TYPE, "VisionStateMachineType");
+        declared(mv::RESULT_READY_EVENT_TYPE, "ResultReadyEventType");
+        declared(mv::RESULT_STATE, "ResultStateDataType");
+        for (name, id) in mv::STATES {
+            declared(id, name);
+        }
+        for (ids, name) in [
+            (mv::RESULT_ID, "ResultIdDataType"),
+            (mv::JOB_ID, "JobIdDataType"),
+            (mv::PART_ID, "PartIdDataType"),
+            (mv::CONFIGURATION_ID, "ConfigurationIdDataType"),
+            (mv::RECIPE_ID_INTERNAL, "RecipeIdInternalDataType"),
+        ] {
+            declared(ids.0, name);
+            for encoding in [ids.1, ids.2] {
+                let reference = format!("<Reference ReferenceType=\"HasEncoding\">ns=1;i={encoding}</Reference>");
+                assert!(text.contains(&reference), "{name}: {reference}");
+            }
+        }
     }
 }

@@ -13,6 +13,7 @@ event within --timeout seconds exits 4.
 """
 import argparse
 import asyncio
+import dataclasses
 import json
 import pathlib
 import socket
@@ -21,6 +22,7 @@ import sys
 from asyncua import Client, ua
 
 NAMESPACE = "urn:crestscan:machine-vision"
+MACHINE_VISION = "http://opcfoundation.org/UA/MachineVision"
 
 
 def emit(obj):
@@ -38,6 +40,11 @@ def plain(value):
         return value
     if isinstance(value, bytes):
         return value.hex()
+    if dataclasses.is_dataclass(value):
+        # A structure decoded with the definitions the server published.
+        return {f.name: plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, ua.ExtensionObject):
+        return {"undecoded": value.TypeId.to_string()}
     return str(value)
 
 
@@ -92,14 +99,24 @@ async def main():
         return 3
     try:
         ns = await client.get_namespace_index(NAMESPACE)
+        mv = await client.get_namespace_index(MACHINE_VISION)
+        # The structures of OPC 40100-1 (ResultIdDataType, …) as the server defines them. asyncua
+        # knows "TrimmedString" by name as the core's (1.05), so it skips OPC 40100-1's own (a 1.04
+        # model, i=3017 in its namespace): that one is a String too.
+        ua.basetype_by_datatype[ua.NodeId(3017, mv)] = "String"
+        await client.load_data_type_definitions()
         system = await client.nodes.objects.get_child([f"{ns}:VisionSystem"])
-        children = sorted([(await c.read_browse_name()).Name for c in await system.get_children()])
-        state = await system.get_child([f"{ns}:VisionStateMachine", f"{ns}:CurrentState"])
-        execution = await system.get_child([f"{ns}:VisionStateMachine", f"{ns}:ExecutionState"])
+        system_type = client.get_node(await system.read_type_definition())
+        children = sorted([(await c.read_browse_name()).to_string() for c in await system.get_children()])
+        machine = await system.get_child([f"{mv}:VisionStateMachine"])
+        state = await machine.get_child(["0:CurrentState"])
+        state_node = client.get_node(await (await state.get_child(["0:Id"])).read_value())
+        state_number = await state_node.get_child(["0:StateNumber"])
+        execution = await machine.get_child([f"{ns}:ExecutionState"])
         recipe = await system.get_child(
-            [f"{ns}:RecipeManagement", f"{ns}:Recipes", f"{ns}:default", f"{ns}:Content"]
+            [f"{mv}:RecipeManagement", f"{mv}:Recipes", f"{ns}:default", f"{ns}:Content"]
         )
-        configurations = await system.get_child([f"{ns}:ConfigurationManagement", f"{ns}:Configurations"])
+        configurations = await system.get_child([f"{mv}:ConfigurationManagement", f"{mv}:Configurations"])
         stations = {}
         for station in await configurations.get_children():
             name = (await station.read_browse_name()).Name
@@ -107,8 +124,13 @@ async def main():
             stations[name] = await status.read_value()
         emit(
             {
+                "namespaces": {"crestscan": ns, "machine_vision": mv},
+                "type": (await system_type.read_browse_name()).to_string(),
                 "children": children,
                 "state": plain(await state.read_value()),
+                "state_node": (await state_node.read_browse_name()).to_string(),
+                "state_number": await state_number.read_value(),
+                "machine_type": (await client.get_node(await machine.read_type_definition()).read_browse_name()).to_string(),
                 "execution": plain(await execution.read_value()),
                 "recipe": json.loads(await recipe.read_value()),
                 "stations": stations,
@@ -119,7 +141,8 @@ async def main():
             return 0
         handler = Handler()
         subscription = await client.create_subscription(100, handler)
-        event_type = client.get_node(ua.NodeId("ResultReadyEventType", ns))
+        # crestscan's subtype of OPC 40100-1's ResultReadyEventType: its fields and the supertype's.
+        event_type = client.get_node(ua.NodeId("ThreadResultReadyEventType", ns))
         # No where clause: async-opcua 0.16 compares only numbers and booleans in InList, so the
         # EventType InList asyncua generates matches no event (docs/interchange.md, "OPC UA").
         # Only ResultReady events have the VisionSystem as their notifier.

@@ -1,6 +1,8 @@
 //! The OPC UA Machine Vision server against a real client (asyncua from PyPI, driven by
-//! tests/opcua/client.py): it browses the VisionSystem, reads its state, its recipe and a station,
-//! subscribes to ResultReady events and sees a submitted inspection's; with API keys required it
+//! tests/opcua/client.py): it browses the VisionSystem by OPC 40100-1's names and types, reads its
+//! state, its recipe and a station, decodes the specification's structures from the server's own
+//! definitions, subscribes to ResultReady events and sees a submitted inspection's; with API keys
+//! required it
 //! refuses an anonymous session and a wrong key, and takes a key with `read`.
 
 use super::*;
@@ -76,12 +78,20 @@ async fn an_opcua_client_browses_the_vision_system_and_sees_a_result_ready() {
         }
     });
     let browsed = next(&mut rx, "address space").await;
-    assert_eq!(
-        browsed["children"],
-        serde_json::json!(["ConfigurationManagement", "RecipeManagement", "ResultManagement", "VisionStateMachine"]),
-        "{browsed}"
-    );
+    // The companion specification's NodeSet is loaded: its types, its state nodes, its names.
+    let mv = browsed["namespaces"]["machine_vision"].as_u64().expect("OPC 40100-1's namespace is served");
+    assert_ne!(browsed["namespaces"]["crestscan"].as_u64(), Some(mv), "{browsed}");
+    assert_eq!(browsed["type"], format!("{mv}:VisionSystemType"), "{browsed}");
+    assert_eq!(browsed["machine_type"], format!("{mv}:VisionStateMachineType"), "{browsed}");
+    let children: Vec<String> =
+        ["ConfigurationManagement", "RecipeManagement", "ResultManagement", "VisionStateMachine"]
+            .iter()
+            .map(|name| format!("{mv}:{name}"))
+            .collect();
+    assert_eq!(browsed["children"], serde_json::json!(children), "{browsed}");
     assert_eq!(browsed["state"], "Operational", "{browsed}");
+    assert_eq!(browsed["state_node"], format!("{mv}:Operational"), "{browsed}");
+    assert_eq!(browsed["state_number"], 4, "{browsed}");
     assert_eq!(browsed["execution"], "Ready", "{browsed}");
     let recipe: crestscan::pipeline::PipelineOptions = serde_json::from_value(browsed["recipe"].clone()).unwrap();
     assert_eq!(recipe, crestscan::pipeline::PipelineOptions::default());
@@ -93,7 +103,22 @@ async fn an_opcua_client_browses_the_vision_system_and_sees_a_result_ready() {
     assert_eq!(row["status"], "succeeded");
     let event = next(&mut rx, "ResultReady event").await;
     let event = &event["event"];
-    assert_eq!(event["ResultId"], id.as_str(), "{event}");
+    assert_eq!(event["EventType"]["Identifier"], "ThreadResultReadyEventType", "{event}");
+    // OPC 40100-1's fields, its structures decoded by the client from the server's definitions.
+    assert_eq!(event["ResultId"], serde_json::json!({"Id": id}), "{event}");
+    assert_eq!(event["JobId"], serde_json::json!({"Id": id}), "{event}");
+    assert_eq!(event["InternalRecipeId"]["Id"], "default", "{event}");
+    assert_eq!(event["InternalRecipeId"]["HashAlgorithm"], "SHA-256", "{event}");
+    let options = serde_json::to_string(&crestscan::pipeline::PipelineOptions::default()).unwrap();
+    let options_sha256: String =
+        <sha2::Sha256 as sha2::Digest>::digest(options.as_bytes()).iter().map(|b| format!("{b:02x}")).collect();
+    assert_eq!(event["InternalRecipeId"]["Hash"], options_sha256, "{event}");
+    assert_eq!(event["InternalConfigurationId"]["Id"], row["station"].as_str().unwrap_or(""), "{event}");
+    match row["serial"].as_str() {
+        Some(serial) => assert_eq!(event["PartId"]["Id"], serial, "{event}"),
+        None => assert_eq!(event["PartId"], Value::Null, "{event}"),
+    }
+    assert!(event["CreationTime"].is_string(), "{event}");
     assert_eq!(event["Verdict"], row["verdict"]);
     assert_eq!(event["Decision"], row["decision"]);
     assert_eq!(event["ReviewRequired"], row["review_required"]);
