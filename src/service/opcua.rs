@@ -68,6 +68,13 @@ const POLL: Duration = Duration::from_millis(500);
 const HEALTH: Duration = Duration::from_secs(5);
 /// Events read at a time.
 const BATCH: i64 = 100;
+/// Results `GetResultById` answers from: the last this many announced.
+const RECENT_RESULTS: usize = 1000;
+/// `GetResultById`'s Error when the result is not among them (negative: the application's own).
+const RESULT_NOT_HELD: i32 = -1;
+
+/// The results announced last, newest at the back.
+type Recent = Arc<std::sync::Mutex<std::collections::VecDeque<ResultDataType>>>;
 
 /// Numeric node ids in OPC 40100-1's NodeSet (its namespace).
 mod mv {
@@ -89,6 +96,13 @@ mod mv {
     pub const CONFIGURATION_ID: (u32, u32, u32) = (3008, 5090, 5091);
     pub const RECIPE_ID_INTERNAL: (u32, u32, u32) = (3013, 5268, 5269);
     pub const RESULT_STATE: u32 = 3009;
+    pub const MEAS_ID: (u32, u32, u32) = (3015, 5006, 5007);
+    pub const PRODUCT_ID: (u32, u32, u32) = (3003, 5224, 5225);
+    pub const RECIPE_ID_EXTERNAL: (u32, u32, u32) = (3002, 5002, 5003);
+    pub const PROCESSING_TIMES: (u32, u32, u32) = (3005, 5016, 5017);
+    pub const RESULT: (u32, u32, u32) = (3006, 5018, 5019);
+    /// `Handle`, a UInt32.
+    pub const HANDLE: u32 = 3018;
 }
 
 /// A node id in OPC 40100-1's namespace by its URI, resolved where it is encoded.
@@ -150,6 +164,34 @@ mv_structure!(
     }
 );
 
+mv_structure!(
+    /// `MeasIdDataType`: the client's id of a measurement.
+    MeasIdDataType, mv::MEAS_ID, {
+        pub id: UAString,
+        #[opcua(optional)]
+        pub description: Option<LocalizedText>,
+    }
+);
+mv_structure!(
+    /// `ProductIdDataType`: the product a job was started for.
+    ProductIdDataType, mv::PRODUCT_ID, {
+        pub id: UAString,
+        #[opcua(optional)]
+        pub description: Option<LocalizedText>,
+    }
+);
+mv_structure!(
+    /// `ProcessingTimesDataType`: when the job ran; the durations in milliseconds.
+    ProcessingTimesDataType, mv::PROCESSING_TIMES, {
+        pub start_time: DateTime,
+        pub end_time: DateTime,
+        #[opcua(optional)]
+        pub acquisition_duration: Option<f64>,
+        #[opcua(optional)]
+        pub processing_duration: Option<f64>,
+    }
+);
+
 /// `BinaryIdBaseDataType`'s fields, which `ConfigurationIdDataType` and `RecipeIdInternalDataType`
 /// inherit unchanged.
 macro_rules! binary_id {
@@ -180,6 +222,98 @@ binary_id!(
     mv::RECIPE_ID_INTERNAL,
     "`RecipeIdInternalDataType`: the recipe (the pipeline options) a result was made with."
 );
+
+binary_id!(
+    RecipeIdExternalDataType,
+    mv::RECIPE_ID_EXTERNAL,
+    "`RecipeIdExternalDataType`: the environment's id of a recipe."
+);
+
+mv_structure!(
+    /// `ResultDataType`: a result as `GetResultById` returns it; crestscan's own fields (verdict,
+    /// per-thread summary) are in the ResultReady event and the REST report.
+    ResultDataType, mv::RESULT, {
+        pub result_id: ResultIdDataType,
+        #[opcua(optional)]
+        pub has_transferable_data_on_file: Option<bool>,
+        pub is_partial: bool,
+        #[opcua(optional)]
+        pub is_simulated: Option<bool>,
+        pub result_state: i32,
+        #[opcua(optional)]
+        pub meas_id: Option<MeasIdDataType>,
+        #[opcua(optional)]
+        pub part_id: Option<PartIdDataType>,
+        #[opcua(optional)]
+        pub external_recipe_id: Option<RecipeIdExternalDataType>,
+        pub internal_recipe_id: RecipeIdInternalDataType,
+        #[opcua(optional)]
+        pub product_id: Option<ProductIdDataType>,
+        #[opcua(optional)]
+        pub external_configuration_id: Option<ConfigurationIdDataType>,
+        pub internal_configuration_id: ConfigurationIdDataType,
+        pub job_id: JobIdDataType,
+        pub creation_time: DateTime,
+        #[opcua(optional)]
+        pub processing_times: Option<ProcessingTimesDataType>,
+        // ResultContent, the last optional field, is left out: crestscan never sends it, and an
+        // absent field is only its unset bit in the mask.
+    }
+);
+
+/// Decodes the OPC 40100-1 structures a client sends (`GetResultById`'s ResultId); the server's
+/// own loaders know only the core's.
+struct MvTypeLoader;
+
+impl MvTypeLoader {
+    fn decode<T: opcua::types::DynEncodable + opcua::types::BinaryDecodable>(
+        stream: &mut dyn std::io::Read,
+        ctx: &opcua::types::Context<'_>,
+    ) -> Option<opcua::types::EncodingResult<Box<dyn opcua::types::DynEncodable>>> {
+        Some(T::decode(stream, ctx).map(|t| Box::new(t) as Box<dyn opcua::types::DynEncodable>))
+    }
+}
+
+impl opcua::types::TypeLoader for MvTypeLoader {
+    fn load_from_xml(
+        &self,
+        _node_id: &NodeId,
+        _stream: &mut opcua::types::xml::XmlStreamReader<&mut dyn std::io::Read>,
+        _ctx: &opcua::types::Context<'_>,
+        _name: &str,
+    ) -> Option<opcua::types::EncodingResult<Box<dyn opcua::types::DynEncodable>>> {
+        None
+    }
+
+    fn load_from_binary(
+        &self,
+        node_id: &NodeId,
+        stream: &mut dyn std::io::Read,
+        ctx: &opcua::types::Context<'_>,
+        _length: Option<usize>,
+    ) -> Option<opcua::types::EncodingResult<Box<dyn opcua::types::DynEncodable>>> {
+        if Some(node_id.namespace) != ctx.namespaces().get_index(MV_NAMESPACE) {
+            return None;
+        }
+        let opcua::types::Identifier::Numeric(encoding) = node_id.identifier else { return None };
+        match encoding {
+            e if e == mv::RESULT_ID.1 => Self::decode::<ResultIdDataType>(stream, ctx),
+            e if e == mv::JOB_ID.1 => Self::decode::<JobIdDataType>(stream, ctx),
+            e if e == mv::PART_ID.1 => Self::decode::<PartIdDataType>(stream, ctx),
+            e if e == mv::MEAS_ID.1 => Self::decode::<MeasIdDataType>(stream, ctx),
+            e if e == mv::PRODUCT_ID.1 => Self::decode::<ProductIdDataType>(stream, ctx),
+            e if e == mv::CONFIGURATION_ID.1 => Self::decode::<ConfigurationIdDataType>(stream, ctx),
+            e if e == mv::RECIPE_ID_INTERNAL.1 => Self::decode::<RecipeIdInternalDataType>(stream, ctx),
+            e if e == mv::RECIPE_ID_EXTERNAL.1 => Self::decode::<RecipeIdExternalDataType>(stream, ctx),
+            e if e == mv::PROCESSING_TIMES.1 => Self::decode::<ProcessingTimesDataType>(stream, ctx),
+            _ => None,
+        }
+    }
+
+    fn priority(&self) -> opcua::types::TypeLoaderPriority {
+        opcua::types::TypeLoaderPriority::Generated
+    }
+}
 
 /// OPC 40100-1's ResultReadyEventType: its mandatory fields, and the optional PartId.
 #[derive(Event)]
@@ -388,6 +522,7 @@ struct Nodes {
     queued: NodeId,
     running: NodeId,
     configurations: NodeId,
+    get_result_by_id: NodeId,
 }
 
 impl Nodes {
@@ -403,6 +538,7 @@ pub struct OpcUaServer {
     listener: TcpListener,
     manager: Arc<SimpleNodeManager>,
     nodes: Nodes,
+    recent: Recent,
     url: String,
 }
 
@@ -446,6 +582,7 @@ impl OpcUaServer {
                 store: store.clone(),
                 required: settings.auth == AuthMode::Required,
             }))
+            .with_type_loader(Arc::new(MvTypeLoader))
             .with_node_manager(simple_node_manager_imports(vec![Box::new(nodeset)], MV_MANAGER))
             .with_node_manager(simple_node_manager(
                 NamespaceMetadata { namespace_uri: NAMESPACE.to_owned(), ..Default::default() },
@@ -491,7 +628,10 @@ impl OpcUaServer {
             let mut space = address_space.write();
             build_address_space(&mut space, ns)
         };
-        Ok(OpcUaServer { server, handle, listener, manager, nodes, url })
+        let recent = Recent::default();
+        let held = recent.clone();
+        manager.inner().add_method_callback(nodes.get_result_by_id.clone(), move |args| get_result_by_id(&held, args));
+        Ok(OpcUaServer { server, handle, listener, manager, nodes, recent, url })
     }
 
     /// The endpoint's URL, with the port taken.
@@ -501,10 +641,11 @@ impl OpcUaServer {
 
     /// Serves until `stop`, following the events and the store's state.
     pub async fn run(self, store: Store, mut stop: watch::Receiver<bool>) {
-        let OpcUaServer { server, handle, listener, manager, nodes, url } = self;
+        let OpcUaServer { server, handle, listener, manager, nodes, recent, url } = self;
         tracing::info!(%url, "OPC UA server listening");
         let serving = tokio::spawn(server.run_with(listener));
-        let mut follower = Follower { store, handle: handle.clone(), manager, nodes, cursor: None, checked: None };
+        let mut follower =
+            Follower { store, handle: handle.clone(), manager, nodes, recent, cursor: None, checked: None };
         let mut tick = tokio::time::interval(POLL);
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
@@ -728,6 +869,41 @@ fn build_address_space(space: &mut AddressSpace, ns: Namespaces) -> Nodes {
         &system,
         ns.id(Ns::Mv, mv::RESULT_MANAGEMENT_TYPE),
     );
+    // ResultManagementType's GetResultById (its other methods are not offered: module docs).
+    let get_result_by_id = id("ResultManagement/GetResultById");
+    let argument = |name: &str, data_type: NodeId, description: &str| opcua::types::Argument {
+        name: name.into(),
+        data_type,
+        value_rank: -1,
+        array_dimensions: None,
+        description: description.into(),
+    };
+    opcua::server::address_space::MethodBuilder::new(
+        &get_result_by_id,
+        ns.name(Ns::Mv, "GetResultById"),
+        "GetResultById",
+    )
+    .component_of(results.clone())
+    .executable(true)
+    .user_executable(true)
+    .input_args(
+        space,
+        &id("ResultManagement/GetResultById/InputArguments"),
+        &[
+            argument("ResultId", ns.id(Ns::Mv, mv::RESULT_ID.0), "the result's id (the inspection's)"),
+            argument("Timeout", DataTypeId::Int32.into(), "not used: a result is held or it is not"),
+        ],
+    )
+    .output_args(
+        space,
+        &id("ResultManagement/GetResultById/OutputArguments"),
+        &[
+            argument("ResultHandle", ns.id(Ns::Mv, mv::HANDLE), "always 0: nothing to release"),
+            argument("Result", ns.id(Ns::Mv, mv::RESULT.0), "the result, if held"),
+            argument("Error", DataTypeId::Int32.into(), "0, or -1: not among the last 1000 results announced"),
+        ],
+    )
+    .insert(space);
     let last_result =
         object(space, "ResultManagement/LastResult", ns.name(Ns::Own, "LastResult"), &results, base_object());
     for (name_ns, name, type_ns, data_type, array) in RESULT_FIELDS {
@@ -761,7 +937,28 @@ fn build_address_space(space: &mut AddressSpace, ns: Namespaces) -> Nodes {
         queued,
         running,
         configurations,
+        get_result_by_id,
     }
+}
+
+/// `GetResultById(ResultId, Timeout) -> (ResultHandle, Result, Error)` over the results held.
+fn get_result_by_id(recent: &Recent, args: &[Variant]) -> Result<Vec<Variant>, StatusCode> {
+    match args.len() {
+        0 | 1 => return Err(StatusCode::BadArgumentsMissing),
+        2 => {}
+        _ => return Err(StatusCode::BadTooManyArguments),
+    }
+    let Variant::ExtensionObject(id) = &args[0] else { return Err(StatusCode::BadTypeMismatch) };
+    let Some(id) = id.inner_as::<ResultIdDataType>() else { return Err(StatusCode::BadTypeMismatch) };
+    if !matches!(args[1], Variant::Int32(_)) {
+        return Err(StatusCode::BadTypeMismatch);
+    }
+    let held = recent.lock().unwrap_or_else(|e| e.into_inner()).iter().rev().find(|r| r.result_id == *id).cloned();
+    let (result, error) = match held {
+        Some(result) => (Variant::from(ExtensionObject::from_message(result)), 0),
+        None => (Variant::ExtensionObject(ExtensionObject::null()), RESULT_NOT_HELD),
+    };
+    Ok(vec![Variant::UInt32(0), result, Variant::Int32(error)])
 }
 
 /// The node of VisionStateMachineType's state `name` (Preoperational if the name is not one).
@@ -776,6 +973,7 @@ struct Follower {
     handle: ServerHandle,
     manager: Arc<SimpleNodeManager>,
     nodes: Nodes,
+    recent: Recent,
     /// The last event seen; None until the first step reads where the table ends.
     cursor: Option<i64>,
     /// When the store was last checked, and whether it was healthy then.
@@ -907,6 +1105,13 @@ impl Follower {
         };
         let (threads, _) = self.store.threads(id).await?;
         let event = result_event(&row, &threads, self.nodes.ns, self.nodes.vision_system.clone());
+        {
+            let mut recent = self.recent.lock().unwrap_or_else(|e| e.into_inner());
+            if recent.len() == RECENT_RESULTS {
+                recent.pop_front();
+            }
+            recent.push_back(result_data(&row));
+        }
         // LastResult reads each field from the event as a subscriber's select clause would, so
         // that the two cannot differ (a unit test checks every field is found).
         for (_, name, _, _, _) in RESULT_FIELDS {
@@ -935,6 +1140,38 @@ fn recipe_id(options_json: &str) -> RecipeIdInternalDataType {
     }
 }
 
+/// A succeeded inspection as OPC 40100-1's result.
+fn result_data(row: &InspectionRow) -> ResultDataType {
+    let id = UAString::from(row.id.as_str());
+    let finished_ms = row.finished_at.unwrap_or(row.updated_at);
+    ResultDataType {
+        result_id: ResultIdDataType { id: id.clone() },
+        is_partial: false,
+        result_state: result_state(row.decision.as_deref()),
+        part_id: row
+            .serial
+            .as_deref()
+            .filter(|s| !s.is_empty())
+            .map(|s| PartIdDataType { id: s.into(), description: None }),
+        internal_recipe_id: recipe_id(&row.options_json),
+        // No station: the station design the simulator defines ("" as the id).
+        internal_configuration_id: ConfigurationIdDataType {
+            id: row.station.as_deref().unwrap_or("").into(),
+            ..Default::default()
+        },
+        // The inspection is the job that made the result.
+        job_id: JobIdDataType { id },
+        creation_time: ua_time(finished_ms),
+        processing_times: row.started_at.map(|started_ms| ProcessingTimesDataType {
+            start_time: ua_time(started_ms),
+            end_time: ua_time(finished_ms),
+            acquisition_duration: None,
+            processing_duration: Some((finished_ms - started_ms) as f64),
+        }),
+        ..Default::default()
+    }
+}
+
 /// The ResultReady event of a succeeded inspection and its threads.
 fn result_event(
     row: &InspectionRow,
@@ -952,25 +1189,18 @@ fn result_event(
         .set_source_node(source)
         .set_source_name(UAString::from("VisionSystem"))
         .set_severity(if row.review_required == Some(true) { 500 } else { 100 });
-    let station = row.station.clone().unwrap_or_default();
-    let serial = row.serial.clone().unwrap_or_default();
+    let data = result_data(row);
     let mv = MvResultReadyEvent {
         base,
         own_namespace_index: ns.mv,
-        creation_time: time,
-        result_id: ExtensionObject::from_message(ResultIdDataType { id: id.into() }),
-        // The inspection is the job that made the result.
-        job_id: ExtensionObject::from_message(JobIdDataType { id: id.into() }),
-        internal_recipe_id: ExtensionObject::from_message(recipe_id(&row.options_json)),
-        // No station: the station design the simulator defines ("" as the id).
-        internal_configuration_id: ExtensionObject::from_message(ConfigurationIdDataType {
-            id: station.as_str().into(),
-            ..Default::default()
-        }),
-        is_partial: false,
-        result_state: result_state(row.decision.as_deref()),
-        part_id: (!serial.is_empty())
-            .then(|| ExtensionObject::from_message(PartIdDataType { id: serial.as_str().into(), description: None })),
+        creation_time: data.creation_time,
+        result_id: ExtensionObject::from_message(data.result_id),
+        job_id: ExtensionObject::from_message(data.job_id),
+        internal_recipe_id: ExtensionObject::from_message(data.internal_recipe_id),
+        internal_configuration_id: ExtensionObject::from_message(data.internal_configuration_id),
+        is_partial: data.is_partial,
+        result_state: data.result_state,
+        part_id: data.part_id.map(ExtensionObject::from_message),
     };
     ResultReadyEvent {
         base: mv,
@@ -978,8 +1208,8 @@ fn result_event(
         verdict,
         decision,
         review_required: row.review_required.unwrap_or(false),
-        station,
-        serial,
+        station: row.station.clone().unwrap_or_default(),
+        serial: row.serial.clone().unwrap_or_default(),
         connection: row.connection.clone().unwrap_or_default(),
         report: format!("/v1/inspections/{id}/report"),
         thread_numbers: threads.iter().map(|t| t.thread_index as i32).collect(),
@@ -1112,6 +1342,68 @@ mod tests {
             recipe_id(&serde_json::to_string(&called).unwrap()),
         );
         assert_eq!(plain, hooked);
+    }
+
+    /// GetResultById answers from the results held, newest first, and refuses arguments of the
+    /// wrong number or type with the status Part 4 names.
+    #[test]
+    fn get_result_by_id_answers_from_the_results_held() {
+        let recent = Recent::default();
+        let mut first = result_data(&row("conforms", Some("SN-1"), &default_options()));
+        first.result_state = 2;
+        recent.lock().unwrap().push_back(first);
+        recent.lock().unwrap().push_back(result_data(&row("conforms", Some("SN-1"), &default_options())));
+        let ask = |id: &str| {
+            get_result_by_id(
+                &recent,
+                &[ExtensionObject::from_message(ResultIdDataType { id: id.into() }).into(), Variant::Int32(0)],
+            )
+        };
+        let answer = ask("0190-id").unwrap();
+        assert_eq!(answer[0], Variant::UInt32(0));
+        assert_eq!(answer[2], Variant::Int32(0));
+        let Variant::ExtensionObject(result) = &answer[1] else { panic!("{answer:?}") };
+        let result = result.inner_as::<ResultDataType>().unwrap();
+        assert_eq!(result.result_state, 1, "the newest of two with one id");
+        assert_eq!(result.part_id.as_ref().unwrap().id.as_ref(), "SN-1");
+        assert_eq!(
+            result.processing_times.as_ref().unwrap().processing_duration,
+            Some((1_765_000_000_000i64 - 1) as f64)
+        );
+
+        let missing = ask("other").unwrap();
+        assert_eq!(missing[1], Variant::ExtensionObject(ExtensionObject::null()));
+        assert_eq!(missing[2], Variant::Int32(RESULT_NOT_HELD));
+
+        assert_eq!(get_result_by_id(&recent, &[]), Err(StatusCode::BadArgumentsMissing));
+        let id = Variant::from(ExtensionObject::from_message(ResultIdDataType { id: "0190-id".into() }));
+        assert_eq!(
+            get_result_by_id(&recent, &[id.clone(), Variant::Int32(0), Variant::Int32(0)]),
+            Err(StatusCode::BadTooManyArguments)
+        );
+        assert_eq!(
+            get_result_by_id(&recent, &[Variant::from("0190-id"), Variant::Int32(0)]),
+            Err(StatusCode::BadTypeMismatch)
+        );
+        let job = Variant::from(ExtensionObject::from_message(JobIdDataType { id: "0190-id".into() }));
+        assert_eq!(get_result_by_id(&recent, &[job, Variant::Int32(0)]), Err(StatusCode::BadTypeMismatch));
+        assert_eq!(get_result_by_id(&recent, &[id, Variant::Double(0.0)]), Err(StatusCode::BadTypeMismatch));
+    }
+
+    /// A ResultIdDataType a client sends decodes through the server's loader.
+    #[test]
+    fn the_loader_decodes_what_a_client_sends() {
+        let mut namespaces = NamespaceMap::new();
+        namespaces.add_namespace(MV_NAMESPACE);
+        let mut loaders = TypeLoaderCollection::new();
+        loaders.add(Arc::new(MvTypeLoader));
+        let owned = ContextOwned::new(namespaces, loaders, DecodingOptions::default());
+        let ctx: Context<'_> = owned.context();
+        let sent = ExtensionObject::from_message(ResultIdDataType { id: "0190-id".into() });
+        let mut bytes = Vec::new();
+        sent.encode(&mut bytes, &ctx).unwrap();
+        let back = <ExtensionObject as opcua::types::BinaryDecodable>::decode(&mut bytes.as_slice(), &ctx).unwrap();
+        assert_eq!(back.inner_as::<ResultIdDataType>(), Some(&ResultIdDataType { id: "0190-id".into() }));
     }
 
     /// The compiled-in NodeSet parses, and declares the types and states the server refers to.

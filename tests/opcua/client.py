@@ -3,7 +3,8 @@
 
     client.py probe URL [--key KEY]   connect, browse the VisionSystem, read its state and recipe
     client.py watch URL [--key KEY]   the same, then subscribe to ResultReady events and print the
-                                      first one (after a line {"subscribed": true})
+                                      first one (after a line {"subscribed": true}), then call
+                                      GetResultById for it and for an unknown id
 
 --secure DIR signs and encrypts the channel (Basic256Sha256) with a client certificate kept in DIR
 (made there the first time: DIR/client-cert.der, DIR/client-key.pem).
@@ -154,6 +155,14 @@ async def main():
             emit({"timeout": args.timeout})
             return 4
         emit({"event": event})
+        # ResultManagementType's GetResultById, for the announced result and for an unknown one.
+        results = await system.get_child([f"{mv}:ResultManagement"])
+        method = await results.get_child([f"{mv}:GetResultById"])
+        for result_id in [event["ResultId"]["Id"], "no-such-result"]:
+            handle, result, error = await results.call_method(
+                method, ua.ResultIdDataType(Id=result_id), ua.Variant(0, ua.VariantType.Int32)
+            )
+            emit({"get_result_by_id": result_id, "handle": handle, "result": plain(result), "error": error})
         return 0
     finally:
         await client.disconnect()

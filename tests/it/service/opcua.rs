@@ -139,6 +139,24 @@ async fn an_opcua_client_browses_the_vision_system_and_sees_a_result_ready() {
     assert_eq!(event["ThreadMeanHeightsMm"], serde_json::json!(means));
     let findings: Vec<String> = threads.iter().map(|t| t.height_finding.clone().unwrap_or_default()).collect();
     assert_eq!(event["ThreadFindings"], serde_json::json!(findings));
+    // GetResultById returns the announced result as OPC 40100-1's ResultDataType, and Error -1
+    // for an id it does not hold.
+    let got = next(&mut rx, "GetResultById's answer").await;
+    assert_eq!(got["get_result_by_id"], id.as_str(), "{got}");
+    assert_eq!(got["error"], 0, "{got}");
+    let result = &got["result"];
+    for field in
+        ["ResultId", "JobId", "InternalRecipeId", "InternalConfigurationId", "PartId", "IsPartial", "ResultState"]
+    {
+        assert_eq!(result[field], event[field], "{field}: {got}");
+    }
+    assert_eq!(result["ProcessingTimes"]["EndTime"], event["CreationTime"], "{got}");
+    let stored = app.store().await.inspection(&id).await.unwrap();
+    let processing_ms = stored.finished_at.unwrap() - stored.started_at.unwrap();
+    assert_eq!(result["ProcessingTimes"]["ProcessingDuration"], processing_ms as f64, "{got}");
+    let unknown = next(&mut rx, "GetResultById's answer for an unknown id").await;
+    assert_eq!(unknown["get_result_by_id"], "no-such-result", "{unknown}");
+    assert_eq!(unknown["error"], -1, "{unknown}");
     let status = tokio::task::spawn_blocking(move || watcher.wait().unwrap()).await.unwrap();
     assert!(status.success(), "{status}");
     app.stop().await;
