@@ -147,7 +147,7 @@ pub struct ServeArgs {
     /// PEM roots an mqtts:// broker's certificate is checked against [default: the system's].
     #[arg(long, env = "CRESTSCAN_MQTT_CA_FILE")]
     mqtt_ca_file: Option<PathBuf>,
-    /// Serve an OPC UA address space modelled on OPC 40100 (Machine Vision) at this endpoint,
+    /// Serve an OPC UA address space on OPC 40100-1 (Machine Vision, its NodeSet loaded) at this endpoint,
     /// opc.tcp://host:4840 (off by default).
     #[arg(long, env = "CRESTSCAN_OPCUA_ENDPOINT")]
     opcua_endpoint: Option<String>,

@@ -154,7 +154,7 @@ pub struct Settings {
     /// PEM certificates of the authorities an `mqtts://` broker's certificate is checked against
     /// (without it, the system's roots).
     pub mqtt_ca_file: Option<PathBuf>,
-    /// Serve an OPC UA address space modelled on OPC 40100 (Machine Vision) at this endpoint,
+    /// Serve an OPC UA address space on OPC 40100-1 (Machine Vision, its NodeSet loaded) at this endpoint,
     /// `opc.tcp://host:4840` (docs/interchange.md, "OPC UA"). None (off) by default.
     pub opcua_endpoint: Option<String>,
     /// The OPC UA server's certificate store: its own certificate and key (made on the first
