@@ -733,38 +733,38 @@ fn build_address_space(space: &mut AddressSpace, ns: Namespaces) -> Nodes {
         .organized_by(ObjectId::ObjectsFolder)
         .has_type_definition(ns.id(Ns::Mv, mv::VISION_SYSTEM_TYPE))
         .insert(space);
-    let object = |space: &mut AddressSpace, path: &str, name: QualifiedName, parent: &NodeId, type_id: NodeId| {
+    // A child's id is its path below the VisionSystem ("RecipeManagement/Recipes/default").
+    let child = |parent: &NodeId, name: &QualifiedName| match &parent.identifier {
+        opcua::types::Identifier::String(path) if *parent != system => id(&format!("{path}/{}", name.name)),
+        _ => id(name.name.as_ref()),
+    };
+    let object = |space: &mut AddressSpace, parent: &NodeId, name: QualifiedName, type_id: NodeId| {
+        let node = child(parent, &name);
         let display = name.name.to_string();
-        ObjectBuilder::new(&id(path), name, display)
+        ObjectBuilder::new(&node, name, display)
             .component_of(parent.clone())
             .has_type_definition(type_id)
             .insert(space);
-        id(path)
+        node
     };
-    let variable = |space: &mut AddressSpace,
-                    path: &str,
-                    name: QualifiedName,
-                    parent: &NodeId,
-                    value: Variant,
-                    data_type: NodeId| {
-        let display = name.name.to_string();
-        VariableBuilder::new(&id(path), name, display)
-            .component_of(parent.clone())
-            .data_type(data_type)
-            .has_type_definition(VariableTypeId::BaseDataVariableType)
-            .value(value)
-            .insert(space);
-        id(path)
-    };
-    let base_object = || ObjectTypeId::BaseObjectType.into();
+    let variable =
+        |space: &mut AddressSpace, parent: &NodeId, name: QualifiedName, value: Variant, data_type: DataTypeId| {
+            let node = child(parent, &name);
+            let display = name.name.to_string();
+            VariableBuilder::new(&node, name, display)
+                .component_of(parent.clone())
+                .data_type(data_type)
+                .has_type_definition(VariableTypeId::BaseDataVariableType)
+                .value(value)
+                .insert(space);
+            node
+        };
+    let mv_name = |name: &str| ns.name(Ns::Mv, name);
+    let own_name = |name: &str| ns.name(Ns::Own, name);
+    let mv_type = |number: u32| ns.id(Ns::Mv, number);
+    let base_object = || NodeId::from(ObjectTypeId::BaseObjectType);
 
-    let machine = object(
-        space,
-        "VisionStateMachine",
-        ns.name(Ns::Mv, "VisionStateMachine"),
-        &system,
-        ns.id(Ns::Mv, mv::VISION_STATE_MACHINE_TYPE),
-    );
+    let machine = object(space, &system, mv_name("VisionStateMachine"), mv_type(mv::VISION_STATE_MACHINE_TYPE));
     // FiniteStateMachineType's CurrentState, with the state node's id as its Id property.
     let current_state = id("VisionStateMachine/CurrentState");
     VariableBuilder::new(&current_state, QualifiedName::new(0, "CurrentState"), "CurrentState")
@@ -780,95 +780,25 @@ fn build_address_space(space: &mut AddressSpace, ns: Namespaces) -> Nodes {
         .has_type_definition(VariableTypeId::PropertyType)
         .value(state_node(ns, "Preoperational"))
         .insert(space);
-    let error_reason = variable(
-        space,
-        "VisionStateMachine/ErrorReason",
-        ns.name(Ns::Own, "ErrorReason"),
-        &machine,
-        "".into(),
-        DataTypeId::String.into(),
-    );
-    let execution_state = variable(
-        space,
-        "VisionStateMachine/ExecutionState",
-        ns.name(Ns::Own, "ExecutionState"),
-        &machine,
-        LocalizedText::from("Ready").into(),
-        DataTypeId::LocalizedText.into(),
-    );
-    let queued = variable(
-        space,
-        "VisionStateMachine/InspectionsQueued",
-        ns.name(Ns::Own, "InspectionsQueued"),
-        &machine,
-        0i64.into(),
-        DataTypeId::Int64.into(),
-    );
-    let running = variable(
-        space,
-        "VisionStateMachine/InspectionsRunning",
-        ns.name(Ns::Own, "InspectionsRunning"),
-        &machine,
-        0i64.into(),
-        DataTypeId::Int64.into(),
-    );
+    let error_reason = variable(space, &machine, own_name("ErrorReason"), "".into(), DataTypeId::String);
+    let ready = LocalizedText::from("Ready").into();
+    let execution_state = variable(space, &machine, own_name("ExecutionState"), ready, DataTypeId::LocalizedText);
+    let queued = variable(space, &machine, own_name("InspectionsQueued"), 0i64.into(), DataTypeId::Int64);
+    let running = variable(space, &machine, own_name("InspectionsRunning"), 0i64.into(), DataTypeId::Int64);
 
-    let recipes_manager = object(
-        space,
-        "RecipeManagement",
-        ns.name(Ns::Mv, "RecipeManagement"),
-        &system,
-        ns.id(Ns::Mv, mv::RECIPE_MANAGEMENT_TYPE),
-    );
-    let recipes = object(
-        space,
-        "RecipeManagement/Recipes",
-        ns.name(Ns::Mv, "Recipes"),
-        &recipes_manager,
-        ns.id(Ns::Mv, mv::RECIPE_FOLDER_TYPE),
-    );
-    let default =
-        object(space, "RecipeManagement/Recipes/default", ns.name(Ns::Own, "default"), &recipes, base_object());
-    variable(
-        space,
-        "RecipeManagement/Recipes/default/ExternalId",
-        ns.name(Ns::Own, "ExternalId"),
-        &default,
-        "default".into(),
-        DataTypeId::String.into(),
-    );
+    let recipe_manager = object(space, &system, mv_name("RecipeManagement"), mv_type(mv::RECIPE_MANAGEMENT_TYPE));
+    let recipes = object(space, &recipe_manager, mv_name("Recipes"), mv_type(mv::RECIPE_FOLDER_TYPE));
+    let default = object(space, &recipes, own_name("default"), base_object());
+    variable(space, &default, own_name("ExternalId"), "default".into(), DataTypeId::String);
     let options = serde_json::to_string(&crate::pipeline::PipelineOptions::default()).unwrap_or_default();
-    variable(
-        space,
-        "RecipeManagement/Recipes/default/Content",
-        ns.name(Ns::Own, "Content"),
-        &default,
-        options.into(),
-        DataTypeId::String.into(),
-    );
+    variable(space, &default, own_name("Content"), options.into(), DataTypeId::String);
 
-    let configurations_manager = object(
-        space,
-        "ConfigurationManagement",
-        ns.name(Ns::Mv, "ConfigurationManagement"),
-        &system,
-        ns.id(Ns::Mv, mv::CONFIGURATION_MANAGEMENT_TYPE),
-    );
-    let configurations = object(
-        space,
-        "ConfigurationManagement/Configurations",
-        ns.name(Ns::Mv, "Configurations"),
-        &configurations_manager,
-        ns.id(Ns::Mv, mv::CONFIGURATION_FOLDER_TYPE),
-    );
+    let configuration_manager =
+        object(space, &system, mv_name("ConfigurationManagement"), mv_type(mv::CONFIGURATION_MANAGEMENT_TYPE));
+    let configurations =
+        object(space, &configuration_manager, mv_name("Configurations"), mv_type(mv::CONFIGURATION_FOLDER_TYPE));
 
-    let results = object(
-        space,
-        "ResultManagement",
-        ns.name(Ns::Mv, "ResultManagement"),
-        &system,
-        ns.id(Ns::Mv, mv::RESULT_MANAGEMENT_TYPE),
-    );
+    let results = object(space, &system, mv_name("ResultManagement"), mv_type(mv::RESULT_MANAGEMENT_TYPE));
     // ResultManagementType's GetResultById (its other methods are not offered: module docs).
     let get_result_by_id = id("ResultManagement/GetResultById");
     let argument = |name: &str, data_type: NodeId, description: &str| opcua::types::Argument {
@@ -878,34 +808,29 @@ fn build_address_space(space: &mut AddressSpace, ns: Namespaces) -> Nodes {
         array_dimensions: None,
         description: description.into(),
     };
-    opcua::server::address_space::MethodBuilder::new(
-        &get_result_by_id,
-        ns.name(Ns::Mv, "GetResultById"),
-        "GetResultById",
-    )
-    .component_of(results.clone())
-    .executable(true)
-    .user_executable(true)
-    .input_args(
-        space,
-        &id("ResultManagement/GetResultById/InputArguments"),
-        &[
-            argument("ResultId", ns.id(Ns::Mv, mv::RESULT_ID.0), "the result's id (the inspection's)"),
-            argument("Timeout", DataTypeId::Int32.into(), "not used: a result is held or it is not"),
-        ],
-    )
-    .output_args(
-        space,
-        &id("ResultManagement/GetResultById/OutputArguments"),
-        &[
-            argument("ResultHandle", ns.id(Ns::Mv, mv::HANDLE), "always 0: nothing to release"),
-            argument("Result", ns.id(Ns::Mv, mv::RESULT.0), "the result, if held"),
-            argument("Error", DataTypeId::Int32.into(), "0, or -1: not among the last 1000 results announced"),
-        ],
-    )
-    .insert(space);
-    let last_result =
-        object(space, "ResultManagement/LastResult", ns.name(Ns::Own, "LastResult"), &results, base_object());
+    opcua::server::address_space::MethodBuilder::new(&get_result_by_id, mv_name("GetResultById"), "GetResultById")
+        .component_of(results.clone())
+        .executable(true)
+        .user_executable(true)
+        .input_args(
+            space,
+            &id("ResultManagement/GetResultById/InputArguments"),
+            &[
+                argument("ResultId", mv_type(mv::RESULT_ID.0), "the result's id (the inspection's)"),
+                argument("Timeout", DataTypeId::Int32.into(), "not used: a result is held or it is not"),
+            ],
+        )
+        .output_args(
+            space,
+            &id("ResultManagement/GetResultById/OutputArguments"),
+            &[
+                argument("ResultHandle", mv_type(mv::HANDLE), "always 0: nothing to release"),
+                argument("Result", mv_type(mv::RESULT.0), "the result, if held"),
+                argument("Error", DataTypeId::Int32.into(), "0, or -1: not among the last 1000 results announced"),
+            ],
+        )
+        .insert(space);
+    let last_result = object(space, &results, own_name("LastResult"), base_object());
     for (name_ns, name, type_ns, data_type, array) in RESULT_FIELDS {
         let value = match (array, type_ns, data_type) {
             (true, _, t) if t == DataTypeId::Int32 as u32 => Variant::from(Vec::<i32>::new()),
