@@ -76,6 +76,25 @@ const RESULT_NOT_HELD: i32 = -1;
 /// The results announced last, newest at the back.
 type Recent = Arc<std::sync::Mutex<std::collections::VecDeque<ResultDataType>>>;
 
+/// What the result methods answer from: the results held and the next handle. A handle only names
+/// a call's answer (there is no file transfer to release), but is unique in this server, as the
+/// specification asks.
+#[derive(Default)]
+struct Held {
+    recent: Recent,
+    next_handle: std::sync::atomic::AtomicU32,
+}
+
+impl Held {
+    fn handle(&self) -> Variant {
+        Variant::UInt32(self.next_handle.fetch_add(1, std::sync::atomic::Ordering::Relaxed).wrapping_add(1))
+    }
+
+    fn results(&self) -> std::sync::MutexGuard<'_, std::collections::VecDeque<ResultDataType>> {
+        self.recent.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
 /// Numeric node ids in OPC 40100-1's NodeSet (its namespace).
 mod mv {
     pub const VISION_SYSTEM_TYPE: u32 = 1003;
@@ -327,7 +346,7 @@ pub struct MvResultReadyEvent {
     internal_recipe_id: ExtensionObject,
     internal_configuration_id: ExtensionObject,
     is_partial: bool,
-    /// 1 conforms, 2 does not conform, 0 indeterminate (the ISO 14253-1 decision).
+    /// Always [`COMPLETED`].
     result_state: i32,
     part_id: Option<ExtensionObject>,
 }
@@ -432,15 +451,10 @@ fn ua_time(ms: i64) -> DateTime {
     DateTime::from((ms + 11_644_473_600_000) * 10_000)
 }
 
-/// The result state a decision reads as (1 good, 2 bad, 0 undecided).
-pub fn result_state(decision: Option<&str>) -> i32 {
-    use crate::pipeline::uncertainty::Decision;
-    match decision {
-        Some(d) if d == Decision::Conforms.as_str() => 1,
-        Some(d) if d == Decision::DoesNotConform.as_str() => 2,
-        _ => 0,
-    }
-}
+/// ResultStateDataType's `Completed` (OPC 40100-1, 12.19): the processing state, not the part's
+/// acceptance, which is the event's `Decision` and `Verdict`. Only succeeded inspections are
+/// announced, so every result held is completed.
+pub const COMPLETED: i32 = 1;
 
 /// Sessions as the service's API keys allow: anonymous where keys are off; otherwise a user name
 /// token (any name) whose password is a key holding `read`.
@@ -523,6 +537,7 @@ struct Nodes {
     running: NodeId,
     configurations: NodeId,
     get_result_by_id: NodeId,
+    get_result_list_filtered: NodeId,
 }
 
 impl Nodes {
@@ -628,9 +643,13 @@ impl OpcUaServer {
             let mut space = address_space.write();
             build_address_space(&mut space, ns)
         };
-        let recent = Recent::default();
-        let held = recent.clone();
-        manager.inner().add_method_callback(nodes.get_result_by_id.clone(), move |args| get_result_by_id(&held, args));
+        let held = Arc::new(Held::default());
+        let recent = held.recent.clone();
+        let by_id = held.clone();
+        manager.inner().add_method_callback(nodes.get_result_by_id.clone(), move |args| get_result_by_id(&by_id, args));
+        manager.inner().add_method_callback(nodes.get_result_list_filtered.clone(), move |args| {
+            get_result_list_filtered(&held, args)
+        });
         Ok(OpcUaServer { server, handle, listener, manager, nodes, recent, url })
     }
 
@@ -824,12 +843,56 @@ fn build_address_space(space: &mut AddressSpace, ns: Namespaces) -> Nodes {
             space,
             &id("ResultManagement/GetResultById/OutputArguments"),
             &[
-                argument("ResultHandle", mv_type(mv::HANDLE), "always 0: nothing to release"),
+                argument("ResultHandle", mv_type(mv::HANDLE), "unique in this server; nothing to release"),
                 argument("Result", mv_type(mv::RESULT.0), "the result, if held"),
                 argument("Error", DataTypeId::Int32.into(), "0, or -1: not among the last 1000 results announced"),
             ],
         )
         .insert(space);
+    // ResultManagementType's GetResultListFiltered over the same results.
+    let get_result_list_filtered = id("ResultManagement/GetResultListFiltered");
+    let filter = |name: &str, data_type: NodeId| argument(name, data_type, "a null or empty id filters nothing");
+    opcua::server::address_space::MethodBuilder::new(
+        &get_result_list_filtered,
+        mv_name("GetResultListFiltered"),
+        "GetResultListFiltered",
+    )
+    .component_of(results.clone())
+    .executable(true)
+    .user_executable(true)
+    .input_args(
+        space,
+        &id("ResultManagement/GetResultListFiltered/InputArguments"),
+        &[
+            argument("ResultState", mv_type(mv::RESULT_STATE), "0 filters nothing"),
+            filter("MeasId", mv_type(mv::MEAS_ID.0)),
+            filter("PartId", mv_type(mv::PART_ID.0)),
+            filter("ExternalRecipeId", mv_type(mv::RECIPE_ID_EXTERNAL.0)),
+            filter("InternalRecipeId", mv_type(mv::RECIPE_ID_INTERNAL.0)),
+            filter("ExternalConfigurationId", mv_type(mv::CONFIGURATION_ID.0)),
+            filter("InternalConfigurationId", mv_type(mv::CONFIGURATION_ID.0)),
+            filter("ProductId", mv_type(mv::PRODUCT_ID.0)),
+            filter("JobId", mv_type(mv::JOB_ID.0)),
+            argument("MaxResults", DataTypeId::UInt32.into(), "0: no limit"),
+            argument("StartIndex", DataTypeId::UInt32.into(), "0, then multiples of MaxResults"),
+            argument("Timeout", DataTypeId::Int32.into(), "not used"),
+        ],
+    )
+    .output_args(
+        space,
+        &id("ResultManagement/GetResultListFiltered/OutputArguments"),
+        &[
+            argument("IsComplete", DataTypeId::Boolean.into(), "the list reaches the last match"),
+            argument("ResultCount", DataTypeId::UInt32.into(), "the list's length"),
+            argument("ResultHandle", mv_type(mv::HANDLE), "unique in this server; nothing to release"),
+            opcua::types::Argument {
+                value_rank: 1,
+                ..argument("ResultList", mv_type(mv::RESULT.0), "the matches, in the order announced")
+            },
+            argument("Error", DataTypeId::Int32.into(), "0"),
+        ],
+    )
+    .insert(space);
     let last_result = object(space, &results, own_name("LastResult"), base_object());
     for (name_ns, name, type_ns, data_type, array) in RESULT_FIELDS {
         let value = match (array, type_ns, data_type) {
@@ -863,27 +926,97 @@ fn build_address_space(space: &mut AddressSpace, ns: Namespaces) -> Nodes {
         running,
         configurations,
         get_result_by_id,
+        get_result_list_filtered,
+    }
+}
+
+/// The argument `index` of a method call as the structure `T`: `Ok(None)` where the client sent a
+/// null (an empty filter).
+fn structure_argument<T: Send + Sync + 'static>(args: &[Variant], index: usize) -> Result<Option<&T>, StatusCode> {
+    match args.get(index) {
+        Some(Variant::ExtensionObject(o)) if o.is_null() => Ok(None),
+        Some(Variant::ExtensionObject(o)) => o.inner_as::<T>().map(Some).ok_or(StatusCode::BadTypeMismatch),
+        Some(Variant::Empty) => Ok(None),
+        Some(_) => Err(StatusCode::BadTypeMismatch),
+        None => Err(StatusCode::BadArgumentsMissing),
+    }
+}
+
+/// Refuses a call with other than `count` arguments.
+fn argument_count(args: &[Variant], count: usize) -> Result<(), StatusCode> {
+    match args.len().cmp(&count) {
+        std::cmp::Ordering::Less => Err(StatusCode::BadArgumentsMissing),
+        std::cmp::Ordering::Greater => Err(StatusCode::BadTooManyArguments),
+        std::cmp::Ordering::Equal => Ok(()),
     }
 }
 
 /// `GetResultById(ResultId, Timeout) -> (ResultHandle, Result, Error)` over the results held.
-fn get_result_by_id(recent: &Recent, args: &[Variant]) -> Result<Vec<Variant>, StatusCode> {
-    match args.len() {
-        0 | 1 => return Err(StatusCode::BadArgumentsMissing),
-        2 => {}
-        _ => return Err(StatusCode::BadTooManyArguments),
-    }
-    let Variant::ExtensionObject(id) = &args[0] else { return Err(StatusCode::BadTypeMismatch) };
-    let Some(id) = id.inner_as::<ResultIdDataType>() else { return Err(StatusCode::BadTypeMismatch) };
+fn get_result_by_id(held: &Held, args: &[Variant]) -> Result<Vec<Variant>, StatusCode> {
+    argument_count(args, 2)?;
+    let id = structure_argument::<ResultIdDataType>(args, 0)?.ok_or(StatusCode::BadInvalidArgument)?;
     if !matches!(args[1], Variant::Int32(_)) {
         return Err(StatusCode::BadTypeMismatch);
     }
-    let held = recent.lock().unwrap_or_else(|e| e.into_inner()).iter().rev().find(|r| r.result_id == *id).cloned();
-    let (result, error) = match held {
+    let found = held.results().iter().rev().find(|r| r.result_id == *id).cloned();
+    let (result, error) = match found {
         Some(result) => (Variant::from(ExtensionObject::from_message(result)), 0),
         None => (Variant::ExtensionObject(ExtensionObject::null()), RESULT_NOT_HELD),
     };
-    Ok(vec![Variant::UInt32(0), result, Variant::Int32(error)])
+    Ok(vec![held.handle(), result, Variant::Int32(error)])
+}
+
+/// `GetResultListFiltered(ResultState, MeasId, PartId, ExternalRecipeId, InternalRecipeId,
+/// ExternalConfigurationId, InternalConfigurationId, ProductId, JobId, MaxResults, StartIndex,
+/// Timeout) -> (IsComplete, ResultCount, ResultHandle, ResultList, Error)` over the results held,
+/// in the order announced. A state of 0 and a null or empty id filter nothing; an id matches by its
+/// `Id`. A filter on an id crestscan never sets (MeasId, ProductId, the external ids) matches no
+/// result. `ResultCount` is the length of `ResultList`; `IsComplete` says it reaches the last match.
+fn get_result_list_filtered(held: &Held, args: &[Variant]) -> Result<Vec<Variant>, StatusCode> {
+    argument_count(args, 12)?;
+    let Variant::Int32(state) = args[0] else { return Err(StatusCode::BadTypeMismatch) };
+    // Each id filter as its `Id`, None where empty.
+    fn id_of(id: &UAString) -> Option<&str> {
+        id.value().as_deref().filter(|id| !id.is_empty())
+    }
+    let meas = structure_argument::<MeasIdDataType>(args, 1)?.and_then(|i| id_of(&i.id));
+    let part = structure_argument::<PartIdDataType>(args, 2)?.and_then(|i| id_of(&i.id));
+    let external_recipe = structure_argument::<RecipeIdExternalDataType>(args, 3)?.and_then(|i| id_of(&i.id));
+    let recipe = structure_argument::<RecipeIdInternalDataType>(args, 4)?.and_then(|i| id_of(&i.id));
+    let external_configuration = structure_argument::<ConfigurationIdDataType>(args, 5)?.and_then(|i| id_of(&i.id));
+    let configuration = structure_argument::<ConfigurationIdDataType>(args, 6)?.and_then(|i| id_of(&i.id));
+    let product = structure_argument::<ProductIdDataType>(args, 7)?.and_then(|i| id_of(&i.id));
+    let job = structure_argument::<JobIdDataType>(args, 8)?.and_then(|i| id_of(&i.id));
+    let (Variant::UInt32(max_results), Variant::UInt32(start), Variant::Int32(_)) = (&args[9], &args[10], &args[11])
+    else {
+        return Err(StatusCode::BadTypeMismatch);
+    };
+    let unset = meas.is_some() || external_recipe.is_some() || external_configuration.is_some() || product.is_some();
+    let matches = |r: &&ResultDataType| {
+        !unset
+            && (state == 0 || r.result_state == state)
+            && part.is_none_or(|p| r.part_id.as_ref().and_then(|i| id_of(&i.id)) == Some(p))
+            && recipe.is_none_or(|p| id_of(&r.internal_recipe_id.id) == Some(p))
+            && configuration.is_none_or(|p| r.internal_configuration_id.id.as_ref() == p)
+            && job.is_none_or(|p| id_of(&r.job_id.id) == Some(p))
+    };
+    let results = held.results();
+    let matching: Vec<&ResultDataType> = results.iter().filter(matches).collect();
+    let limit = if *max_results == 0 { usize::MAX } else { *max_results as usize };
+    let page: Vec<ExtensionObject> = matching
+        .iter()
+        .skip(*start as usize)
+        .take(limit)
+        .map(|r| ExtensionObject::from_message((*r).clone()))
+        .collect();
+    let complete = (*start as usize).saturating_add(page.len()) >= matching.len();
+    Ok(vec![
+        Variant::Boolean(complete),
+        Variant::UInt32(page.len() as u32),
+        held.handle(),
+        Variant::from(page),
+        Variant::Int32(0),
+    ])
 }
 
 /// The node of VisionStateMachineType's state `name` (Preoperational if the name is not one).
@@ -1072,7 +1205,7 @@ fn result_data(row: &InspectionRow) -> ResultDataType {
     ResultDataType {
         result_id: ResultIdDataType { id: id.clone() },
         is_partial: false,
-        result_state: result_state(row.decision.as_deref()),
+        result_state: COMPLETED,
         part_id: row
             .serial
             .as_deref()
@@ -1212,7 +1345,11 @@ mod tests {
             };
             assert!(expected, "{name}: {value:?}");
         }
-        assert_eq!(event.field("ResultState"), Variant::Int32(1));
+        assert_eq!(event.field("ResultState"), Variant::Int32(COMPLETED));
+        // The state is the processing's, not the part's: a rejected part's result is completed too.
+        let rejected = result_event(&row("does_not_conform", None, &default_options()), &[], NS, NodeId::null());
+        assert_eq!(rejected.field("ResultState"), Variant::Int32(COMPLETED));
+        assert_eq!(rejected.field("Decision"), Variant::from("does_not_conform"));
         assert_eq!(event.field("ThreadMeanHeightsMm"), Variant::from(vec![1.57, 1.58]));
         assert_eq!(event.field("NoSuchField"), Variant::Empty);
         let Variant::ExtensionObject(id) = event.field("ResultId") else { panic!("ResultId") };
@@ -1273,23 +1410,22 @@ mod tests {
     /// wrong number or type with the status Part 4 names.
     #[test]
     fn get_result_by_id_answers_from_the_results_held() {
-        let recent = Recent::default();
+        let held = Held::default();
         let mut first = result_data(&row("conforms", Some("SN-1"), &default_options()));
-        first.result_state = 2;
-        recent.lock().unwrap().push_back(first);
-        recent.lock().unwrap().push_back(result_data(&row("conforms", Some("SN-1"), &default_options())));
+        first.result_state = -7;
+        held.results().push_back(first);
+        held.results().push_back(result_data(&row("conforms", Some("SN-1"), &default_options())));
         let ask = |id: &str| {
             get_result_by_id(
-                &recent,
+                &held,
                 &[ExtensionObject::from_message(ResultIdDataType { id: id.into() }).into(), Variant::Int32(0)],
             )
         };
         let answer = ask("0190-id").unwrap();
-        assert_eq!(answer[0], Variant::UInt32(0));
         assert_eq!(answer[2], Variant::Int32(0));
         let Variant::ExtensionObject(result) = &answer[1] else { panic!("{answer:?}") };
         let result = result.inner_as::<ResultDataType>().unwrap();
-        assert_eq!(result.result_state, 1, "the newest of two with one id");
+        assert_eq!(result.result_state, COMPLETED, "the newest of two with one id");
         assert_eq!(result.part_id.as_ref().unwrap().id.as_ref(), "SN-1");
         assert_eq!(
             result.processing_times.as_ref().unwrap().processing_duration,
@@ -1299,20 +1435,90 @@ mod tests {
         let missing = ask("other").unwrap();
         assert_eq!(missing[1], Variant::ExtensionObject(ExtensionObject::null()));
         assert_eq!(missing[2], Variant::Int32(RESULT_NOT_HELD));
+        // Each answer has its own handle.
+        assert!(answer[0] != missing[0] && answer[0] != Variant::UInt32(0), "{answer:?} {missing:?}");
 
-        assert_eq!(get_result_by_id(&recent, &[]), Err(StatusCode::BadArgumentsMissing));
+        assert_eq!(get_result_by_id(&held, &[]), Err(StatusCode::BadArgumentsMissing));
         let id = Variant::from(ExtensionObject::from_message(ResultIdDataType { id: "0190-id".into() }));
         assert_eq!(
-            get_result_by_id(&recent, &[id.clone(), Variant::Int32(0), Variant::Int32(0)]),
+            get_result_by_id(&held, &[id.clone(), Variant::Int32(0), Variant::Int32(0)]),
             Err(StatusCode::BadTooManyArguments)
         );
         assert_eq!(
-            get_result_by_id(&recent, &[Variant::from("0190-id"), Variant::Int32(0)]),
+            get_result_by_id(&held, &[Variant::from("0190-id"), Variant::Int32(0)]),
             Err(StatusCode::BadTypeMismatch)
         );
         let job = Variant::from(ExtensionObject::from_message(JobIdDataType { id: "0190-id".into() }));
-        assert_eq!(get_result_by_id(&recent, &[job, Variant::Int32(0)]), Err(StatusCode::BadTypeMismatch));
-        assert_eq!(get_result_by_id(&recent, &[id, Variant::Double(0.0)]), Err(StatusCode::BadTypeMismatch));
+        assert_eq!(get_result_by_id(&held, &[job, Variant::Int32(0)]), Err(StatusCode::BadTypeMismatch));
+        assert_eq!(get_result_by_id(&held, &[id, Variant::Double(0.0)]), Err(StatusCode::BadTypeMismatch));
+    }
+
+    /// GetResultListFiltered filters by state and ids, pages with MaxResults and StartIndex, and
+    /// matches nothing on an id crestscan never sets.
+    #[test]
+    fn get_result_list_filtered_filters_and_pages() {
+        let held = Held::default();
+        for (i, serial) in ["SN-1", "SN-2", "SN-1", "SN-3", "SN-1"].iter().enumerate() {
+            let mut inspection = row("conforms", Some(serial), &default_options());
+            inspection.id = format!("id-{i}");
+            inspection.station = Some(if i < 3 { "line-3" } else { "line-4" }.into());
+            held.results().push_back(result_data(&inspection));
+        }
+        let object = |o: ExtensionObject| Variant::ExtensionObject(o);
+        let none = || Variant::ExtensionObject(ExtensionObject::null());
+        let ask =
+            |state: i32, part: Option<&str>, configuration: Option<&str>, meas: Option<&str>, max: u32, start: u32| {
+                let mut args = vec![Variant::Int32(state)];
+                args.push(meas.map_or_else(none, |m| {
+                    object(ExtensionObject::from_message(MeasIdDataType { id: m.into(), description: None }))
+                }));
+                args.push(part.map_or_else(none, |p| {
+                    object(ExtensionObject::from_message(PartIdDataType { id: p.into(), description: None }))
+                }));
+                args.extend([none(), none(), none()]);
+                args.push(configuration.map_or_else(none, |c| {
+                    object(ExtensionObject::from_message(ConfigurationIdDataType {
+                        id: c.into(),
+                        ..Default::default()
+                    }))
+                }));
+                args.extend([none(), none(), Variant::UInt32(max), Variant::UInt32(start), Variant::Int32(-1)]);
+                let out = get_result_list_filtered(&held, &args).unwrap();
+                let Variant::Array(list) = &out[3] else { panic!("{out:?}") };
+                let ids: Vec<String> = list
+                    .values
+                    .iter()
+                    .map(|v| match v {
+                        Variant::ExtensionObject(o) => o.inner_as::<ResultDataType>().unwrap().result_id.id.to_string(),
+                        other => panic!("{other:?}"),
+                    })
+                    .collect();
+                assert_eq!(out[1], Variant::UInt32(ids.len() as u32));
+                assert_eq!(out[4], Variant::Int32(0));
+                (out[0] == Variant::Boolean(true), ids)
+            };
+        let all = ask(0, None, None, None, 0, 0);
+        assert_eq!(all, (true, vec!["id-0".into(), "id-1".into(), "id-2".into(), "id-3".into(), "id-4".into()]));
+        assert_eq!(ask(COMPLETED, None, None, None, 0, 0).1.len(), 5);
+        assert_eq!(ask(4, None, None, None, 0, 0), (true, vec![]));
+        assert_eq!(ask(0, Some("SN-1"), None, None, 0, 0).1, ["id-0", "id-2", "id-4"]);
+        assert_eq!(ask(0, Some("SN-1"), Some("line-3"), None, 0, 0).1, ["id-0", "id-2"]);
+        assert_eq!(ask(0, Some(""), Some("line-4"), None, 0, 0).1, ["id-3", "id-4"], "an empty id filters nothing");
+        // Pages of two: StartIndex 0, 2, 4.
+        assert_eq!(ask(0, None, None, None, 2, 0), (false, vec!["id-0".into(), "id-1".into()]));
+        assert_eq!(ask(0, None, None, None, 2, 2), (false, vec!["id-2".into(), "id-3".into()]));
+        assert_eq!(ask(0, None, None, None, 2, 4), (true, vec!["id-4".into()]));
+        assert_eq!(ask(0, None, None, None, 2, 6), (true, vec![]));
+        assert_eq!(ask(0, None, None, Some("M-1"), 0, 0), (true, vec![]), "MeasId is never set");
+
+        assert_eq!(get_result_list_filtered(&held, &[Variant::Int32(0)]), Err(StatusCode::BadArgumentsMissing));
+        let mut wrong = vec![Variant::Int32(0)];
+        wrong.extend((0..8).map(|_| none()));
+        wrong.extend([Variant::Int32(0), Variant::UInt32(0), Variant::Int32(0)]);
+        assert_eq!(get_result_list_filtered(&held, &wrong), Err(StatusCode::BadTypeMismatch), "MaxResults is a UInt32");
+        wrong[9] = Variant::UInt32(0);
+        wrong[2] = object(ExtensionObject::from_message(JobIdDataType { id: "SN-1".into() }));
+        assert_eq!(get_result_list_filtered(&held, &wrong), Err(StatusCode::BadTypeMismatch), "PartId's type");
     }
 
     /// A ResultIdDataType a client sends decodes through the server's loader.

@@ -4,7 +4,8 @@
     client.py probe URL [--key KEY]   connect, browse the VisionSystem, read its state and recipe
     client.py watch URL [--key KEY]   the same, then subscribe to ResultReady events and print the
                                       first one (after a line {"subscribed": true}), then call
-                                      GetResultById for it and for an unknown id
+                                      GetResultById for it and for an unknown id, and
+                                      GetResultListFiltered by its JobId and unfiltered
 
 --secure DIR signs and encrypts the channel (Basic256Sha256) with a client certificate kept in DIR
 (made there the first time: DIR/client-cert.der, DIR/client-key.pem).
@@ -163,6 +164,28 @@ async def main():
                 method, ua.ResultIdDataType(Id=result_id), ua.Variant(0, ua.VariantType.Int32)
             )
             emit({"get_result_by_id": result_id, "handle": handle, "result": plain(result), "error": error})
+        # GetResultListFiltered: by the event's JobId, then every result (no filter, no limit).
+        method = await results.get_child([f"{mv}:GetResultListFiltered"])
+        for job in [event["JobId"]["Id"], ""]:
+            nulls = [ua.Variant(None, ua.VariantType.ExtensionObject) for _ in range(7)]
+            complete, count, handle, listed, error = await results.call_method(
+                method,
+                ua.Variant(0, ua.VariantType.Int32),
+                *nulls,
+                ua.JobIdDataType(Id=job),
+                ua.Variant(0, ua.VariantType.UInt32),
+                ua.Variant(0, ua.VariantType.UInt32),
+                ua.Variant(-1, ua.VariantType.Int32),
+            )
+            emit(
+                {
+                    "get_result_list_filtered": job,
+                    "complete": complete,
+                    "count": count,
+                    "ids": [r.ResultId.Id for r in listed or []],
+                    "error": error,
+                }
+            )
         return 0
     finally:
         await client.disconnect()

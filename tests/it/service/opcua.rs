@@ -122,12 +122,8 @@ async fn an_opcua_client_browses_the_vision_system_and_sees_a_result_ready() {
     assert_eq!(event["Verdict"], row["verdict"]);
     assert_eq!(event["Decision"], row["decision"]);
     assert_eq!(event["ReviewRequired"], row["review_required"]);
-    let state = match row["decision"].as_str() {
-        Some("conforms") => 1,
-        Some("does_not_conform") => 2,
-        _ => 0,
-    };
-    assert_eq!(event["ResultState"], state);
+    // ResultStateDataType's Completed: the processing's state; the part's is the decision.
+    assert_eq!(event["ResultState"], 1, "{event}");
     assert_eq!(event["IsPartial"], false);
     assert_eq!(event["SourceName"], "VisionSystem");
     assert_eq!(event["Report"], format!("/v1/inspections/{id}/report"));
@@ -157,6 +153,19 @@ async fn an_opcua_client_browses_the_vision_system_and_sees_a_result_ready() {
     let unknown = next(&mut rx, "GetResultById's answer for an unknown id").await;
     assert_eq!(unknown["get_result_by_id"], "no-such-result", "{unknown}");
     assert_eq!(unknown["error"], -1, "{unknown}");
+    assert_ne!(got["handle"], unknown["handle"], "each answer has its own handle");
+    // GetResultListFiltered by the inspection's JobId finds it alone, and unfiltered lists the one
+    // result this server announced.
+    for job in [id.as_str(), ""] {
+        let listed = next(&mut rx, "GetResultListFiltered's answer").await;
+        assert_eq!(listed["get_result_list_filtered"], job, "{listed}");
+        assert_eq!(listed["ids"], serde_json::json!([id]), "{listed}");
+        assert_eq!(
+            (&listed["complete"], &listed["count"], &listed["error"]),
+            (&Value::Bool(true), &serde_json::json!(1), &serde_json::json!(0)),
+            "{listed}"
+        );
+    }
     let status = tokio::task::spawn_blocking(move || watcher.wait().unwrap()).await.unwrap();
     assert!(status.success(), "{status}");
     app.stop().await;
