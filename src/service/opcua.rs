@@ -13,7 +13,8 @@
 //!   them (`Content`, JSON);
 //! - `ConfigurationManagement/Configurations/<station>`: each station's status (qualified,
 //!   suspended, …) and its reason;
-//! - `ResultManagement/LastResult`: the last succeeded inspection's result;
+//! - `ResultManagement/LastResult`: the last succeeded inspection's result, and the two result
+//!   methods;
 //! - events of crestscan's `ThreadResultReadyEventType`, a subtype of the specification's
 //!   `ResultReadyEventType` (the VisionSystem is their source and notifier; the Server object sees
 //!   them too), for each succeeded inspection: the specification's fields (`ResultId`, `JobId`,
@@ -21,8 +22,10 @@
 //!   crestscan's: verdict, decision, review flag, station, serial, connection, report link, and per
 //!   thread its number, mean height, uncertainty, finding and black-crest length.
 //!
-//! The specification's methods (`Halt`, `Reset`, `GetResultById`, recipe and configuration
-//! management) are not offered: the state follows the store, and results are read over REST.
+//! Of the specification's methods, ResultManagement's `GetResultById` and
+//! `GetResultListFiltered` answer from the last results announced; the state machine's (`Halt`,
+//! `Reset`) and recipe and configuration management are not offered: the state follows the store,
+//! and a submission carries its own options.
 //!
 //! Each process serving the API with an endpoint follows the database's `events` table (as the MQTT
 //! publisher does, but every server sees every event), so results another process finished are

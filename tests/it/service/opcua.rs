@@ -1,7 +1,8 @@
 //! The OPC UA Machine Vision server against a real client (asyncua from PyPI, driven by
 //! tests/opcua/client.py): it browses the VisionSystem by OPC 40100-1's names and types, reads its
 //! state, its recipe and a station, decodes the specification's structures from the server's own
-//! definitions, subscribes to ResultReady events and sees a submitted inspection's; with API keys
+//! definitions, subscribes to ResultReady events and sees a submitted inspection's, and finds it
+//! again with GetResultById and GetResultListFiltered; with API keys
 //! required it
 //! refuses an anonymous session and a wrong key, and takes a key with `read`.
 
