@@ -79,6 +79,17 @@ const RESULT_NOT_HELD: i32 = -1;
 /// The results announced last, newest at the back.
 type Recent = Arc<std::sync::Mutex<std::collections::VecDeque<ResultDataType>>>;
 
+/// Keeps a result for the result methods: once, at the back (an event read again after a failed
+/// read is announced again), the oldest dropped past [`RECENT_RESULTS`].
+fn hold(recent: &Recent, result: ResultDataType) {
+    let mut recent = recent.lock().unwrap_or_else(|e| e.into_inner());
+    recent.retain(|r| r.result_id != result.result_id);
+    if recent.len() == RECENT_RESULTS {
+        recent.pop_front();
+    }
+    recent.push_back(result);
+}
+
 /// What the result methods answer from: the results held and the next handle. A handle only names
 /// a call's answer (there is no file transfer to release), but is unique in this server, as the
 /// specification asks.
@@ -821,6 +832,7 @@ fn build_address_space(space: &mut AddressSpace, ns: Namespaces) -> Nodes {
         object(space, &configuration_manager, mv_name("Configurations"), mv_type(mv::CONFIGURATION_FOLDER_TYPE));
 
     let results = object(space, &system, mv_name("ResultManagement"), mv_type(mv::RESULT_MANAGEMENT_TYPE));
+    let not_held = format!("0, or {RESULT_NOT_HELD}: not among the last {RECENT_RESULTS} results announced");
     // ResultManagementType's GetResultById (its other methods are not offered: module docs).
     let get_result_by_id = id("ResultManagement/GetResultById");
     let argument = |name: &str, data_type: NodeId, description: &str| opcua::types::Argument {
@@ -848,7 +860,7 @@ fn build_address_space(space: &mut AddressSpace, ns: Namespaces) -> Nodes {
             &[
                 argument("ResultHandle", mv_type(mv::HANDLE), "unique in this server; nothing to release"),
                 argument("Result", mv_type(mv::RESULT.0), "the result, if held"),
-                argument("Error", DataTypeId::Int32.into(), "0, or -1: not among the last 1000 results announced"),
+                argument("Error", DataTypeId::Int32.into(), &not_held),
             ],
         )
         .insert(space);
@@ -1166,13 +1178,7 @@ impl Follower {
         };
         let (threads, _) = self.store.threads(id).await?;
         let event = result_event(&row, &threads, self.nodes.ns, self.nodes.vision_system.clone());
-        {
-            let mut recent = self.recent.lock().unwrap_or_else(|e| e.into_inner());
-            if recent.len() == RECENT_RESULTS {
-                recent.pop_front();
-            }
-            recent.push_back(result_data(&row));
-        }
+        hold(&self.recent, result_data(&row));
         // LastResult reads each field from the event as a subscriber's select clause would, so
         // that the two cannot differ (a unit test checks every field is found).
         for (_, name, _, _, _) in RESULT_FIELDS {
@@ -1454,6 +1460,27 @@ mod tests {
         let job = Variant::from(ExtensionObject::from_message(JobIdDataType { id: "0190-id".into() }));
         assert_eq!(get_result_by_id(&held, &[job, Variant::Int32(0)]), Err(StatusCode::BadTypeMismatch));
         assert_eq!(get_result_by_id(&held, &[id, Variant::Double(0.0)]), Err(StatusCode::BadTypeMismatch));
+    }
+
+    /// A result announced again is held once, at the back; past the bound the oldest goes.
+    #[test]
+    fn results_are_held_once_and_bounded() {
+        let recent = Recent::default();
+        let result = |i: usize| {
+            let mut inspection = row("conforms", None, &default_options());
+            inspection.id = format!("id-{i}");
+            result_data(&inspection)
+        };
+        for i in 0..RECENT_RESULTS + 2 {
+            hold(&recent, result(i));
+        }
+        hold(&recent, result(5));
+        let held = recent.lock().unwrap();
+        assert_eq!(held.len(), RECENT_RESULTS);
+        let ids: Vec<String> = held.iter().map(|r| r.result_id.id.to_string()).collect();
+        assert_eq!(ids.iter().filter(|id| *id == "id-5").count(), 1);
+        assert_eq!(ids.last().map(String::as_str), Some("id-5"));
+        assert!(!ids.contains(&"id-0".to_string()) && !ids.contains(&"id-1".to_string()), "{:?}", &ids[..3]);
     }
 
     /// GetResultListFiltered filters by state and ids, pages with MaxResults and StartIndex, and
