@@ -188,31 +188,22 @@ mv_structure!(
     /// `JobIdDataType`: the system's id of the job that made a result.
     JobIdDataType, mv::JOB_ID, { pub id: UAString }
 );
-mv_structure!(
-    /// `PartIdDataType`: the part a result is about.
-    PartIdDataType, mv::PART_ID, {
-        pub id: UAString,
-        #[opcua(optional)]
-        pub description: Option<LocalizedText>,
-    }
-);
-
-mv_structure!(
-    /// `MeasIdDataType`: the client's id of a measurement.
-    MeasIdDataType, mv::MEAS_ID, {
-        pub id: UAString,
-        #[opcua(optional)]
-        pub description: Option<LocalizedText>,
-    }
-);
-mv_structure!(
-    /// `ProductIdDataType`: the product a job was started for.
-    ProductIdDataType, mv::PRODUCT_ID, {
-        pub id: UAString,
-        #[opcua(optional)]
-        pub description: Option<LocalizedText>,
-    }
-);
+/// The structures of an `Id` and an optional `Description`.
+macro_rules! described_id {
+    ($name:ident, $ids:expr, $doc:literal) => {
+        mv_structure!(
+            #[doc = $doc]
+            $name, $ids, {
+                pub id: UAString,
+                #[opcua(optional)]
+                pub description: Option<LocalizedText>,
+            }
+        );
+    };
+}
+described_id!(PartIdDataType, mv::PART_ID, "`PartIdDataType`: the part a result is about.");
+described_id!(MeasIdDataType, mv::MEAS_ID, "`MeasIdDataType`: the client's id of a measurement.");
+described_id!(ProductIdDataType, mv::PRODUCT_ID, "`ProductIdDataType`: the product a job was started for.");
 mv_structure!(
     /// `ProcessingTimesDataType`: when the job ran; the durations in milliseconds.
     ProcessingTimesDataType, mv::PROCESSING_TIMES, {
