@@ -76,26 +76,12 @@ const RECENT_RESULTS: usize = 1000;
 /// `GetResultById`'s Error when the result is not among them (negative: the application's own).
 const RESULT_NOT_HELD: i32 = -1;
 
-/// The results announced last, newest at the back.
-type Recent = Arc<std::sync::Mutex<std::collections::VecDeque<ResultDataType>>>;
-
-/// Keeps a result for the result methods: once, at the back (an event read again after a failed
-/// read is announced again), the oldest dropped past [`RECENT_RESULTS`].
-fn hold(recent: &Recent, result: ResultDataType) {
-    let mut recent = recent.lock().unwrap_or_else(|e| e.into_inner());
-    recent.retain(|r| r.result_id != result.result_id);
-    if recent.len() == RECENT_RESULTS {
-        recent.pop_front();
-    }
-    recent.push_back(result);
-}
-
-/// What the result methods answer from: the results held and the next handle. A handle only names
-/// a call's answer (there is no file transfer to release), but is unique in this server, as the
-/// specification asks.
+/// What the result methods answer from: the results announced last (newest at the back) and the
+/// next handle. A handle only names a call's answer (there is no file transfer to release), but is
+/// unique in this server, as the specification asks.
 #[derive(Default)]
 struct Held {
-    recent: Recent,
+    recent: std::sync::Mutex<std::collections::VecDeque<ResultDataType>>,
     next_handle: std::sync::atomic::AtomicU32,
 }
 
@@ -106,6 +92,17 @@ impl Held {
 
     fn results(&self) -> std::sync::MutexGuard<'_, std::collections::VecDeque<ResultDataType>> {
         self.recent.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Keeps a result: once, at the back (an event read again after a failed read is announced
+    /// again), the oldest dropped past [`RECENT_RESULTS`].
+    fn hold(&self, result: ResultDataType) {
+        let mut recent = self.results();
+        recent.retain(|r| r.result_id != result.result_id);
+        if recent.len() == RECENT_RESULTS {
+            recent.pop_front();
+        }
+        recent.push_back(result);
     }
 }
 
@@ -558,7 +555,7 @@ pub struct OpcUaServer {
     listener: TcpListener,
     manager: Arc<SimpleNodeManager>,
     nodes: Nodes,
-    recent: Recent,
+    held: Arc<Held>,
     url: String,
 }
 
@@ -649,13 +646,12 @@ impl OpcUaServer {
             build_address_space(&mut space, ns)
         };
         let held = Arc::new(Held::default());
-        let recent = held.recent.clone();
-        let by_id = held.clone();
+        let (by_id, filtered) = (held.clone(), held.clone());
         manager.inner().add_method_callback(nodes.get_result_by_id.clone(), move |args| get_result_by_id(&by_id, args));
         manager.inner().add_method_callback(nodes.get_result_list_filtered.clone(), move |args| {
-            get_result_list_filtered(&held, args)
+            get_result_list_filtered(&filtered, args)
         });
-        Ok(OpcUaServer { server, handle, listener, manager, nodes, recent, url })
+        Ok(OpcUaServer { server, handle, listener, manager, nodes, held, url })
     }
 
     /// The endpoint's URL, with the port taken.
@@ -665,11 +661,11 @@ impl OpcUaServer {
 
     /// Serves until `stop`, following the events and the store's state.
     pub async fn run(self, store: Store, mut stop: watch::Receiver<bool>) {
-        let OpcUaServer { server, handle, listener, manager, nodes, recent, url } = self;
+        let OpcUaServer { server, handle, listener, manager, nodes, held, url } = self;
         tracing::info!(%url, "OPC UA server listening");
         let serving = tokio::spawn(server.run_with(listener));
         let mut follower =
-            Follower { store, handle: handle.clone(), manager, nodes, recent, cursor: None, checked: None };
+            Follower { store, handle: handle.clone(), manager, nodes, held, cursor: None, checked: None };
         let mut tick = tokio::time::interval(POLL);
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
@@ -824,8 +820,20 @@ fn build_address_space(space: &mut AddressSpace, ns: Namespaces) -> Nodes {
 
     let results = object(space, &system, mv_name("ResultManagement"), mv_type(mv::RESULT_MANAGEMENT_TYPE));
     let not_held = format!("0, or {RESULT_NOT_HELD}: not among the last {RECENT_RESULTS} results announced");
-    // ResultManagementType's GetResultById (its other methods are not offered: module docs).
-    let get_result_by_id = id("ResultManagement/GetResultById");
+    // ResultManagementType's GetResultById and GetResultListFiltered (its other methods are not
+    // offered: module docs).
+    let method = |space: &mut AddressSpace, name: &str, inputs: &[opcua::types::Argument], outputs: &[_]| {
+        let node = child(&results, &mv_name(name));
+        let arguments = |kind: &str| NodeId::new(ns.own, format!("ResultManagement/{name}/{kind}"));
+        opcua::server::address_space::MethodBuilder::new(&node, mv_name(name), name)
+            .component_of(results.clone())
+            .executable(true)
+            .user_executable(true)
+            .input_args(space, &arguments("InputArguments"), inputs)
+            .output_args(space, &arguments("OutputArguments"), outputs)
+            .insert(space);
+        node
+    };
     let argument = |name: &str, data_type: NodeId, description: &str| opcua::types::Argument {
         name: name.into(),
         data_type,
@@ -833,42 +841,23 @@ fn build_address_space(space: &mut AddressSpace, ns: Namespaces) -> Nodes {
         array_dimensions: None,
         description: description.into(),
     };
-    opcua::server::address_space::MethodBuilder::new(&get_result_by_id, mv_name("GetResultById"), "GetResultById")
-        .component_of(results.clone())
-        .executable(true)
-        .user_executable(true)
-        .input_args(
-            space,
-            &id("ResultManagement/GetResultById/InputArguments"),
-            &[
-                argument("ResultId", mv_type(mv::RESULT_ID.0), "the result's id (the inspection's)"),
-                argument("Timeout", DataTypeId::Int32.into(), "not used: a result is held or it is not"),
-            ],
-        )
-        .output_args(
-            space,
-            &id("ResultManagement/GetResultById/OutputArguments"),
-            &[
-                argument("ResultHandle", mv_type(mv::HANDLE), "unique in this server; nothing to release"),
-                argument("Result", mv_type(mv::RESULT.0), "the result, if held"),
-                argument("Error", DataTypeId::Int32.into(), &not_held),
-            ],
-        )
-        .insert(space);
-    // ResultManagementType's GetResultListFiltered over the same results.
-    let get_result_list_filtered = id("ResultManagement/GetResultListFiltered");
-    let filter = |name: &str, data_type: NodeId| argument(name, data_type, "a null or empty id filters nothing");
-    opcua::server::address_space::MethodBuilder::new(
-        &get_result_list_filtered,
-        mv_name("GetResultListFiltered"),
-        "GetResultListFiltered",
-    )
-    .component_of(results.clone())
-    .executable(true)
-    .user_executable(true)
-    .input_args(
+    let get_result_by_id = method(
         space,
-        &id("ResultManagement/GetResultListFiltered/InputArguments"),
+        "GetResultById",
+        &[
+            argument("ResultId", mv_type(mv::RESULT_ID.0), "the result's id (the inspection's)"),
+            argument("Timeout", DataTypeId::Int32.into(), "not used: a result is held or it is not"),
+        ],
+        &[
+            argument("ResultHandle", mv_type(mv::HANDLE), "unique in this server; nothing to release"),
+            argument("Result", mv_type(mv::RESULT.0), "the result, if held"),
+            argument("Error", DataTypeId::Int32.into(), &not_held),
+        ],
+    );
+    let filter = |name: &str, data_type: NodeId| argument(name, data_type, "a null or empty id filters nothing");
+    let get_result_list_filtered = method(
+        space,
+        "GetResultListFiltered",
         &[
             argument("ResultState", mv_type(mv::RESULT_STATE), "0 filters nothing"),
             filter("MeasId", mv_type(mv::MEAS_ID.0)),
@@ -883,10 +872,6 @@ fn build_address_space(space: &mut AddressSpace, ns: Namespaces) -> Nodes {
             argument("StartIndex", DataTypeId::UInt32.into(), "0, then multiples of MaxResults"),
             argument("Timeout", DataTypeId::Int32.into(), "not used"),
         ],
-    )
-    .output_args(
-        space,
-        &id("ResultManagement/GetResultListFiltered/OutputArguments"),
         &[
             argument("IsComplete", DataTypeId::Boolean.into(), "the list reaches the last match"),
             argument("ResultCount", DataTypeId::UInt32.into(), "the list's length"),
@@ -897,8 +882,7 @@ fn build_address_space(space: &mut AddressSpace, ns: Namespaces) -> Nodes {
             },
             argument("Error", DataTypeId::Int32.into(), "0"),
         ],
-    )
-    .insert(space);
+    );
     let last_result = object(space, &results, own_name("LastResult"), base_object());
     for (name_ns, name, type_ns, data_type, array) in RESULT_FIELDS {
         let value = match (array, type_ns, data_type) {
@@ -1037,7 +1021,7 @@ struct Follower {
     handle: ServerHandle,
     manager: Arc<SimpleNodeManager>,
     nodes: Nodes,
-    recent: Recent,
+    held: Arc<Held>,
     /// The last event seen; None until the first step reads where the table ends.
     cursor: Option<i64>,
     /// When the store was last checked, and whether it was healthy then.
@@ -1169,7 +1153,7 @@ impl Follower {
         };
         let (threads, _) = self.store.threads(id).await?;
         let event = result_event(&row, &threads, self.nodes.ns, self.nodes.vision_system.clone());
-        hold(&self.recent, result_data(&row));
+        self.held.hold(result_data(&row));
         // LastResult reads each field from the event as a subscriber's select clause would, so
         // that the two cannot differ (a unit test checks every field is found).
         for (_, name, _, _, _) in RESULT_FIELDS {
@@ -1456,17 +1440,17 @@ mod tests {
     /// A result announced again is held once, at the back; past the bound the oldest goes.
     #[test]
     fn results_are_held_once_and_bounded() {
-        let recent = Recent::default();
+        let held = Held::default();
         let result = |i: usize| {
             let mut inspection = row("conforms", None, &default_options());
             inspection.id = format!("id-{i}");
             result_data(&inspection)
         };
         for i in 0..RECENT_RESULTS + 2 {
-            hold(&recent, result(i));
+            held.hold(result(i));
         }
-        hold(&recent, result(5));
-        let held = recent.lock().unwrap();
+        held.hold(result(5));
+        let held = held.results();
         assert_eq!(held.len(), RECENT_RESULTS);
         let ids: Vec<String> = held.iter().map(|r| r.result_id.id.to_string()).collect();
         assert_eq!(ids.iter().filter(|id| *id == "id-5").count(), 1);
